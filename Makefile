@@ -1,0 +1,63 @@
+# cellbench — the two commands a fresh Debian machine needs: `make run` and `make test`.
+BUILD   ?= build
+JOBS    ?= $(shell nproc)
+SHARED  ?= $(abspath ../shared)
+DATA    := $(SHARED)/data/p45b
+BIN     := $(BUILD)/bin
+OUT     := $(BUILD)/run
+
+# Debian packages the build and the tests need (installed by `make deps` when missing).
+DEBS := cmake g++ make pkg-config \
+        libceres-dev libeigen3-dev libboost-dev libboost-system-dev libspdlog-dev nlohmann-json3-dev \
+        libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
+        python3 python3-numpy python3-scipy
+
+.PHONY: all deps configure build run test test-unit test-data bench clean
+
+all: build
+
+deps:
+	@missing=""; for p in $(DEBS); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  if [ "$$(id -u)" -eq 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+
+configure: deps
+	@cmake -S . -B $(BUILD) -DCMAKE_BUILD_TYPE=Release -DCELLBENCH_SHARED_DIR=$(SHARED) > $(BUILD).configure.log 2>&1 \
+	  || (cat $(BUILD).configure.log; exit 1)
+
+build: configure
+	cmake --build $(BUILD) -j$(JOBS)
+
+# The main job. For now (before the daemon lands): fit the real P45B HPPC + 4C discharge, then simulate the
+# Random Walk — a profile the fit never saw — with the fitted parameters and with the thesis' own.
+run: build
+	@mkdir -p $(OUT)
+	$(BIN)/cellbench import --neware $(DATA)/hppc_1c_30degC_neware.csv --bdf $(DATA)/hppc_1c_30degC.bdf.csv -o $(OUT)/hppc.bdf.csv
+	$(BIN)/cellbench import --neware $(DATA)/rw_30degC_neware.csv --dewesoft $(DATA)/rw_30degC_dewesoft.csv -o $(OUT)/rw.bdf.csv
+	$(BIN)/cellbench fit $(OUT)/hppc.bdf.csv $(DATA)/cc_4c_30degC.bdf.csv -o $(OUT)/p45b.params.json --json $(OUT)/fit-summary.json
+	@echo "== Random Walk, thesis parameters (config/cells/p45b-thesis.json)"
+	$(BIN)/cellbench simulate --params config/cells/p45b-thesis.json $(OUT)/rw.bdf.csv --json $(OUT)/rw-thesis.metrics.json
+	@echo "== Random Walk, parameters fitted by cellbench"
+	$(BIN)/cellbench simulate --params $(OUT)/p45b.params.json $(OUT)/rw.bdf.csv --json $(OUT)/rw-fitted.metrics.json --out $(OUT)/rw-fitted.sim.bdf.csv
+	@echo "outputs in $(OUT)/"
+
+test: build
+	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) --timeout 600
+
+test-unit: build
+	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) -L unit
+
+test-data: build
+	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) -L data
+
+bench: build
+	@for b in $(BIN)/*_bench; do echo "== $$b"; $$b --benchmark_counters_tabular=true || exit 1; done
+	python3 bench/scipy_baseline.py $(DATA)/hppc_1c_30degC.bdf.csv
+
+clean:
+	rm -rf $(BUILD) $(BUILD).configure.log

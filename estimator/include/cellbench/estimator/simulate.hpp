@@ -1,0 +1,45 @@
+#pragma once
+// Drive the model with a recording's measured current (and measured ambient temperature when present) and
+// compare with its measured voltage, surface temperature and heat flux (thesis Table 5.2 definitions:
+// errors are simulated minus measured; RMS is time-weighted, eq. 5.5; heat flux in W over thermal.area_m2).
+#include <optional>
+#include <vector>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/model.hpp"
+
+namespace cellbench::estimator {
+
+struct SimulationOptions {
+    std::optional<double> initial_soc;        // default: from the first rested voltage (inverse OCV)
+    std::optional<double> ambient_c;          // default: measured ambient, else the first surface reading
+    std::optional<double> initial_temperature_c;  // default: first surface reading, else ambient
+};
+
+struct SimulationTrace {
+    std::vector<double> time_s, voltage_v, ocv_v, soc, temperature_c, heat_flow_out_w, heat_generated_w;
+    double ambient_c = 0.0;  // the constant ambient used when the recording has none
+    double initial_soc = 0.0;
+};
+
+SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options = {});
+
+struct ErrorStats {
+    std::optional<double> rms;      // nullopt: the recording does not measure this quantity
+    std::optional<double> max_abs;
+};
+
+struct SimulationMetrics {
+    std::size_t samples = 0;
+    ErrorStats voltage_v, temperature_c, heat_flux_w;
+};
+
+// Errors of a trace against the recording over rows where both are finite; mask (optional, same size as the
+// recording) selects rows.
+SimulationMetrics compare(const ParameterSet& params, const Recording& rec, const SimulationTrace& trace,
+                          const std::vector<bool>* mask = nullptr);
+
+// Time weights of each row for eq. 5.5 (half the sum of the adjacent intervals).
+std::vector<double> time_weights(const std::vector<double>& time_s);
+
+}  // namespace cellbench::estimator

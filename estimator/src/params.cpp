@@ -1,0 +1,226 @@
+#include "cellbench/estimator/params.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "cellbench/core/recording.hpp"
+
+namespace cellbench::estimator {
+
+namespace {
+
+using nlohmann::json;
+
+[[noreturn]] void fail(const std::string& source, const std::string& path, const std::string& what) {
+    throw InputError(source + ": " + path + ": " + what);
+}
+
+const json& member(const json& j, const std::string& key, const std::string& source, const std::string& path) {
+    if (!j.is_object()) fail(source, path, "expected an object");
+    auto it = j.find(key);
+    if (it == j.end()) fail(source, path + "." + key, "missing (required)");
+    return *it;
+}
+
+double number(const json& j, const std::string& source, const std::string& path) {
+    if (!j.is_number()) fail(source, path, "expected a number, got " + std::string(j.type_name()));
+    const double v = j.get<double>();
+    if (!std::isfinite(v)) fail(source, path, "expected a finite number");
+    return v;
+}
+
+double number_member(const json& j, const std::string& key, const std::string& source, const std::string& path) {
+    return number(member(j, key, source, path), source, path + "." + key);
+}
+
+std::vector<double> number_array(const json& j, const std::string& source, const std::string& path) {
+    if (!j.is_array()) fail(source, path, "expected an array of numbers");
+    std::vector<double> out;
+    out.reserve(j.size());
+    for (std::size_t i = 0; i < j.size(); ++i) out.push_back(number(j[i], source, path + "[" + std::to_string(i) + "]"));
+    return out;
+}
+
+std::vector<double> array_member(const json& j, const std::string& key, const std::string& source,
+                                 const std::string& path) {
+    return number_array(member(j, key, source, path), source, path + "." + key);
+}
+
+RcTable rc_table(const json& j, const std::string& source, const std::string& path) {
+    RcTable t;
+    t.r0_ohm = array_member(j, "r0_ohm", source, path);
+    t.r1_ohm = array_member(j, "r1_ohm", source, path);
+    t.c1_f = array_member(j, "c1_f", source, path);
+    t.r2_ohm = array_member(j, "r2_ohm", source, path);
+    t.c2_f = array_member(j, "c2_f", source, path);
+    return t;
+}
+
+json rc_json(const RcTable& t) {
+    return json{{"r0_ohm", t.r0_ohm}, {"r1_ohm", t.r1_ohm}, {"c1_f", t.c1_f}, {"r2_ohm", t.r2_ohm}, {"c2_f", t.c2_f}};
+}
+
+std::size_t segment_index(const std::vector<double>& x, double xq) {
+    // index i such that x[i] <= xq < x[i+1], clamped to [0, n-2]
+    auto it = std::upper_bound(x.begin(), x.end(), xq);
+    std::size_t i = it == x.begin() ? 0 : static_cast<std::size_t>(it - x.begin()) - 1;
+    return std::min(i, x.size() - 2);
+}
+
+constexpr double kGasConstantJPerMolK = 8.314462618;
+
+}  // namespace
+
+double interp_hold(const std::vector<double>& x, const std::vector<double>& y, double xq) {
+    if (x.empty()) return kNaN;
+    if (x.size() == 1 || xq <= x.front()) return y.front();
+    if (xq >= x.back()) return y.back();
+    const std::size_t i = segment_index(x, xq);
+    const double w = (xq - x[i]) / (x[i + 1] - x[i]);
+    return y[i] + w * (y[i + 1] - y[i]);
+}
+
+double interp_extrap(const std::vector<double>& x, const std::vector<double>& y, double xq) {
+    if (x.empty()) return kNaN;
+    if (x.size() == 1) return y.front();
+    const std::size_t i = segment_index(x, xq);
+    const double w = (xq - x[i]) / (x[i + 1] - x[i]);
+    return y[i] + w * (y[i + 1] - y[i]);
+}
+
+ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
+    if (!j.is_object()) fail(source, "$", "expected a JSON object");
+    const auto& schema = member(j, "schema", source, "$");
+    if (!schema.is_string() || schema.get<std::string>() != kParamsSchema)
+        fail(source, "$.schema", std::string("expected \"") + kParamsSchema + "\"");
+    ParameterSet p;
+    if (auto it = j.find("cell"); it != j.end() && it->is_string()) p.cell = it->get<std::string>();
+    p.capacity_ah = number_member(j, "capacity_ah", source, "$");
+    if (j.contains("reference_temperature_c"))
+        p.reference_temperature_c = number_member(j, "reference_temperature_c", source, "$");
+    p.soc = array_member(j, "soc", source, "$");
+    p.ocv_v = array_member(j, "ocv_v", source, "$");
+    p.discharge = rc_table(member(j, "discharge", source, "$"), source, "$.discharge");
+    p.charge = rc_table(member(j, "charge", source, "$"), source, "$.charge");
+    const auto& th = member(j, "thermal", source, "$");
+    p.thermal.c_th_j_per_k = number_member(th, "c_th_j_per_k", source, "$.thermal");
+    p.thermal.r_th_k_per_w = number_member(th, "r_th_k_per_w", source, "$.thermal");
+    p.thermal.area_m2 = number_member(th, "area_m2", source, "$.thermal");
+    if (th.contains("ehc_soc")) p.thermal.ehc_soc = array_member(th, "ehc_soc", source, "$.thermal");
+    if (th.contains("ehc_v_per_k")) p.thermal.ehc_v_per_k = array_member(th, "ehc_v_per_k", source, "$.thermal");
+    if (auto it = j.find("extensions"); it != j.end()) {
+        if (!it->is_object()) fail(source, "$.extensions", "expected an object keyed by effect id");
+        for (const auto& [key, value] : it->items()) {
+            const std::string path = "$.extensions." + key;
+            if (key == "resistance_temperature") {
+                ResistanceTemperatureExt e;
+                e.activation_energy_j_per_mol = number_member(value, "activation_energy_j_per_mol", source, path);
+                p.extensions.resistance_temperature = e;
+            } else {
+                p.extensions.other[key] = value;
+            }
+        }
+    }
+    p.validate(source);
+    return p;
+}
+
+json ParameterSet::to_json() const {
+    json ext = extensions.other;
+    if (extensions.resistance_temperature)
+        ext["resistance_temperature"] = {
+            {"activation_energy_j_per_mol", extensions.resistance_temperature->activation_energy_j_per_mol}};
+    return json{{"schema", kParamsSchema},
+                {"cell", cell},
+                {"capacity_ah", capacity_ah},
+                {"reference_temperature_c", reference_temperature_c},
+                {"soc", soc},
+                {"ocv_v", ocv_v},
+                {"discharge", rc_json(discharge)},
+                {"charge", rc_json(charge)},
+                {"thermal",
+                 {{"c_th_j_per_k", thermal.c_th_j_per_k},
+                  {"r_th_k_per_w", thermal.r_th_k_per_w},
+                  {"area_m2", thermal.area_m2},
+                  {"ehc_soc", thermal.ehc_soc},
+                  {"ehc_v_per_k", thermal.ehc_v_per_k}}},
+                {"extensions", ext}};
+}
+
+void ParameterSet::validate(const std::string& source) const {
+    if (!(capacity_ah > 0)) fail(source, "$.capacity_ah", "expected a positive capacity in Ah");
+    if (soc.size() < 2) fail(source, "$.soc", "expected at least two SOC breakpoints");
+    for (std::size_t i = 0; i < soc.size(); ++i) {
+        if (soc[i] < 0 || soc[i] > 1) fail(source, "$.soc[" + std::to_string(i) + "]", "expected a fraction 0..1");
+        if (i > 0 && !(soc[i] > soc[i - 1]))
+            fail(source, "$.soc[" + std::to_string(i) + "]", "expected strictly ascending SOC");
+    }
+    auto check_size = [&](const std::vector<double>& v, const std::string& path) {
+        if (v.size() != soc.size())
+            fail(source, path,
+                 "expected " + std::to_string(soc.size()) + " values (one per soc entry), got " + std::to_string(v.size()));
+    };
+    auto check_positive = [&](const std::vector<double>& v, const std::string& path) {
+        check_size(v, path);
+        for (std::size_t i = 0; i < v.size(); ++i)
+            if (!(v[i] > 0)) fail(source, path + "[" + std::to_string(i) + "]", "expected a positive value");
+    };
+    check_size(ocv_v, "$.ocv_v");
+    for (const auto& [name, t] : {std::pair<std::string, const RcTable*>{"discharge", &discharge}, {"charge", &charge}}) {
+        check_positive(t->r0_ohm, "$." + name + ".r0_ohm");
+        check_positive(t->r1_ohm, "$." + name + ".r1_ohm");
+        check_positive(t->c1_f, "$." + name + ".c1_f");
+        check_positive(t->r2_ohm, "$." + name + ".r2_ohm");
+        check_positive(t->c2_f, "$." + name + ".c2_f");
+    }
+    if (!(thermal.c_th_j_per_k > 0)) fail(source, "$.thermal.c_th_j_per_k", "expected a positive thermal capacity");
+    if (!(thermal.r_th_k_per_w > 0)) fail(source, "$.thermal.r_th_k_per_w", "expected a positive thermal resistance");
+    if (!(thermal.area_m2 > 0)) fail(source, "$.thermal.area_m2", "expected a positive area");
+    if (thermal.ehc_soc.size() != thermal.ehc_v_per_k.size())
+        fail(source, "$.thermal.ehc_v_per_k", "expected one value per ehc_soc entry");
+    for (std::size_t i = 1; i < thermal.ehc_soc.size(); ++i)
+        if (!(thermal.ehc_soc[i] > thermal.ehc_soc[i - 1]))
+            fail(source, "$.thermal.ehc_soc[" + std::to_string(i) + "]", "expected strictly ascending SOC");
+}
+
+double ParameterSet::ocv_at(double s) const { return interp_extrap(soc, ocv_v, s); }
+
+double ParameterSet::docv_dsoc_at(double s) const {
+    const std::size_t i = segment_index(soc, s);
+    return (ocv_v[i + 1] - ocv_v[i]) / (soc[i + 1] - soc[i]);
+}
+
+Rc2Params<double> ParameterSet::rc_at(double s, int direction) const {
+    const RcTable& t = direction > 0 ? charge : discharge;
+    const double r1 = interp_hold(soc, t.r1_ohm, s), r2 = interp_hold(soc, t.r2_ohm, s);
+    return {interp_hold(soc, t.r0_ohm, s), r1, r1 * interp_hold(soc, t.c1_f, s), r2, r2 * interp_hold(soc, t.c2_f, s)};
+}
+
+double ParameterSet::ehc_at(double s) const {
+    if (thermal.ehc_soc.empty()) return 0.0;
+    return interp_hold(thermal.ehc_soc, thermal.ehc_v_per_k, s);
+}
+
+double ParameterSet::soc_from_ocv(double v) const {
+    // The OCV table is monotone for a Li-ion cell; invert piecewise (with the same linear extrapolation).
+    const std::size_t n = soc.size();
+    if (v <= ocv_v.front()) {
+        const double slope = (ocv_v[1] - ocv_v[0]) / (soc[1] - soc[0]);
+        return std::clamp(soc[0] + (v - ocv_v[0]) / slope, 0.0, 1.0);
+    }
+    if (v >= ocv_v.back()) {
+        const double slope = (ocv_v[n - 1] - ocv_v[n - 2]) / (soc[n - 1] - soc[n - 2]);
+        return std::clamp(soc[n - 1] + (v - ocv_v[n - 1]) / slope, 0.0, 1.0);
+    }
+    for (std::size_t i = 0; i + 1 < n; ++i) {
+        if (v >= ocv_v[i] && v <= ocv_v[i + 1]) {
+            const double span = ocv_v[i + 1] - ocv_v[i];
+            const double w = span > 0 ? (v - ocv_v[i]) / span : 0.0;
+            return std::clamp(soc[i] + w * (soc[i + 1] - soc[i]), 0.0, 1.0);
+        }
+    }
+    return kNaN;
+}
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,111 @@
+#include "cellbench/estimator/simulate.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace cellbench::estimator {
+
+namespace {
+
+double first_finite(const std::vector<double>& v) {
+    for (double x : v)
+        if (std::isfinite(x)) return x;
+    return kNaN;
+}
+
+}  // namespace
+
+std::vector<double> time_weights(const std::vector<double>& t) {
+    const std::size_t n = t.size();
+    std::vector<double> w(n, 0.0);
+    if (n == 1) w[0] = 1.0;
+    for (std::size_t k = 0; k + 1 < n; ++k) {
+        const double half = 0.5 * (t[k + 1] - t[k]);
+        w[k] += half;
+        w[k + 1] += half;
+    }
+    return w;
+}
+
+SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options) {
+    const auto& p = model.params();
+    const std::size_t n = rec.size();
+    SimulationTrace tr;
+    if (n == 0) return tr;
+
+    // Ambient: measured when present, else given, else the first surface reading (cell at equilibrium).
+    const double first_surface = rec.has_surface() ? first_finite(rec.surface_c) : kNaN;
+    double ambient_const = options.ambient_c.value_or(std::isfinite(first_surface) ? first_surface
+                                                                                    : p.reference_temperature_c);
+    if (!options.ambient_c && rec.has_ambient()) ambient_const = first_finite(rec.ambient_c);
+    auto ambient_at = [&](std::size_t k) {
+        if (!options.ambient_c && rec.has_ambient() && std::isfinite(rec.ambient_c[k])) return rec.ambient_c[k];
+        return ambient_const;
+    };
+
+    CellState s;
+    s.temperature_c = options.initial_temperature_c.value_or(std::isfinite(first_surface) ? first_surface
+                                                                                          : ambient_at(0));
+    s.direction = current_direction(rec.current_a[0], -1);
+    if (options.initial_soc) {
+        s.soc = *options.initial_soc;
+    } else {
+        // The state the recording implies: a rested cell's voltage is its OCV; under current, remove R0*I.
+        const double r0 = p.rc_at(p.soc_from_ocv(rec.voltage_v[0]), s.direction).r0_ohm;
+        s.soc = p.soc_from_ocv(rec.voltage_v[0] - r0 * rec.current_a[0]);
+    }
+    tr.initial_soc = s.soc;
+    tr.ambient_c = ambient_const;
+
+    for (auto* v : {&tr.time_s, &tr.voltage_v, &tr.ocv_v, &tr.soc, &tr.temperature_c, &tr.heat_flow_out_w,
+                    &tr.heat_generated_w})
+        v->reserve(n);
+    for (std::size_t k = 0; k < n; ++k) {
+        const double dt = k == 0 ? 0.0 : rec.time_s[k] - rec.time_s[k - 1];
+        const CellOutputs o = model.step(s, rec.current_a[k], ambient_at(k), dt);
+        tr.time_s.push_back(rec.time_s[k]);
+        tr.voltage_v.push_back(o.voltage_v);
+        tr.ocv_v.push_back(o.ocv_v);
+        tr.soc.push_back(s.soc);
+        tr.temperature_c.push_back(s.temperature_c);
+        tr.heat_flow_out_w.push_back(o.heat_flow_out_w);
+        tr.heat_generated_w.push_back(o.heat_irreversible_w + o.heat_reversible_w);
+    }
+    return tr;
+}
+
+SimulationMetrics compare(const ParameterSet& params, const Recording& rec, const SimulationTrace& tr,
+                          const std::vector<bool>* mask) {
+    SimulationMetrics m;
+    const std::size_t n = std::min(rec.size(), tr.time_s.size());
+    m.samples = 0;
+    const auto w = time_weights(rec.time_s);
+    auto stats = [&](auto&& error_at, bool measured) {
+        ErrorStats e;
+        if (!measured) return e;
+        double sum_w = 0, sum_e2 = 0, max_abs = 0;
+        for (std::size_t k = 0; k < n; ++k) {
+            if (mask && !(*mask)[k]) continue;
+            const double err = error_at(k);
+            if (!std::isfinite(err)) continue;
+            sum_w += w[k];
+            sum_e2 += w[k] * err * err;
+            max_abs = std::max(max_abs, std::abs(err));
+        }
+        if (sum_w > 0) {
+            e.rms = std::sqrt(sum_e2 / sum_w);
+            e.max_abs = max_abs;
+        }
+        return e;
+    };
+    for (std::size_t k = 0; k < n; ++k)
+        if (!mask || (*mask)[k]) ++m.samples;
+    m.voltage_v = stats([&](std::size_t k) { return tr.voltage_v[k] - rec.voltage_v[k]; }, true);
+    m.temperature_c = stats([&](std::size_t k) { return tr.temperature_c[k] - rec.surface_c[k]; }, rec.has_surface());
+    m.heat_flux_w = stats(
+        [&](std::size_t k) { return tr.heat_flow_out_w[k] - rec.heat_flux_w_per_m2[k] * params.thermal.area_m2; },
+        rec.has_heat_flux());
+    return m;
+}
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,170 @@
+// The electrothermal model: exact ZOH discretization, signs, Coulomb counting, thermal balance.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "cellbench/estimator/model.hpp"
+#include "cellbench/estimator/simulate.hpp"
+
+using namespace cellbench;
+using namespace cellbench::estimator;
+
+namespace {
+
+ParameterSet flat_params(double ehc_v_per_k = 0.0) {
+    ParameterSet p;
+    p.cell = "test";
+    p.capacity_ah = 4.0;
+    p.reference_temperature_c = 25.0;
+    p.soc = {0.0, 1.0};
+    p.ocv_v = {3.0, 4.2};
+    RcTable t{{0.0075, 0.0075}, {0.0015, 0.0015}, {1000, 1000}, {0.008, 0.008}, {3000, 3000}};
+    p.discharge = t;
+    p.charge = t;
+    p.charge.r0_ohm = {0.0080, 0.0080};
+    p.thermal = {63.3, 5.26, 5.311e-3, {0.0, 1.0}, {ehc_v_per_k, ehc_v_per_k}};
+    return p;
+}
+
+}  // namespace
+
+TEST(CellModel, ChargingRaisesVoltageAboveOcvAndDischargingLowersIt) {
+    const CellModel m(flat_params());
+    CellState s;
+    s.soc = 0.5;
+    auto out = m.step(s, +4.5, 25.0, 1.0);
+    EXPECT_GT(out.voltage_v, out.ocv_v + 4.5 * 0.0080 - 1e-12);
+    s = CellState{};
+    s.soc = 0.5;
+    out = m.step(s, -4.5, 25.0, 1.0);
+    EXPECT_LT(out.voltage_v, out.ocv_v - 4.5 * 0.0075 + 1e-12);
+    EXPECT_EQ(s.direction, -1);
+}
+
+TEST(CellModel, CoulombCountingUsesCapacity) {
+    const CellModel m(flat_params());
+    CellState s;
+    s.soc = 0.9;
+    m.step(s, -4.0, 25.0, 360.0);  // 0.4 Ah out of 4 Ah
+    EXPECT_NEAR(s.soc, 0.8, 1e-12);
+}
+
+TEST(CellModel, DiscretizationIsExactWhateverTheStep) {
+    // Constant parameters and current: one 60 s step must equal 600 steps of 0.1 s (exact ZOH), electrical and
+    // thermal alike, including the reversible heat term. An Euler step would differ by far more.
+    const CellModel m(flat_params(2e-4));
+    CellState a, b;
+    a.soc = b.soc = 0.6;
+    a.temperature_c = b.temperature_c = 27.0;
+    const auto big = m.step(a, -13.5, 25.0, 60.0);
+    CellOutputs small;
+    for (int k = 0; k < 600; ++k) small = m.step(b, -13.5, 25.0, 0.1);
+    EXPECT_NEAR(a.v1_v, b.v1_v, 1e-12);
+    EXPECT_NEAR(a.v2_v, b.v2_v, 1e-12);
+    EXPECT_NEAR(a.temperature_c, b.temperature_c, 1e-9);
+    EXPECT_NEAR(a.soc, b.soc, 1e-12);
+    EXPECT_NEAR(big.voltage_v, small.voltage_v, 1e-9);
+}
+
+TEST(CellModel, RcVoltageFollowsTheAnalyticStepResponse) {
+    const CellModel m(flat_params());
+    CellState s;
+    s.soc = 0.5;
+    const double i = -4.5, t = 12.0;
+    m.step(s, i, 25.0, t);
+    EXPECT_NEAR(s.v1_v, 0.0015 * i * (1 - std::exp(-t / 1.5)), 1e-12);
+    EXPECT_NEAR(s.v2_v, 0.008 * i * (1 - std::exp(-t / 24.0)), 1e-12);
+}
+
+TEST(CellModel, ThermalSteadyStateBalancesJouleHeat) {
+    // Long constant current: T -> Ta + Rth * I^2 * (R0 + R1 + R2); heat out = heat generated.
+    const CellModel m(flat_params());
+    CellState s;
+    s.soc = 0.5;
+    s.temperature_c = 25.0;
+    const double i = -9.0;
+    CellOutputs out;
+    for (int k = 0; k < 200; ++k) out = m.step(s, i, 25.0, 60.0);  // 3.3 h, many thermal time constants
+    const double q = i * i * (0.0075 + 0.0015 + 0.008);
+    EXPECT_NEAR(s.temperature_c, 25.0 + 5.26 * q, 1e-6);
+    EXPECT_NEAR(out.heat_flow_out_w, q, 1e-6);
+    EXPECT_NEAR(out.heat_irreversible_w, q, 1e-9);
+}
+
+TEST(CellModel, ReversibleHeatSignFollowsCurrentAndCoefficient) {
+    // Positive dU/dT: discharge is endothermic (cools), charge exothermic (thesis sec. 4.1.2).
+    const CellModel m(flat_params(3e-4));
+    CellState s;
+    s.soc = 0.5;
+    s.temperature_c = 25.0;
+    EXPECT_LT(m.step(s, -4.5, 25.0, 1.0).heat_reversible_w, 0.0);
+    EXPECT_GT(m.step(s, +4.5, 25.0, 1.0).heat_reversible_w, 0.0);
+}
+
+TEST(CellModel, RestKeepsTheDirectionOfTheLastCurrent) {
+    const CellModel m(flat_params());
+    CellState s;
+    m.step(s, +4.5, 25.0, 1.0);
+    m.step(s, 0.0, 25.0, 1.0);
+    EXPECT_EQ(s.direction, +1);
+    m.step(s, -4.5, 25.0, 1.0);
+    m.step(s, 0.0, 25.0, 1.0);
+    EXPECT_EQ(s.direction, -1);
+}
+
+TEST(CellModel, ArrheniusExtensionLowersResistanceWhenWarm) {
+    auto p = flat_params();
+    p.extensions.resistance_temperature = ResistanceTemperatureExt{30000.0};
+    const CellModel m(p);
+    EXPECT_NEAR(m.resistance_factor(25.0), 1.0, 1e-12);
+    EXPECT_LT(m.resistance_factor(35.0), 0.7);
+    EXPECT_GT(m.resistance_factor(15.0), 1.4);
+}
+
+TEST(Simulate, StartsFromTheRestedStateAndMatchesItsOwnOutput) {
+    // A recording produced by the model itself is reproduced exactly (zero error), from the implied state.
+    const CellModel m(flat_params());
+    Recording rec;
+    CellState s;
+    s.soc = 0.75;
+    s.temperature_c = 25.0;
+    double t = 0;
+    for (int k = 0; k < 3000; ++k) {
+        const double i = k < 10 ? 0.0 : (k / 300) % 2 ? 4.5 : -9.0;
+        const auto o = m.step(s, i, 25.0, k == 0 ? 0.0 : 0.1);
+        rec.time_s.push_back(t);
+        rec.current_a.push_back(i);
+        rec.voltage_v.push_back(o.voltage_v);
+        rec.surface_c.push_back(s.temperature_c);
+        rec.heat_flux_w_per_m2.push_back(o.heat_flow_out_w / 5.311e-3);
+        t += 0.1;
+    }
+    const auto tr = simulate(m, rec);
+    EXPECT_NEAR(tr.initial_soc, 0.75, 1e-9);
+    const auto met = compare(m.params(), rec, tr);
+    ASSERT_TRUE(met.voltage_v.rms.has_value());
+    EXPECT_LT(*met.voltage_v.rms, 1e-9);
+    EXPECT_LT(*met.temperature_c.rms, 1e-9);
+    EXPECT_LT(*met.heat_flux_w.rms, 1e-9);
+    EXPECT_FALSE(met.voltage_v.rms.value() > 0.001);
+}
+
+TEST(Simulate, UnmeasuredQuantitiesHaveNoMetric) {
+    const CellModel m(flat_params());
+    Recording rec;
+    rec.time_s = {0, 1, 2};
+    rec.current_a = {0, -1, -1};
+    rec.voltage_v = {3.6, 3.59, 3.58};
+    const auto met = compare(m.params(), rec, simulate(m, rec));
+    EXPECT_TRUE(met.voltage_v.rms.has_value());
+    EXPECT_FALSE(met.temperature_c.rms.has_value());
+    EXPECT_FALSE(met.heat_flux_w.rms.has_value());
+}
+
+TEST(Simulate, RmsIsTimeWeighted) {
+    const auto w = time_weights({0.0, 1.0, 3.0});
+    ASSERT_EQ(w.size(), 3u);
+    EXPECT_DOUBLE_EQ(w[0], 0.5);
+    EXPECT_DOUBLE_EQ(w[1], 1.5);
+    EXPECT_DOUBLE_EQ(w[2], 1.0);
+}

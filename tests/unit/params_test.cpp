@@ -1,0 +1,97 @@
+// Parameter set JSON (cellbench.params/1): round trip, table look-ups, clear errors with JSON paths.
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <sstream>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/params.hpp"
+
+using namespace cellbench;
+using namespace cellbench::estimator;
+using nlohmann::json;
+
+namespace {
+
+json thesis_json() {
+    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/config/cells/p45b-thesis.json");
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return json::parse(ss.str());
+}
+
+std::string error_of(const json& j) {
+    try {
+        ParameterSet::from_json(j, "p.json");
+    } catch (const InputError& e) {
+        return e.what();
+    }
+    return "";
+}
+
+}  // namespace
+
+TEST(ParameterSet, ThesisSetLoadsAndRoundTrips) {
+    const auto p = ParameterSet::from_json(thesis_json(), "p45b-thesis.json");
+    EXPECT_EQ(p.soc.size(), 11u);
+    EXPECT_DOUBLE_EQ(p.capacity_ah, 4.0);
+    EXPECT_NEAR(p.thermal.c_th_j_per_k, 63.28, 1e-9);
+    EXPECT_NEAR(p.ocv_at(0.5), 3.72, 1e-12);
+    EXPECT_NEAR(p.ocv_at(0.55), (3.72 + 3.79) / 2, 1e-12);
+    EXPECT_NEAR(p.rc_at(0.5, -1).r0_ohm, 0.00734, 1e-12);
+    EXPECT_NEAR(p.rc_at(0.5, +1).r0_ohm, 0.00741, 1e-12);
+    EXPECT_NEAR(p.rc_at(0.5, -1).tau1_s, 0.00170 * 1215, 1e-9);
+    EXPECT_NEAR(p.ehc_at(0.10), -1.4e-4, 1e-12);
+    const auto again = ParameterSet::from_json(p.to_json(), "again");
+    EXPECT_EQ(again.to_json(), p.to_json());
+}
+
+TEST(ParameterSet, LookupsHoldOutsideTheTableAndOcvExtrapolates) {
+    auto p = ParameterSet::from_json(thesis_json(), "t");
+    p.soc = {0.1, 0.9};
+    p.ocv_v = {3.3, 4.1};
+    for (auto* t : {&p.discharge, &p.charge}) *t = RcTable{{0.008, 0.007}, {0.002, 0.001}, {1000, 1000}, {0.01, 0.01}, {2000, 2000}};
+    p.validate();
+    EXPECT_DOUBLE_EQ(p.rc_at(0.0, -1).r0_ohm, 0.008);
+    EXPECT_DOUBLE_EQ(p.rc_at(1.0, -1).r0_ohm, 0.007);
+    EXPECT_NEAR(p.ocv_at(1.0), 4.2, 1e-12);
+    EXPECT_NEAR(p.soc_from_ocv(3.7), 0.5, 1e-12);
+    EXPECT_DOUBLE_EQ(p.soc_from_ocv(5.0), 1.0);
+}
+
+TEST(ParameterSet, ExtensionsArePreservedAndUnderstood) {
+    auto j = thesis_json();
+    j["extensions"]["resistance_temperature"] = {{"activation_energy_j_per_mol", 25000.0}};
+    j["extensions"]["future_effect"] = {{"k", 1}};
+    const auto p = ParameterSet::from_json(j, "t");
+    ASSERT_TRUE(p.extensions.resistance_temperature.has_value());
+    EXPECT_DOUBLE_EQ(p.extensions.resistance_temperature->activation_energy_j_per_mol, 25000.0);
+    EXPECT_EQ(p.to_json()["extensions"]["future_effect"]["k"], 1);
+}
+
+TEST(ParameterSet, ErrorsNameTheJsonPathAndWhatWasExpected) {
+    auto j = thesis_json();
+    j["discharge"]["r1_ohm"].erase(3);
+    EXPECT_NE(error_of(j).find("$.discharge.r1_ohm"), std::string::npos) << error_of(j);
+    EXPECT_NE(error_of(j).find("one per soc entry"), std::string::npos);
+
+    j = thesis_json();
+    j["thermal"]["r_th_k_per_w"] = "five";
+    EXPECT_NE(error_of(j).find("$.thermal.r_th_k_per_w: expected a number"), std::string::npos) << error_of(j);
+
+    j = thesis_json();
+    j["schema"] = "other/2";
+    EXPECT_NE(error_of(j).find("$.schema"), std::string::npos);
+
+    j = thesis_json();
+    j.erase("capacity_ah");
+    EXPECT_NE(error_of(j).find("$.capacity_ah: missing"), std::string::npos);
+
+    j = thesis_json();
+    j["soc"][2] = 0.05;  // not ascending
+    EXPECT_NE(error_of(j).find("ascending"), std::string::npos);
+
+    j = thesis_json();
+    j["charge"]["c2_f"][0] = -1.0;
+    EXPECT_NE(error_of(j).find("$.charge.c2_f[0]: expected a positive value"), std::string::npos) << error_of(j);
+}

@@ -1,0 +1,85 @@
+#include <cstdio>
+#include <exception>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include "cellbench/core/recording.hpp"
+#include "cli/commands.hpp"
+
+namespace cellbench::cli {
+
+int run_cli(int argc, char** argv) {
+    // Logs (and progress) go to stderr; stdout carries the results.
+    spdlog::set_default_logger(spdlog::stderr_color_mt("cellbench"));
+    spdlog::set_pattern("%^%l%$: %v");
+
+    CLI::App app{"cellbench: electrothermal characterization of Li-ion cells (fit, simulate, diagnose recordings)"};
+    app.require_subcommand(1);
+    bool verbose = false, quiet = false;
+    app.add_flag("-v,--verbose", verbose, "More log output");
+    app.add_flag("-q,--quiet", quiet, "Only warnings and errors");
+
+    ImportOptions imp;
+    auto* import_cmd = app.add_subcommand("import", "Merge instrument exports (Neware, DewesoftX, BDF) into one BDF recording");
+    import_cmd->add_option("--neware", imp.neware, "Neware BTS record export (CSV)")->check(CLI::ExistingFile);
+    import_cmd->add_option("--dewesoft", imp.dewesoft, "DewesoftX export (CSV) with thermopile voltage and Type-T")
+        ->check(CLI::ExistingFile);
+    import_cmd->add_option("--bdf", imp.bdf, "BDF recording to merge (e.g. cycler+DAQ already on one clock)")
+        ->check(CLI::ExistingFile);
+    import_cmd->add_option("-o,--output", imp.output, "Output BDF CSV")->required();
+    import_cmd->add_option("--sensitivity", imp.sensitivity_v_per_w_per_m2,
+                           "Heat flux sensor sensitivity S at 20 degC in V/(W/m^2)")
+        ->capture_default_str();
+    import_cmd->add_option("--max-offset", imp.max_offset_s, "Largest clock offset searched between exports, s")
+        ->capture_default_str();
+
+    FitOptions fit;
+    auto* fit_cmd = app.add_subcommand("fit", "Fit the cell's parameter set from characterization recordings");
+    fit_cmd->add_option("recordings", fit.recordings, "BDF recordings of one cell (HPPC, CC discharge, ...)")
+        ->check(CLI::ExistingFile);
+    fit_cmd->add_option("--db", fit.db, "cellbenchd SQLite database (with --run)");
+    fit_cmd->add_option("--run", fit.run_id, "Run id in --db to replay through the online fitter");
+    fit_cmd->add_option("-o,--output", fit.output, "Output parameter set (cellbench.params/1 JSON)")->required();
+    fit_cmd->add_option("--json", fit.summary_json, "Also write a summary JSON of every fit and its uncertainty");
+    fit_cmd->add_option("--cell", fit.cell_name, "Cell name stored in the parameter set")->capture_default_str();
+
+    SimulateOptions sim;
+    auto* sim_cmd = app.add_subcommand("simulate", "Simulate the model on a recording's current and report the errors");
+    sim_cmd->add_option("--params", sim.params, "Parameter set JSON")->required()->check(CLI::ExistingFile);
+    sim_cmd->add_option("recording", sim.recording, "BDF recording")->required()->check(CLI::ExistingFile);
+    sim_cmd->add_option("--json", sim.metrics_json, "Write the metrics JSON (cellbench.metrics/1)");
+    sim_cmd->add_option("--out", sim.output, "Write the simulated traces beside the measured ones (BDF CSV)");
+    sim_cmd->add_option("--initial-soc", sim.initial_soc, "Initial SOC (0..1); default: from the first rested voltage");
+    sim_cmd->add_option("--ambient", sim.ambient_c, "Ambient temperature, degC; default: measured, else first surface reading");
+
+    try {
+        app.parse(argc, argv);
+    } catch (const CLI::ParseError& e) {
+        const int code = app.exit(e);
+        return code == 0 ? 0 : 2;
+    }
+    spdlog::set_level(quiet ? spdlog::level::warn : verbose ? spdlog::level::debug : spdlog::level::info);
+
+    try {
+        if (*import_cmd) return run_import(imp);
+        if (*fit_cmd) {
+            if (fit.recordings.empty() == fit.db.empty()) {
+                std::fprintf(stderr, "cellbench fit: give either RECORDING... or --db FILE --run ID\n");
+                return 2;
+            }
+            return run_fit(fit);
+        }
+        if (*sim_cmd) return run_simulate(sim);
+    } catch (const InputError& e) {
+        spdlog::error("{}", e.what());
+        return 1;
+    } catch (const std::exception& e) {
+        spdlog::error("failed: {}", e.what());
+        return 1;
+    }
+    return 2;
+}
+
+}  // namespace cellbench::cli

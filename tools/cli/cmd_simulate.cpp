@@ -1,0 +1,61 @@
+#include <cstdio>
+
+#include <spdlog/spdlog.h>
+
+#include "cellbench/protocol/bdf_csv.hpp"
+#include "cli/commands.hpp"
+#include "cli/files.hpp"
+
+namespace cellbench::cli {
+
+nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m) {
+    auto quantity = [](const estimator::ErrorStats& e, const char* rms_key, const char* max_key) -> nlohmann::json {
+        if (!e.rms) return nullptr;
+        return {{rms_key, *e.rms}, {max_key, *e.max_abs}};
+    };
+    return {{"schema", "cellbench.metrics/1"},
+            {"samples", m.samples},
+            {"voltage", quantity(m.voltage_v, "rms_v", "max_abs_v")},
+            {"temperature", quantity(m.temperature_c, "rms_c", "max_abs_c")},
+            {"heat_flux", quantity(m.heat_flux_w, "rms_w", "max_abs_w")}};
+}
+
+int run_simulate(const SimulateOptions& o) {
+    const auto params = load_params(o.params);
+    const auto rec = load_recording(o.recording);
+    const estimator::CellModel model(params);
+    estimator::SimulationOptions so;
+    so.initial_soc = o.initial_soc;
+    so.ambient_c = o.ambient_c;
+    const auto trace = estimator::simulate(model, rec, so);
+    const auto metrics = estimator::compare(params, rec, trace);
+    spdlog::info("simulated {} samples ({:.0f} s) from SOC {:.3f}, ambient {:.2f} degC{}", rec.size(),
+                 rec.time_s.back() - rec.time_s.front(), trace.initial_soc, trace.ambient_c,
+                 rec.has_ambient() ? " (measured)" : " (constant)");
+
+    auto line = [](const char* name, const estimator::ErrorStats& e, double scale, const char* unit) {
+        if (e.rms)
+            std::printf("%-12s RMS %8.4f %-4s max |err| %8.4f %s\n", name, *e.rms * scale, unit, *e.max_abs * scale, unit);
+        else
+            std::printf("%-12s not measured in this recording\n", name);
+    };
+    std::printf("samples      %zu\n", metrics.samples);
+    line("voltage", metrics.voltage_v, 1000.0, "mV");
+    line("temperature", metrics.temperature_c, 1.0, "degC");
+    line("heat flux", metrics.heat_flux_w, 1.0, "W");
+
+    if (!o.metrics_json.empty()) write_json_file(o.metrics_json, metrics_to_json(metrics));
+    if (!o.output.empty()) {
+        std::vector<protocol::ExtraColumn> extra = {
+            {"Simulated Voltage / V", &trace.voltage_v},
+            {"Simulated Surface Temperature / degC", &trace.temperature_c},
+            {"Simulated Heat Flow / W", &trace.heat_flow_out_w},
+            {"Simulated SOC / 1", &trace.soc},
+            {"Simulated OCV / V", &trace.ocv_v},
+        };
+        write_file_atomic(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec, extra); });
+    }
+    return 0;
+}
+
+}  // namespace cellbench::cli

@@ -1,0 +1,42 @@
+#pragma once
+// The `cellbench` commands. Each run_* returns the process exit status (0 ok, 1 bad input or failed run);
+// InputError escaping from them is reported by the caller as one clear line and status 1.
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "cellbench/estimator/simulate.hpp"
+
+namespace cellbench::cli {
+
+struct ImportOptions {
+    std::string neware, dewesoft, bdf, output;
+    double sensitivity_v_per_w_per_m2 = 17.39e-6;
+    double max_offset_s = 3600.0;
+};
+int run_import(const ImportOptions& o);
+
+struct FitOptions {
+    std::vector<std::string> recordings;
+    std::string db;
+    long long run_id = -1;
+    std::string output, summary_json;
+    std::string cell_name = "Molicel INR-21700-P45B";
+};
+int run_fit(const FitOptions& o);
+
+struct SimulateOptions {
+    std::string params, recording, metrics_json, output;
+    std::optional<double> initial_soc, ambient_c;
+};
+int run_simulate(const SimulateOptions& o);
+
+// The metrics JSON of INTERFACES.md ("cellbench.metrics/1"); an unmeasured quantity is null.
+nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);
+
+// Entry point used by main(): parses argv (usage errors -> 2), runs the command.
+int run_cli(int argc, char** argv);
+
+}  // namespace cellbench::cli

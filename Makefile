@@ -57,7 +57,7 @@ test-data: build
 
 bench: build
 	@for b in $(BIN)/*_bench; do echo "== $$b"; $$b --benchmark_counters_tabular=true || exit 1; done
-	python3 bench/scipy_baseline.py $(DATA)/hppc_1c_30degC.bdf.csv
+	/usr/bin/python3 bench/scipy_baseline.py $(DATA)/hppc_1c_30degC.bdf.csv
 
 clean:
 	rm -rf $(BUILD) $(BUILD).configure.log

@@ -17,6 +17,7 @@ int run_cli(int argc, char** argv) {
 
     CLI::App app{"cellbench: electrothermal characterization of Li-ion cells (fit, simulate, diagnose recordings)"};
     app.require_subcommand(1);
+    app.fallthrough();  // -v/-q work after the subcommand too
     bool verbose = false, quiet = false;
     app.add_flag("-v,--verbose", verbose, "More log output");
     app.add_flag("-q,--quiet", quiet, "Only warnings and errors");

@@ -1,0 +1,132 @@
+#pragma once
+// Segmentation of a recording into constant-mode phases (rest / discharge / charge) and detection of what a
+// characterization test is made of: HPPC pulse sets (thesis section 2.2.2, Table 2.12, Figure 3.6), the SOC
+// steps between them, the pilot discharge, plain CC discharges and long rests.
+//
+// Phases come from the current, not from the cycler's step log:
+//  - each row is rest / discharge / charge by a hysteresis on |I| (enter a current above on_threshold_a, leave
+//    it below off_threshold_a), so a CCCV charge whose current tapers towards its 0.05 A cut-off stays one
+//    charge phase, and current noise around zero stays a rest;
+//  - runs shorter than min_phase_samples rows AND shorter than min_phase_s are glitches and are absorbed by
+//    the preceding phase (noise spikes, a vendor's one-row step artefacts); a short run at the very end of
+//    the window is kept as its own (open) phase, since it may be the start of a new step;
+//  - when the recording carries `Step Count` or `Step Type`, a step boundary inside a run of one current
+//    direction splits it (e.g. a discharge step followed at once by another discharge step); the step log is
+//    never needed and never overrides the current (a rest is a rest whatever its step says).
+//  - CV tails are not split off: without a step log, a same-direction level change inside a phase is kept
+//    in that phase (documented limitation).
+//
+// Index ranges are half-open [begin, end) into the recording's rows. By the sampling convention of
+// electrical.hpp the current of row k flowed during (t[k-1], t[k]], so a phase [begin, end) lasted
+// t[end-1] - t[begin-1] (t[end-1] - t[begin] for a phase starting at row 0).
+//
+// Online use: segment_recording works on any window of rows. A pulse set is reported only when it is
+// complete: its charge relaxation has lasted at least min_relaxation_s AND is either followed by a new
+// current or reaches the end of the window (then PulseSet::relaxation_open is true and `end` is the window's
+// end). A daemon that passes the window when the relaxation step has ended gets the same pulse set (same
+// rows) as an offline run over the whole recording. The long rest before the discharge pulse must be inside
+// the window for at least long_rest_s (start the window at the start of that rest step).
+#include <cstddef>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cellbench/core/recording.hpp"
+
+namespace cellbench::estimator {
+
+struct SegmentOptions {
+    double on_threshold_a = 0.05;    // |I| above this starts a current phase
+    double off_threshold_a = 0.02;   // |I| below this ends it (hysteresis; CV tails end at 0.05 A)
+    std::size_t min_phase_samples = 3;  // shorter runs (in rows) ...
+    double min_phase_s = 1.5;           // ... that are also shorter than this are glitches
+    double long_rest_s = 600.0;      // a rest this long (1 % slack) is a long rest (OCV); thesis: 1 h before pulses
+    double pulse_max_s = 60.0;       // a current phase this short is a pulse; longer ones are CC phases
+    double min_relaxation_s = 30.0;  // a pulse set is complete once its charge relaxation lasted this long
+    double pilot_min_s = 600.0;      // shortest discharge that counts as a pilot (full) discharge
+    double cv_tail_fraction = 0.8;   // a current phase ending below this fraction of its peak |I| has a CV tail
+    bool use_step_boundaries = true; // split same-direction runs at Step Count / Step Type changes
+};
+
+enum class PhaseKind {
+    Rest,            // rest shorter than long_rest_s
+    LongRest,        // rest of at least long_rest_s (OCV is read at its end)
+    DischargePulse,  // discharge of at most pulse_max_s
+    ChargePulse,     // charge of at most pulse_max_s
+    Discharge,       // longer discharge (CC or CCCV)
+    Charge,          // longer charge (CC or CCCV)
+};
+
+const char* to_string(PhaseKind kind);
+
+struct Phase {
+    PhaseKind kind = PhaseKind::Rest;
+    std::size_t index = 0;  // position in RecordingSegments::phases
+    std::size_t begin = 0, end = 0;  // rows [begin, end)
+    int direction = 0;               // +1 charge, -1 discharge, 0 rest
+    double duration_s = 0.0;         // see the header comment
+    double mean_current_a = 0.0;     // + = charge
+    double peak_current_a = 0.0;     // largest |I| with its sign (0 for a rest)
+    double end_current_a = 0.0;      // mean current of the last few rows
+    double charge_ah = 0.0;          // integral of I dt over the phase (+ = charged into the cell)
+    double voltage_begin_v = 0.0, voltage_end_v = 0.0;  // first and last row
+    bool cv_tail = false;            // current phase whose |I| tapered (CV: voltage limit reached)
+    bool open_end = false;           // the phase runs to the end of the window (it may go on)
+
+    [[nodiscard]] bool is_rest() const { return direction == 0; }
+    [[nodiscard]] std::size_t size() const { return end - begin; }
+};
+
+// One HPPC pulse set (Figure 3.6): long rest (A) -> discharge pulse (B..C) -> rest (D..E) -> charge pulse
+// (F..G) -> rest (H..I).
+struct PulseSet {
+    std::size_t phase_index = 0;   // index of the long rest in RecordingSegments::phases
+    std::size_t rest_begin = 0;    // first row of the long rest
+    std::size_t pulse_begin = 0;   // first discharge row (B); row pulse_begin-1 is A
+    std::size_t discharge_end = 0; // one past the last discharge row (C); = first row of the relaxation (D)
+    std::size_t charge_begin = 0;  // first charge row (F); row charge_begin-1 is E
+    std::size_t charge_end = 0;    // one past the last charge row (G); = first row of the charge relaxation (H)
+    std::size_t end = 0;           // one past the last row of the charge relaxation
+    double ocv_v = 0.0;            // voltage at the end of the long rest (A), thesis eq. 3.1
+    double rest_duration_s = 0.0;  // duration of the long rest
+    double discharge_current_a = 0.0;  // mean current of the discharge pulse (negative: BDF, + = charge)
+    double charge_current_a = 0.0;     // mean current of the charge pulse (positive)
+    double discharge_duration_s = 0.0, discharge_relaxation_s = 0.0;
+    double charge_duration_s = 0.0, charge_relaxation_s = 0.0;
+    double discharge_ah = 0.0;  // charge moved by the discharge pulse (negative)
+    double charge_ah = 0.0;     // charge moved by the charge pulse (positive)
+    bool discharge_cv = false;  // the discharge pulse hit the lower voltage limit and its current tapered
+    bool charge_cv = false;     // the charge pulse hit the upper voltage limit and its current tapered
+    bool relaxation_open = false;  // the charge relaxation runs to the end of the window
+};
+
+// A CC discharge that moves the SOC between two pulse sets (Table 2.12 step 12).
+struct SocStep {
+    std::size_t phase_index = 0;      // the discharge phase
+    std::size_t pulse_set_index = 0;  // the pulse set it follows
+    std::size_t begin = 0, end = 0;
+    double charge_ah = 0.0;           // negative
+    double mean_current_a = 0.0;
+    bool followed_by_long_rest = false;
+};
+
+struct RecordingSegments {
+    std::vector<Phase> phases;           // contiguous, cover every row
+    std::vector<PulseSet> pulse_sets;    // complete pulse sets, in time order
+    std::vector<Phase> long_rests;       // copies of the LongRest phases
+    std::vector<Phase> cc_discharges;    // copies of the Discharge phases (SOC steps and pilot included)
+    std::optional<Phase> pilot_discharge;  // first full discharge after a CCCV charge and a rest
+    std::vector<SocStep> soc_steps;
+};
+
+// Splits a recording (or a window of one) into phases and finds what they make up. Never throws on odd
+// input: an empty recording gives empty results.
+RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& options = {});
+
+// The phases alone (first stage of segment_recording).
+std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& options = {});
+
+// Online helper: the last complete pulse set of a window (see the header comment), if any.
+std::optional<PulseSet> last_complete_pulse_set(const Recording& window, const SegmentOptions& options = {});
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,242 @@
+#include "cellbench/estimator/fit.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+
+#include "cellbench/estimator/thermal_characterization.hpp"
+
+namespace cellbench::estimator {
+
+namespace {
+
+bool usable(const Rc2Params<double>& p) {
+    for (double v : {p.r0_ohm, p.r1_ohm, p.tau1_s, p.r2_ohm, p.tau2_s})
+        if (!std::isfinite(v) || v <= 0) return false;
+    return true;
+}
+
+nlohmann::json rc_json(const Rc2Params<double>& p) {
+    const auto v = to_rc_values(p);
+    auto num = [](double x) -> nlohmann::json { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); };
+    return {{"r0_ohm", num(v.r0_ohm)}, {"r1_ohm", num(v.r1_ohm)}, {"c1_f", num(v.c1_f)},
+            {"r2_ohm", num(v.r2_ohm)}, {"c2_f", num(v.c2_f)},     {"tau1_s", num(p.tau1_s)},
+            {"tau2_s", num(p.tau2_s)}};
+}
+
+nlohmann::json num_or_null(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
+
+// Row where SOC is 1: the end of the last CCCV charge before the first pulse set, else the start of the
+// recording (an HPPC recording starts fully charged, as Table 2.12's pulse part does).
+std::size_t full_charge_row(const RecordingSegments& seg) {
+    const std::size_t limit = seg.pulse_sets.empty() ? SIZE_MAX : seg.pulse_sets.front().rest_begin;
+    std::size_t anchor = 0;
+    for (const auto& ph : seg.phases)
+        if (ph.direction > 0 && ph.cv_tail && ph.end <= limit && ph.kind == PhaseKind::Charge) anchor = ph.end - 1;
+    return anchor;
+}
+
+}  // namespace
+
+std::vector<double> cumulative_charge_ah(const Recording& rec) {
+    std::vector<double> q(rec.size(), 0.0);
+    for (std::size_t k = 1; k < rec.size(); ++k)
+        q[k] = q[k - 1] + rec.current_a[k] * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0;
+    return q;
+}
+
+ParameterSet assemble_parameter_set(const std::vector<PulseSetFit>& fits, const std::vector<OcvPoint>& ocv_points,
+                                    double capacity_ah, const ThermalCharacterization& thermal,
+                                    const CharacterizationOptions& options) {
+    if (ocv_points.size() < 2) throw InputError("characterization: fewer than two OCV points (long rests) found");
+    ParameterSet p;
+    p.cell = options.cell;
+    p.capacity_ah = capacity_ah;
+    for (const auto& pt : ocv_points) {
+        p.soc.push_back(pt.soc);
+        p.ocv_v.push_back(pt.ocv_v);
+    }
+    double temp_sum = 0;
+    std::size_t temp_n = 0;
+    for (const auto& f : fits)
+        if (std::isfinite(f.temperature_c)) temp_sum += f.temperature_c, ++temp_n;
+    p.reference_temperature_c = temp_n ? temp_sum / static_cast<double>(temp_n) : 25.0;
+
+    for (int dir : {-1, +1}) {
+        RcTable& table = dir > 0 ? p.charge : p.discharge;
+        for (double s : p.soc) {
+            const PulseSetFit* best = nullptr;
+            for (const auto& f : fits) {
+                const bool limited = dir > 0 ? f.pulse_set.charge_cv : f.pulse_set.discharge_cv;
+                if (limited || !usable(dir > 0 ? f.chosen_charge() : f.chosen_discharge())) continue;
+                if (!best || std::abs(f.soc - s) < std::abs(best->soc - s)) best = &f;
+            }
+            if (!best)
+                throw InputError(std::string("characterization: no usable HPPC pulse set for the ") +
+                                 (dir > 0 ? "charge" : "discharge") + " direction");
+            const auto v = to_rc_values(dir > 0 ? best->chosen_charge() : best->chosen_discharge());
+            table.r0_ohm.push_back(v.r0_ohm);
+            table.r1_ohm.push_back(v.r1_ohm);
+            table.c1_f.push_back(v.c1_f);
+            table.r2_ohm.push_back(v.r2_ohm);
+            table.c2_f.push_back(v.c2_f);
+        }
+    }
+    p.thermal.c_th_j_per_k = thermal.c_th_j_per_k;
+    p.thermal.r_th_k_per_w = thermal.r_th_k_per_w;
+    p.thermal.area_m2 = options.area_m2;
+    p.thermal.ehc_soc = thermal.ehc_soc;
+    p.thermal.ehc_v_per_k = thermal.ehc_v_per_k;
+    p.validate("fitted parameter set");
+    return p;
+}
+
+Characterization characterize(const std::vector<Recording>& recordings, const CharacterizationOptions& options,
+                              const FitProgress& progress) {
+    Characterization out;
+    std::vector<RecordingSegments> segs;
+    std::vector<std::vector<double>> throughput;
+    for (const auto& rec : recordings) {
+        if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");
+        segs.push_back(segment_recording(rec));
+        throughput.push_back(cumulative_charge_ah(rec));
+    }
+
+    // Capacity: the pilot discharge if any recording has one.
+    for (std::size_t r = 0; r < recordings.size() && !std::isfinite(out.capacity.capacity_ah); ++r)
+        if (segs[r].pilot_discharge) {
+            out.capacity = {-segs[r].pilot_discharge->charge_ah, "pilot discharge", recordings[r].source};
+        }
+    if (!std::isfinite(out.capacity.capacity_ah)) {
+        // An HPPC that runs from full charge to the cut-off has discharged the whole (pulse-interrupted) capacity.
+        for (std::size_t r = 0; r < recordings.size(); ++r) {
+            if (segs[r].pulse_sets.empty() || segs[r].cc_discharges.empty()) continue;
+            const auto& last = segs[r].cc_discharges.back();
+            if (last.voltage_end_v > 3.05) continue;
+            const std::size_t anchor = full_charge_row(segs[r]);
+            const auto& q = throughput[r];
+            out.capacity = {q[anchor] - q[last.end - 1], "HPPC throughput from full charge to cut-off",
+                            recordings[r].source};
+            out.warnings.push_back("no pilot discharge found: capacity taken from the HPPC's own throughput");
+            break;
+        }
+    }
+    if (!std::isfinite(out.capacity.capacity_ah)) {
+        if (options.fallback_capacity_ah <= 0)
+            throw InputError("characterization: no recording measures the capacity (no pilot discharge and no HPPC "
+                             "down to the cut-off)");
+        out.capacity = {options.fallback_capacity_ah, "fallback", "options"};
+        out.warnings.push_back("capacity not measured: using the given fallback");
+    }
+    const double cap = out.capacity.capacity_ah;
+
+    // OCV points and pulse sets, SOC by Coulomb counting from the full charge.
+    std::vector<std::vector<double>> soc_of_row(recordings.size());
+    std::size_t total_sets = 0, done_sets = 0;
+    for (const auto& s : segs) total_sets += s.pulse_sets.size();
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        if (segs[r].pulse_sets.empty()) continue;
+        const auto& rec = recordings[r];
+        const auto& q = throughput[r];
+        const std::size_t anchor = full_charge_row(segs[r]);
+        auto& soc = soc_of_row[r];
+        soc.resize(rec.size());
+        for (std::size_t k = 0; k < rec.size(); ++k) soc[k] = 1.0 + (q[k] - q[anchor]) / cap;
+        for (const auto& lr : segs[r].long_rests) {
+            const std::size_t k = lr.end - 1;
+            out.ocv_points.push_back({std::clamp(soc[k], 0.0, 1.0), rec.voltage_v[k], lr.duration_s, rec.source});
+        }
+    }
+    // One point per SOC: where two rests end within 0.5 % SOC keep the longer rest.
+    std::sort(out.ocv_points.begin(), out.ocv_points.end(), [](auto& a, auto& b) { return a.soc < b.soc; });
+    std::vector<OcvPoint> ocv;
+    for (const auto& pt : out.ocv_points) {
+        if (!ocv.empty() && pt.soc - ocv.back().soc < 0.005) {
+            if (pt.rest_s > ocv.back().rest_s) ocv.back() = pt;
+            continue;
+        }
+        ocv.push_back(pt);
+    }
+    out.ocv_points = ocv;
+    std::vector<double> ocv_soc, ocv_v;
+    for (const auto& pt : ocv) ocv_soc.push_back(pt.soc), ocv_v.push_back(pt.ocv_v);
+
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        for (const auto& ps : segs[r].pulse_sets) {
+            const double s = soc_of_row[r][ps.pulse_begin > 0 ? ps.pulse_begin - 1 : 0];
+            PulseFitOptions po;
+            if (ocv_soc.size() >= 2) {
+                const double h = 0.01;
+                po.docv_dah_v_per_ah =
+                    (interp_extrap(ocv_soc, ocv_v, s + h) - interp_extrap(ocv_soc, ocv_v, s - h)) / (2 * h) / cap;
+            }
+            auto fit = fit_pulse_set(recordings[r], ps, po);
+            fit.soc = s;
+            out.pulse_fits.push_back(std::move(fit));
+            if (progress) progress("pulse sets", ++done_sets, total_sets);
+        }
+    }
+    if (out.pulse_fits.empty()) throw InputError("characterization: no HPPC pulse set found in the recordings");
+
+    // Electrical tables first (the thermal fits need the model's heat generation), then the thermal part.
+    ThermalCharacterization placeholder;
+    placeholder.c_th_j_per_k = 1.0;
+    placeholder.r_th_k_per_w = 1.0;
+    const ParameterSet electrical = assemble_parameter_set(out.pulse_fits, out.ocv_points, cap, placeholder, options);
+    out.thermal = fit_thermal_parameters(recordings, segs, soc_of_row, electrical, options);
+    if (!std::isfinite(out.thermal.c_th_j_per_k) || !std::isfinite(out.thermal.r_th_k_per_w))
+        throw InputError("characterization: no recording measures the thermal parameters (surface temperature and "
+                         "heat flux during rests)");
+    for (const auto& n : out.thermal.notes) out.warnings.push_back(n);
+    out.params = assemble_parameter_set(out.pulse_fits, out.ocv_points, cap, out.thermal, options);
+    return out;
+}
+
+nlohmann::json Characterization::summary_json() const {
+    nlohmann::json j;
+    j["schema"] = "cellbench.fit-summary/1";
+    j["capacity"] = {{"capacity_ah", capacity.capacity_ah}, {"method", capacity.method}, {"source", capacity.source}};
+    j["ocv_points"] = nlohmann::json::array();
+    for (const auto& pt : ocv_points)
+        j["ocv_points"].push_back({{"soc", pt.soc}, {"ocv_v", pt.ocv_v}, {"rest_s", pt.rest_s}, {"source", pt.source}});
+    j["pulse_sets"] = nlohmann::json::array();
+    for (const auto& f : pulse_fits) {
+        nlohmann::json e;
+        e["soc"] = f.soc;
+        e["ocv_v"] = f.ocv_v;
+        e["temperature_c"] = num_or_null(f.temperature_c);
+        e["r0_steps_ohm"] = {{"ab", num_or_null(f.r0.ab_ohm)}, {"cd", num_or_null(f.r0.cd_ohm)},
+                             {"ef", num_or_null(f.r0.ef_ohm)}, {"gh", num_or_null(f.r0.gh_ohm)}};
+        e["thesis"] = {{"discharge", rc_json(f.thesis_discharge)},
+                       {"charge", rc_json(f.thesis_charge)},
+                       {"rms_v", num_or_null(f.thesis_rms_v)}};
+        e["joint"] = {{"discharge", rc_json(f.joint_discharge)},
+                      {"charge", rc_json(f.joint_charge)},
+                      {"discharge_sigma",
+                       {{"r0_ohm", num_or_null(f.joint_discharge_sigma.r0_ohm)},
+                        {"r1_ohm", num_or_null(f.joint_discharge_sigma.r1_ohm)},
+                        {"tau1_s", num_or_null(f.joint_discharge_sigma.tau1_s)},
+                        {"r2_ohm", num_or_null(f.joint_discharge_sigma.r2_ohm)},
+                        {"tau2_s", num_or_null(f.joint_discharge_sigma.tau2_s)}}},
+                      {"charge_sigma",
+                       {{"r0_ohm", num_or_null(f.joint_charge_sigma.r0_ohm)},
+                        {"r1_ohm", num_or_null(f.joint_charge_sigma.r1_ohm)},
+                        {"tau1_s", num_or_null(f.joint_charge_sigma.tau1_s)},
+                        {"r2_ohm", num_or_null(f.joint_charge_sigma.r2_ohm)},
+                        {"tau2_s", num_or_null(f.joint_charge_sigma.tau2_s)}}},
+                      {"ocv_offset_v", num_or_null(f.joint_ocv_offset_v)},
+                      {"rms_v", num_or_null(f.joint_rms_v)}};
+        e["chosen"] = to_string(f.chosen);
+        e["charge_pulse_hit_voltage_limit"] = f.pulse_set.charge_cv;
+        e["warnings"] = f.warnings;
+        j["pulse_sets"].push_back(e);
+    }
+    j["thermal"] = thermal.details;
+    j["thermal"]["c_th_j_per_k"] = thermal.c_th_j_per_k;
+    j["thermal"]["r_th_k_per_w"] = thermal.r_th_k_per_w;
+    j["thermal"]["r_th_method"] = thermal.r_th_method;
+    j["warnings"] = warnings;
+    return j;
+}
+
+}  // namespace cellbench::estimator

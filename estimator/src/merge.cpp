@@ -1,0 +1,147 @@
+#include "cellbench/estimator/merge.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+
+namespace cellbench::estimator {
+
+namespace {
+
+// Times at which the current changes by more than min_step_a between consecutive samples.
+std::vector<double> current_edges(const Recording& r, double min_step_a) {
+    std::vector<double> edges;
+    for (std::size_t k = 1; k < r.size(); ++k)
+        if (std::abs(r.current_a[k] - r.current_a[k - 1]) > min_step_a) {
+            if (edges.empty() || r.time_s[k] - edges.back() > 2.0) edges.push_back(r.time_s[k]);
+        }
+    return edges;
+}
+
+// Current of recording r at time t under its hold convention (the value recorded at the first sample at or
+// after t was flowing during the interval before it).
+double current_at(const Recording& r, double t) {
+    auto it = std::lower_bound(r.time_s.begin(), r.time_s.end(), t);
+    if (it == r.time_s.end()) return kNaN;
+    return r.current_a[static_cast<std::size_t>(it - r.time_s.begin())];
+}
+
+}  // namespace
+
+std::vector<double> resample_linear(const std::vector<double>& t, const std::vector<double>& y,
+                                    const std::vector<double>& q) {
+    std::vector<double> out(q.size(), kNaN);
+    if (t.size() < 2) return out;
+    std::size_t j = 0;
+    for (std::size_t k = 0; k < q.size(); ++k) {
+        const double x = q[k];
+        if (x < t.front() || x > t.back()) continue;
+        if (j > 0 && t[j] > x) j = 0;  // queries are normally sorted; restart otherwise
+        while (j + 2 < t.size() && t[j + 1] < x) ++j;
+        const double w = (x - t[j]) / (t[j + 1] - t[j]);
+        out[k] = y[j] + w * (y[j + 1] - y[j]);
+    }
+    return out;
+}
+
+CurrentAlignment align_by_current(const Recording& a, const Recording& b, double max_offset_s) {
+    const auto ea = current_edges(a, 1.0), eb = current_edges(b, 1.0);
+    if (ea.empty() || eb.empty())
+        throw InputError(b.source + ": no current steps to align with " + a.source);
+    // Vote for offsets that map an edge of b onto an edge of a (1 s bins), then score each candidate by how
+    // many of b's edges it matches within 1.5 s.
+    std::map<long long, int> votes;
+    for (double tb : eb)
+        for (double ta : ea)
+            if (!(std::abs(ta - tb) > max_offset_s)) ++votes[std::llround(ta - tb)];
+    CurrentAlignment best;
+    best.edges_b = eb.size();
+    for (const auto& [offset, n] : votes) {
+        if (n * 2 < static_cast<int>(best.matched_edges)) continue;
+        std::size_t matched = 0;
+        for (double tb : eb) {
+            auto it = std::lower_bound(ea.begin(), ea.end(), tb + offset - 1.5);
+            if (it != ea.end() && *it <= tb + offset + 1.5) ++matched;
+        }
+        if (matched > best.matched_edges) {
+            best.matched_edges = matched;
+            best.offset_s = static_cast<double>(offset);
+        }
+    }
+    if (best.matched_edges * 2 < eb.size())
+        throw InputError(b.source + ": cannot align with " + a.source + ": only " +
+                         std::to_string(best.matched_edges) + " of " + std::to_string(eb.size()) +
+                         " current steps match at any offset within " + std::to_string(max_offset_s) + " s");
+    // Refine: least squares on the current near the edges of b, offsets within +-1.5 s in 0.05 s steps.
+    double best_cost = INFINITY;
+    const double coarse = best.offset_s;
+    for (double d = -1.5; d <= 1.5 + 1e-9; d += 0.05) {
+        double cost = 0;
+        std::size_t n = 0;
+        for (double tb : eb)
+            for (double u = -5.0; u <= 5.0; u += 0.1) {
+                const double ia = current_at(a, tb + u + coarse + d), ib = current_at(b, tb + u);
+                if (std::isfinite(ia) && std::isfinite(ib)) {
+                    cost += (ia - ib) * (ia - ib);
+                    ++n;
+                }
+            }
+        if (n > 0 && cost / n < best_cost) {
+            best_cost = cost / n;
+            best.offset_s = coarse + d;
+        }
+    }
+    best.current_rms_a = std::sqrt(best_cost);
+    return best;
+}
+
+Recording splice_recordings(const Recording& a, const Recording& b, double offset_s) {
+    Recording out;
+    out.source = a.source + " + " + b.source;
+    const double b_start = b.time_s.front() + offset_s;
+    std::size_t na = 0;
+    while (na < a.size() && a.time_s[na] < b_start) ++na;
+    const std::size_t n = na + b.size();
+
+    auto take = [&](const std::vector<double>& va, const std::vector<double>& vb, std::vector<double>& dst) {
+        if (va.empty() && vb.empty()) return;
+        dst.assign(n, kNaN);
+        for (std::size_t k = 0; k < na && !va.empty(); ++k) dst[k] = va[k];
+        for (std::size_t k = 0; k < b.size() && !vb.empty(); ++k) dst[na + k] = vb[k];
+    };
+    out.time_s.resize(n);
+    for (std::size_t k = 0; k < na; ++k) out.time_s[k] = a.time_s[k];
+    for (std::size_t k = 0; k < b.size(); ++k) out.time_s[na + k] = b.time_s[k] + offset_s;
+    take(a.voltage_v, b.voltage_v, out.voltage_v);
+    take(a.current_a, b.current_a, out.current_a);
+    take(a.unix_time_s, b.unix_time_s, out.unix_time_s);
+    take(a.ambient_c, b.ambient_c, out.ambient_c);
+    take(a.surface_c, b.surface_c, out.surface_c);
+    take(a.t1_c, b.t1_c, out.t1_c);
+    take(a.t2_c, b.t2_c, out.t2_c);
+    take(a.heat_flux_w_per_m2, b.heat_flux_w_per_m2, out.heat_flux_w_per_m2);
+    // Step numbering continues from a's steps so that steps stay distinct across the splice.
+    if (!a.step_type.empty() || !b.step_type.empty()) {
+        out.step_type.assign(n, std::string{});
+        for (std::size_t k = 0; k < na && !a.step_type.empty(); ++k) out.step_type[k] = a.step_type[k];
+        for (std::size_t k = 0; k < b.size() && !b.step_type.empty(); ++k) out.step_type[na + k] = b.step_type[k];
+    }
+    if (!a.step_count.empty()) {
+        out.step_count.assign(n, kNaN);
+        double last = 0;
+        for (std::size_t k = 0; k < na; ++k) last = out.step_count[k] = a.step_count[k];
+        // b's steps are the continuation of a's: derive them from b's own step changes.
+        double step = last;
+        for (std::size_t k = 0; k < b.size(); ++k) {
+            const bool changed = k == 0 || (!b.step_type.empty() && b.step_type[k] != b.step_type[k - 1]) ||
+                                 (!b.step_count.empty() && b.step_count[k] != b.step_count[k - 1]);
+            if (changed && !(k == 0 && na > 0 && !a.step_type.empty() && !b.step_type.empty() &&
+                             a.step_type[na - 1] == b.step_type[0]))
+                step += 1;
+            out.step_count[na + k] = step;
+        }
+    }
+    return out;
+}
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,1026 @@
+#include "cellbench/estimator/pulse_fit.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <utility>
+#include <vector>
+#include <string>
+
+#include <Eigen/Dense>
+#include <ceres/ceres.h>
+
+namespace cellbench::estimator {
+
+const char* to_string(PulseSetFit::Method method) {
+    return method == PulseSetFit::Method::Joint ? "joint" : "thesis";
+}
+
+RcValues to_rc_values(const Rc2Params<double>& p) {
+    RcValues v;
+    v.r0_ohm = p.r0_ohm;
+    v.r1_ohm = p.r1_ohm;
+    v.r2_ohm = p.r2_ohm;
+    v.c1_f = p.r1_ohm > 0.0 ? p.tau1_s / p.r1_ohm : kNaN;
+    v.c2_f = p.r2_ohm > 0.0 ? p.tau2_s / p.r2_ohm : kNaN;
+    return v;
+}
+
+namespace {
+
+std::string fmt(const char* f, double a, double b = 0.0, double c = 0.0) {
+    char buf[256];
+    std::snprintf(buf, sizeof buf, f, a, b, c);
+    return buf;
+}
+
+double finite_mean(std::initializer_list<double> xs) {
+    double s = 0.0;
+    int n = 0;
+    for (double x : xs)
+        if (std::isfinite(x)) { s += x; ++n; }
+    return n ? s / n : kNaN;
+}
+
+// The rows of one pulse set in a form the fits share: row 0 is A (the last row of the long rest).
+struct Window {
+    std::size_t first = 0;          // recording row of window row 0
+    std::vector<double> t, i, v;    // time, current (non-finite -> 0), voltage (may be NaN)
+    std::vector<double> q_ah;       // charge throughput since row 0 (+ = charge), sampling convention
+    std::vector<int> dir;           // current_direction, starting from discharge (-1)
+    std::vector<double> ocv;        // ocv_v + docv_dah * q_ah
+    std::size_t n() const { return t.size(); }
+};
+
+Window make_window(const Recording& rec, std::size_t first, std::size_t end, double ocv_v, double docv) {
+    Window w;
+    w.first = first;
+    const std::size_t n = end - first;
+    w.t.assign(rec.time_s.begin() + first, rec.time_s.begin() + end);
+    w.v.assign(rec.voltage_v.begin() + first, rec.voltage_v.begin() + end);
+    w.i.resize(n);
+    w.q_ah.resize(n);
+    w.dir.resize(n);
+    w.ocv.resize(n);
+    int d = -1;
+    double q = 0.0;
+    for (std::size_t k = 0; k < n; ++k) {
+        const double c = rec.current_a[first + k];
+        w.i[k] = std::isfinite(c) ? c : 0.0;
+        if (k > 0) q += w.i[k] * (w.t[k] - w.t[k - 1]) / 3600.0;
+        w.q_ah[k] = q;
+        d = current_direction(w.i[k], d);
+        w.dir[k] = d;
+        w.ocv[k] = ocv_v + docv * q;
+    }
+    return w;
+}
+
+// RMS of (ocv + offset + simulated overpotential - measured) over the window, with simulate_overpotential.
+double simulated_rms(const Window& w, const Rc2Params<double>& dis, const Rc2Params<double>& chg, double offset_v) {
+    for (double x : {dis.r0_ohm, dis.r1_ohm, dis.tau1_s, dis.r2_ohm, dis.tau2_s, chg.r0_ohm, chg.r1_ohm,
+                     chg.tau1_s, chg.r2_ohm, chg.tau2_s})
+        if (!std::isfinite(x)) return kNaN;
+    std::vector<double> eta(w.n());
+    simulate_overpotential<double>(w.t.data(), w.i.data(), w.n(), dis, chg, 0.0, 0.0, -1, eta.data());
+    double s = 0.0;
+    std::size_t m = 0;
+    for (std::size_t k = 0; k < w.n(); ++k) {
+        if (!std::isfinite(w.v[k])) continue;
+        const double e = w.ocv[k] + offset_v + eta[k] - w.v[k];
+        s += e * e;
+        ++m;
+    }
+    return m ? std::sqrt(s / static_cast<double>(m)) : kNaN;
+}
+
+// ------------------------------------------------------------------------------------------------------------
+// Method 1: the thesis' per-segment exponential fits.
+
+enum class ExpForm {
+    Pulse,        // eq. 3.6:  y = -a(1 - e^{-t/tau1}) - b(1 - e^{-t/tau2}) + c
+    NegDecay,     // eq. 3.10: y = -a e^{-t/tau1} - b e^{-t/tau2} + c
+    ChargePulse,  // eq. 3.14: y = a(1 - e^{-t/tau1}) - V1 e^{-t/tau1} + b(1 - e^{-t/tau2}) - V2 e^{-t/tau2} + c
+    PosDecay,     // eq. 3.18: y = a e^{-t/tau1} + b e^{-t/tau2} + c
+};
+
+struct ExpResidual {
+    const double* x;
+    const double* y;
+    std::size_t n;
+    ExpForm form;
+    double v1, v2;  // ChargePulse only: residual polarizations passed as problem constants (Script 3.5)
+
+    template <typename T>
+    bool operator()(const T* const p, T* r) const {
+        using std::exp;
+        const T& a = p[0];
+        const T& tau1 = p[1];
+        const T& b = p[2];
+        const T& tau2 = p[3];
+        const T& c = p[4];
+        for (std::size_t k = 0; k < n; ++k) {
+            const T e1 = exp(-T(x[k]) / tau1);
+            const T e2 = exp(-T(x[k]) / tau2);
+            T m = c;
+            switch (form) {
+                case ExpForm::Pulse: m = -a * (T(1.0) - e1) - b * (T(1.0) - e2) + c; break;
+                case ExpForm::NegDecay: m = -a * e1 - b * e2 + c; break;
+                case ExpForm::ChargePulse:
+                    m = a * (T(1.0) - e1) - T(v1) * e1 + b * (T(1.0) - e2) - T(v2) * e2 + c;
+                    break;
+                case ExpForm::PosDecay: m = a * e1 + b * e2 + c; break;
+            }
+            r[k] = m - T(y[k]);
+        }
+        return true;
+    }
+};
+
+// Scripts 3.3-3.6: [a, tau1, b, tau2, c], Lower = [1e-5, 0.05, 1e-5, 5, -1], Upper = [1, 5, 1, 200, 1],
+// StartPoint = [0.05, 0.5, 0.05, 30, 0].
+constexpr std::array<double, 5> kExpLower{1e-5, 0.05, 1e-5, 5.0, -1.0};
+constexpr std::array<double, 5> kExpUpper{1.0, 5.0, 1.0, 200.0, 1.0};
+constexpr std::array<double, 5> kExpStart{0.05, 0.5, 0.05, 30.0, 0.0};
+
+// Fits one segment; x relative time, y the transformed voltage. Rows with a non-finite y are skipped.
+ExpSegmentFit fit_exp_segment(std::vector<double> x, std::vector<double> y, ExpForm form, double v1, double v2,
+                              int max_iterations) {
+    ExpSegmentFit f;
+    {
+        std::size_t m = 0;
+        for (std::size_t k = 0; k < y.size(); ++k)
+            if (std::isfinite(y[k]) && std::isfinite(x[k])) { x[m] = x[k]; y[m] = y[k]; ++m; }
+        x.resize(m);
+        y.resize(m);
+    }
+    if (x.size() < 6) return f;
+    std::array<double, 5> p = kExpStart;
+    ceres::Problem problem;
+    auto* cost = new ceres::AutoDiffCostFunction<ExpResidual, ceres::DYNAMIC, 5>(
+        new ExpResidual{x.data(), y.data(), x.size(), form, v1, v2}, static_cast<int>(x.size()));
+    problem.AddResidualBlock(cost, nullptr, p.data());
+    for (int j = 0; j < 5; ++j) {
+        problem.SetParameterLowerBound(p.data(), j, kExpLower[j]);
+        problem.SetParameterUpperBound(p.data(), j, kExpUpper[j]);
+    }
+    ceres::Solver::Options opt;
+    opt.linear_solver_type = ceres::DENSE_QR;
+    opt.max_num_iterations = max_iterations;
+    opt.function_tolerance = 1e-12;
+    opt.gradient_tolerance = 1e-14;
+    opt.parameter_tolerance = 1e-10;
+    opt.logging_type = ceres::SILENT;
+    opt.minimizer_progress_to_stdout = false;
+    ceres::Solver::Summary sum;
+    ceres::Solve(opt, &problem, &sum);
+    f.converged = sum.termination_type == ceres::CONVERGENCE;
+    f.a_v = p[0];
+    f.tau1_s = p[1];
+    f.b_v = p[2];
+    f.tau2_s = p[3];
+    f.c_v = p[4];
+    f.rms_v = std::sqrt(2.0 * sum.final_cost / static_cast<double>(x.size()));
+    for (int j = 0; j < 4; ++j) {
+        const double tol = 1e-6 * (kExpUpper[j] - kExpLower[j]);
+        if (p[j] <= kExpLower[j] + tol || p[j] >= kExpUpper[j] - tol) f.at_bound = true;
+    }
+    return f;
+}
+
+void set_rc(ExpSegmentFit& f, double r1, double r2) {
+    f.r1_ohm = r1;
+    f.r2_ohm = r2;
+    f.c1_f = r1 > 0.0 ? f.tau1_s / r1 : kNaN;
+    f.c2_f = r2 > 0.0 ? f.tau2_s / r2 : kNaN;
+}
+
+void thesis_fits(const Recording& rec, const PulseSet& ps, const Window& w, std::size_t end,
+                 const PulseFitOptions& o, PulseSetFit& out) {
+    const auto& t = rec.time_s;
+    const auto& v = rec.voltage_v;
+    const auto& cur = rec.current_a;
+    SegmentFits& s = out.thesis;
+    const std::size_t pb = ps.pulse_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
+    auto ocv_at = [&](std::size_t row) { return w.ocv[row - w.first]; };  // "InstantOCV" of Scripts 3.4-3.6
+    const double id = std::abs(cur[pb]);  // |I_d| = |Current(ends(rest)+1)|
+    const double ic = std::abs(cur[cb]);  // |I_c| = |Current(ends(rest 2)+1)|
+    s.current_discharge_a = id;
+    s.current_charge_a = ic;
+
+    auto rows = [&](std::size_t b, std::size_t e, double t0, double y0) {
+        std::pair<std::vector<double>, std::vector<double>> xy;
+        for (std::size_t k = b; k < e; ++k) {
+            xy.first.push_back(t[k] - t0);
+            xy.second.push_back(v[k] - y0);
+        }
+        return xy;
+    };
+
+    // Discharge pulse B..C (Script 3.3): y = V - V_B, which removes OCV and the R0 drop; eqs. 3.6-3.7.
+    {
+        auto [x, y] = rows(pb, de, t[pb], v[pb]);
+        s.discharge = fit_exp_segment(x, y, ExpForm::Pulse, 0, 0, o.max_iterations);
+        s.discharge.begin = pb;
+        s.discharge.end = de;
+        set_rc(s.discharge, s.discharge.a_v / id, s.discharge.b_v / id);
+    }
+    const double td = t[de - 1] - t[pb];  // T_d: relative time of the last discharge row
+    // Discharge relaxation D..E (Script 3.4): y = V - OCV; eqs. 3.8-3.11.
+    {
+        auto [x, y] = rows(de, cb, t[de], ocv_at(de));
+        s.discharge_relaxation = fit_exp_segment(x, y, ExpForm::NegDecay, 0, 0, o.max_iterations);
+        auto& f = s.discharge_relaxation;
+        f.begin = de;
+        f.end = cb;
+        set_rc(f, f.a_v / (id * (1.0 - std::exp(-td / s.discharge.tau1_s))),
+               f.b_v / (id * (1.0 - std::exp(-td / s.discharge.tau2_s))));
+    }
+    // Charge pulse F..G (Script 3.5): V1(0), V2(0) from eq. 3.13, y = V - OCV - R0_C * I_c; eqs. 3.12-3.15.
+    const double tdr = t[cb - 1] - t[de];
+    s.v1_residual_v = s.discharge_relaxation.a_v * std::exp(-tdr / s.discharge_relaxation.tau1_s);
+    s.v2_residual_v = s.discharge_relaxation.b_v * std::exp(-tdr / s.discharge_relaxation.tau2_s);
+    {
+        auto [x, y] = rows(cb, ce, t[cb], ocv_at(cb) + out.r0.ef_ohm * ic);
+        s.charge = fit_exp_segment(x, y, ExpForm::ChargePulse, s.v1_residual_v, s.v2_residual_v,
+                                   o.max_iterations);
+        s.charge.begin = cb;
+        s.charge.end = ce;
+        set_rc(s.charge, s.charge.a_v / ic, s.charge.b_v / ic);
+    }
+    // Charge relaxation H..I (Script 3.6): y = V - OCV; eqs. 3.16-3.19 with V_c(0) * e^{-T_c/tau_c}.
+    const double tc = t[ce - 1] - t[cb];
+    {
+        auto [x, y] = rows(ce, end, t[ce], ocv_at(ce));
+        s.charge_relaxation = fit_exp_segment(x, y, ExpForm::PosDecay, 0, 0, o.max_iterations);
+        auto& f = s.charge_relaxation;
+        f.begin = ce;
+        f.end = end;
+        const double e1 = std::exp(-tc / s.charge.tau1_s), e2 = std::exp(-tc / s.charge.tau2_s);
+        set_rc(f, (f.a_v + s.v1_residual_v * e1) / (ic * (1.0 - e1)),
+               (f.b_v + s.v2_residual_v * e2) / (ic * (1.0 - e2)));
+    }
+
+    // Direction averages (Table 3.2 "DA" / "CA"): mean of the two segments' R and C; tau = R_avg * C_avg.
+    auto average = [](double r0, const ExpSegmentFit& a, const ExpSegmentFit& b) {
+        Rc2Params<double> p{};
+        p.r0_ohm = r0;
+        p.r1_ohm = finite_mean({a.r1_ohm, b.r1_ohm});
+        p.r2_ohm = finite_mean({a.r2_ohm, b.r2_ohm});
+        p.tau1_s = p.r1_ohm * finite_mean({a.c1_f, b.c1_f});
+        p.tau2_s = p.r2_ohm * finite_mean({a.c2_f, b.c2_f});
+        return p;
+    };
+    out.thesis_discharge = average(out.r0.discharge_ohm, s.discharge, s.discharge_relaxation);
+    out.thesis_charge = average(out.r0.charge_ohm, s.charge, s.charge_relaxation);
+
+    const std::pair<const char*, const ExpSegmentFit*> segs[] = {
+        {"discharge pulse", &s.discharge},
+        {"discharge relaxation", &s.discharge_relaxation},
+        {"charge pulse", &s.charge},
+        {"charge relaxation", &s.charge_relaxation}};
+    for (const auto& [name, f] : segs) {
+        if (!std::isfinite(f->a_v)) {
+            out.warnings.push_back(std::string("thesis method: the ") + name + " segment has too few rows to fit");
+        } else if (f->at_bound) {
+            out.warnings.push_back(std::string("thesis method: the ") + name +
+                                   " fit ended on a bound of Scripts 3.3-3.6" +
+                                   fmt(" (a = %.4g V, tau1 = %.3g s, ", f->a_v, f->tau1_s) +
+                                   fmt("b = %.4g V, tau2 = %.3g s)", f->b_v, f->tau2_s));
+        }
+        if (std::isfinite(f->r1_ohm) && (!(f->r1_ohm > 0.0) || !(f->r2_ohm > 0.0)))
+            out.warnings.push_back(std::string("thesis method: the ") + name +
+                                   " segment gives a non-positive R1 or R2");
+    }
+}
+
+// ------------------------------------------------------------------------------------------------------------
+// Method 2: joint fit of the whole pulse set with the exact ZOH model.
+//
+// Parameter vector (11): [R0d, R1d, tau1d, R2d, tau2d, R0c, R1c, tau1c, R2c, tau2c, c].
+constexpr int kNumJoint = 11;
+constexpr int kC = 10;
+inline int base_of(int dir) { return dir > 0 ? 5 : 0; }
+
+// Residuals c + eta_k - (V_k - OCV_k) with an analytic Jacobian (forward sensitivities of the same ZOH
+// recursion as simulate_overpotential: v <- a v + R (1 - a) I, a = exp(-dt/tau)).
+class JointCost final : public ceres::CostFunction {
+public:
+    JointCost(const Window& w, std::vector<std::size_t> rows) : w_(w), rows_(std::move(rows)) {
+        set_num_residuals(static_cast<int>(rows_.size()));
+        mutable_parameter_block_sizes()->push_back(kNumJoint);
+    }
+
+    bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
+        const double* p = parameters[0];
+        double* jac = jacobians ? jacobians[0] : nullptr;
+        // State and sensitivities of each RC pair with respect to [R_dis, tau_dis, R_chg, tau_chg].
+        double v[2] = {0.0, 0.0};
+        double dv[2][4] = {{0, 0, 0, 0}, {0, 0, 0, 0}};
+        std::size_t r = 0;
+        const std::size_t n = w_.n();
+        for (std::size_t k = 0; k < n; ++k) {
+            const int dir = w_.dir[k];
+            const int b = base_of(dir);
+            const double i = w_.i[k];
+            if (k > 0) {
+                const double dt = w_.t[k] - w_.t[k - 1];
+                for (int pair = 0; pair < 2; ++pair) {
+                    const double rr = p[b + 1 + 2 * pair];
+                    const double tau = p[b + 2 + 2 * pair];
+                    const double a = std::exp(-dt / tau);
+                    if (jac) {
+                        const double da = a * dt / (tau * tau);
+                        const int o = dir > 0 ? 2 : 0;
+                        for (double& d : dv[pair]) d *= a;
+                        dv[pair][o] += (1.0 - a) * i;
+                        dv[pair][o + 1] += da * (v[pair] - rr * i);
+                    }
+                    v[pair] = a * v[pair] + rr * (1.0 - a) * i;
+                }
+            }
+            if (r < rows_.size() && rows_[r] == k) {
+                residuals[r] = p[kC] + p[b] * i + v[0] + v[1] - (w_.v[k] - w_.ocv[k]);
+                if (jac) {
+                    double* row = jac + r * kNumJoint;
+                    std::fill(row, row + kNumJoint, 0.0);
+                    row[b] = i;
+                    for (int pair = 0; pair < 2; ++pair) {
+                        row[0 + 1 + 2 * pair] = dv[pair][0];
+                        row[0 + 2 + 2 * pair] = dv[pair][1];
+                        row[5 + 1 + 2 * pair] = dv[pair][2];
+                        row[5 + 2 + 2 * pair] = dv[pair][3];
+                    }
+                    row[kC] = 1.0;
+                }
+                ++r;
+            }
+        }
+        return true;
+    }
+
+private:
+    const Window& w_;
+    std::vector<std::size_t> rows_;
+};
+
+// exp(-dt/tau) for the searches, recomputed only when tau changes or dt changes by more than 1e-9 s (the
+// sampling interval is nearly constant). The final refinement (JointCost) does not use it.
+struct DecayCache {
+    double dt = -1.0, tau = -1.0, a = 1.0;
+    double operator()(double dt_s, double tau_s) {
+        if (std::abs(dt_s - dt) > 1e-9 || tau_s != tau) {
+            dt = dt_s;
+            tau = tau_s;
+            a = std::exp(-dt_s / tau_s);
+        }
+        return a;
+    }
+};
+
+// Unit-resistance responses of one RC pair with per-direction time constants, on the fitted rows: x_d (the
+// part multiplied by R_dis) and x_c (by R_chg); v = R_dis * x_d + R_chg * x_c solves the model's recursion.
+// With `deriv`, also their derivatives with respect to tau_dis and tau_chg (forward sensitivities).
+struct PairColumns {
+    std::vector<double> xd, xc, dxd_dtd, dxd_dtc, dxc_dtd, dxc_dtc;
+};
+
+void pair_columns(const Window& w, const std::vector<std::size_t>& rows, double tau_dis, double tau_chg,
+                  bool deriv, PairColumns& out) {
+    const std::size_t m = rows.size();
+    out.xd.resize(m);
+    out.xc.resize(m);
+    if (deriv) {
+        out.dxd_dtd.resize(m);
+        out.dxd_dtc.resize(m);
+        out.dxc_dtd.resize(m);
+        out.dxc_dtc.resize(m);
+    }
+    DecayCache cache_d, cache_c;
+    double xd = 0, xc = 0, xd_td = 0, xd_tc = 0, xc_td = 0, xc_tc = 0;
+    std::size_t r = 0;
+    for (std::size_t k = 0; k < w.n() && r < m; ++k) {
+        if (k > 0) {
+            const double dt = w.t[k] - w.t[k - 1];
+            const bool chg = w.dir[k] > 0;
+            const double tau = chg ? tau_chg : tau_dis;
+            const double a = chg ? cache_c(dt, tau) : cache_d(dt, tau);
+            const double i = w.i[k];
+            if (deriv) {
+                const double da = a * dt / (tau * tau);
+                if (chg) {
+                    xd_tc = a * xd_tc + da * xd;
+                    xc_tc = a * xc_tc + da * (xc - i);
+                    xd_td *= a;
+                    xc_td *= a;
+                } else {
+                    xd_td = a * xd_td + da * (xd - i);
+                    xc_td = a * xc_td + da * xc;
+                    xd_tc *= a;
+                    xc_tc *= a;
+                }
+            }
+            const double u = (1.0 - a) * i;
+            xd = a * xd + (chg ? 0.0 : u);
+            xc = a * xc + (chg ? u : 0.0);
+        }
+        if (rows[r] == k) {
+            out.xd[r] = xd;
+            out.xc[r] = xc;
+            if (deriv) {
+                out.dxd_dtd[r] = xd_td;
+                out.dxd_dtc[r] = xd_tc;
+                out.dxc_dtd[r] = xc_td;
+                out.dxc_dtc[r] = xc_tc;
+            }
+            ++r;
+        }
+    }
+}
+
+using Vec7 = Eigen::Matrix<double, 7, 1>;
+using Mat7 = Eigen::Matrix<double, 7, 7>;
+using Row7 = std::array<double, 7>;
+
+// Linear parameters theta = [c, R0d, R0c, R1d, R1c, R2d, R2c] for fixed time constants: the design matrix
+// rows are (1, I*[dis], I*[chg], pair 1 x_d, x_c, pair 2 x_d, x_c). Thin matrices: plain row loops.
+struct LinearModel {
+    std::vector<Row7> phi;
+    Mat7 gram;
+    Vec7 rhs, scale, theta;
+    Eigen::LDLT<Mat7> ldlt;
+
+    void build(const Window& w, const std::vector<std::size_t>& rows, const PairColumns& p1, const PairColumns& p2) {
+        const std::size_t m = rows.size();
+        phi.resize(m);
+        for (std::size_t r = 0; r < m; ++r) {
+            const std::size_t k = rows[r];
+            const double i = w.i[k];
+            phi[r] = {1.0, w.dir[k] < 0 ? i : 0.0, w.dir[k] > 0 ? i : 0.0, p1.xd[r], p1.xc[r], p2.xd[r], p2.xc[r]};
+        }
+    }
+    // Solves the normal equations (equilibrated); false if singular.
+    bool solve(const std::vector<double>& y) {
+        double g[7][7] = {};
+        double h[7] = {};
+        for (std::size_t r = 0; r < phi.size(); ++r) {
+            const Row7& f = phi[r];
+            for (int a = 0; a < 7; ++a) {
+                h[a] += f[a] * y[r];
+                for (int b = a; b < 7; ++b) g[a][b] += f[a] * f[b];
+            }
+        }
+        for (int a = 0; a < 7; ++a) {
+            rhs(a) = h[a];
+            for (int b = a; b < 7; ++b) gram(a, b) = gram(b, a) = g[a][b];
+        }
+        for (int j = 0; j < 7; ++j) scale(j) = gram(j, j) > 0.0 ? 1.0 / std::sqrt(gram(j, j)) : 1.0;
+        ldlt.compute(scale.asDiagonal() * gram * scale.asDiagonal());
+        if (ldlt.info() != Eigen::Success) return false;
+        theta = apply_inverse(rhs);
+        return theta.allFinite();
+    }
+    // (Phi'Phi)^-1 v
+    Vec7 apply_inverse(const Vec7& v) const { return scale.asDiagonal() * ldlt.solve(scale.asDiagonal() * v); }
+    double predict(std::size_t r) const {
+        double s = 0.0;
+        for (int a = 0; a < 7; ++a) s += phi[r][a] * theta(a);
+        return s;
+    }
+};
+
+// Variable projection over the four time constants (parameterized by their logarithms): residual
+// Phi(tau) theta*(tau) - y with theta* the linear least-squares solution; Kaufman's Jacobian
+// J_j = P_perp (dPhi/dtau_j) theta*.
+class VarProCost final : public ceres::CostFunction {
+public:
+    VarProCost(const Window& w, const std::vector<std::size_t>& rows, const std::vector<double>& y)
+        : w_(w), rows_(rows), y_(y) {
+        set_num_residuals(static_cast<int>(rows.size()));
+        mutable_parameter_block_sizes()->push_back(4);
+    }
+
+    // Linear solution at the given time constants [tau1d, tau2d, tau1c, tau2c]; cost = 0.5 * sum r^2.
+    bool linear(const std::array<double, 4>& tau, Vec7& theta, double& cost) const {
+        pair_columns(w_, rows_, tau[0], tau[2], false, p1_);
+        pair_columns(w_, rows_, tau[1], tau[3], false, p2_);
+        lin_.build(w_, rows_, p1_, p2_);
+        if (!lin_.solve(y_)) return false;
+        theta = lin_.theta;
+        cost = 0.0;
+        for (std::size_t r = 0; r < rows_.size(); ++r) cost += 0.5 * std::pow(lin_.predict(r) - y_[r], 2);
+        return true;
+    }
+
+    bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
+        const double* u = parameters[0];
+        const std::array<double, 4> tau{std::exp(u[0]), std::exp(u[1]), std::exp(u[2]), std::exp(u[3])};
+        const bool deriv = jacobians && jacobians[0];
+        pair_columns(w_, rows_, tau[0], tau[2], deriv, p1_);
+        pair_columns(w_, rows_, tau[1], tau[3], deriv, p2_);
+        lin_.build(w_, rows_, p1_, p2_);
+        if (!lin_.solve(y_)) return false;
+        const std::size_t m = rows_.size();
+        for (std::size_t r = 0; r < m; ++r) residuals[r] = lin_.predict(r) - y_[r];
+        if (!deriv) return true;
+        // v_j = dPhi/dtau_j * theta for j = tau1d, tau2d, tau1c, tau2c (into the Jacobian buffer), and Phi'v.
+        const Vec7& th = lin_.theta;
+        double* jac = jacobians[0];
+        double pv[4][7] = {};
+        for (std::size_t r = 0; r < m; ++r) {
+            double* v = jac + 4 * r;
+            v[0] = th(3) * p1_.dxd_dtd[r] + th(4) * p1_.dxc_dtd[r];
+            v[1] = th(5) * p2_.dxd_dtd[r] + th(6) * p2_.dxc_dtd[r];
+            v[2] = th(3) * p1_.dxd_dtc[r] + th(4) * p1_.dxc_dtc[r];
+            v[3] = th(5) * p2_.dxd_dtc[r] + th(6) * p2_.dxc_dtc[r];
+            const Row7& f = lin_.phi[r];
+            for (int j = 0; j < 4; ++j)
+                for (int a = 0; a < 7; ++a) pv[j][a] += f[a] * v[j];
+        }
+        double coef[4][7];
+        for (int j = 0; j < 4; ++j) {
+            const Vec7 c = lin_.apply_inverse(Eigen::Map<const Vec7>(pv[j]));
+            for (int a = 0; a < 7; ++a) coef[j][a] = c(a);
+        }
+        // Project out the span of Phi, then the chain rule for log tau.
+        for (std::size_t r = 0; r < m; ++r) {
+            double* v = jac + 4 * r;
+            const Row7& f = lin_.phi[r];
+            for (int j = 0; j < 4; ++j) {
+                double s = v[j];
+                for (int a = 0; a < 7; ++a) s -= f[a] * coef[j][a];
+                v[j] = s * tau[static_cast<std::size_t>(j)];
+            }
+        }
+        return true;
+    }
+
+private:
+    const Window& w_;
+    const std::vector<std::size_t>& rows_;
+    const std::vector<double>& y_;
+    mutable PairColumns p1_, p2_;
+    mutable LinearModel lin_;
+};
+
+struct Candidate {
+    std::array<double, 4> tau{};  // tau1d, tau2d, tau1c, tau2c
+    Vec7 theta = Vec7::Zero();    // c, R0d, R0c, R1d, R1c, R2d, R2c
+    double cost = std::numeric_limits<double>::infinity();  // 0.5 * sum r^2
+    bool feasible = false;        // all resistances >= 0
+};
+
+bool better(const Candidate& a, const Candidate& b) {
+    if (a.feasible != b.feasible) return a.feasible;
+    return a.cost < b.cost;
+}
+
+std::vector<double> log_grid(double lo, double hi, std::size_t n) {
+    std::vector<double> g(std::max<std::size_t>(n, 2));
+    for (std::size_t j = 0; j < g.size(); ++j)
+        g[j] = lo * std::pow(hi / lo, static_cast<double>(j) / static_cast<double>(g.size() - 1));
+    return g;
+}
+
+
+// Variable projection over a (tau1, tau2) grid of one direction (dir), the other direction's taus fixed.
+// The Gram matrix is assembled from precomputed blocks, so each grid point costs a 7x7 solve. Every
+// evaluated point is appended to `all`.
+Candidate grid_search(const Window& w, const std::vector<std::size_t>& rows, const std::vector<double>& y,
+                      const std::array<double, 4>& fixed, int dir, const std::vector<double>& g1,
+                      const std::vector<double>& g2, std::vector<Candidate>& all) {
+    const std::size_t m = rows.size();
+    // Fixed columns 1, I*[dis], I*[chg]: their Gram block and right-hand side.
+    std::vector<std::array<double, 3>> F(m);
+    Eigen::Matrix3d FtF = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d FtY = Eigen::Vector3d::Zero();
+    double YtY = 0.0;
+    for (std::size_t r = 0; r < m; ++r) {
+        const std::size_t k = rows[r];
+        F[r] = {1.0, w.dir[k] < 0 ? w.i[k] : 0.0, w.dir[k] > 0 ? w.i[k] : 0.0};
+        for (int a = 0; a < 3; ++a) {
+            FtY(a) += F[r][a] * y[r];
+            for (int b = 0; b < 3; ++b) FtF(a, b) += F[r][a] * F[r][b];
+        }
+        YtY += y[r] * y[r];
+    }
+    struct Cols {
+        std::vector<double> xd, xc;
+        Eigen::Matrix<double, 3, 2> ftp = Eigen::Matrix<double, 3, 2>::Zero();
+        Eigen::Matrix2d ptp = Eigen::Matrix2d::Zero();
+        Eigen::Vector2d pty = Eigen::Vector2d::Zero();
+    };
+    auto columns = [&](const std::vector<double>& grid, bool pair1) {
+        std::vector<Cols> out(grid.size());
+        PairColumns pc;
+        for (std::size_t j = 0; j < grid.size(); ++j) {
+            const double td = dir < 0 ? grid[j] : fixed[pair1 ? 0 : 1];
+            const double tc = dir > 0 ? grid[j] : fixed[pair1 ? 2 : 3];
+            pair_columns(w, rows, td, tc, false, pc);
+            Cols& c = out[j];
+            c.xd = pc.xd;
+            c.xc = pc.xc;
+            for (std::size_t r = 0; r < m; ++r) {
+                const double p[2] = {pc.xd[r], pc.xc[r]};
+                for (int b = 0; b < 2; ++b) {
+                    for (int a = 0; a < 3; ++a) c.ftp(a, b) += F[r][a] * p[b];
+                    for (int a = 0; a < 2; ++a) c.ptp(a, b) += p[a] * p[b];
+                    c.pty(b) += p[b] * y[r];
+                }
+            }
+        }
+        return out;
+    };
+    const auto P1 = columns(g1, true);
+    const auto P2 = columns(g2, false);
+
+    Candidate best;
+    for (std::size_t a = 0; a < g1.size(); ++a) {
+        for (std::size_t b = 0; b < g2.size(); ++b) {
+            if (g2[b] < 1.5 * g1[a]) continue;
+            Eigen::Matrix2d cross = Eigen::Matrix2d::Zero();
+            for (std::size_t r = 0; r < m; ++r) {
+                cross(0, 0) += P1[a].xd[r] * P2[b].xd[r];
+                cross(0, 1) += P1[a].xd[r] * P2[b].xc[r];
+                cross(1, 0) += P1[a].xc[r] * P2[b].xd[r];
+                cross(1, 1) += P1[a].xc[r] * P2[b].xc[r];
+            }
+            Mat7 G;
+            Vec7 h;
+            G.block<3, 3>(0, 0) = FtF;
+            G.block<3, 2>(0, 3) = P1[a].ftp;
+            G.block<3, 2>(0, 5) = P2[b].ftp;
+            G.block<2, 2>(3, 3) = P1[a].ptp;
+            G.block<2, 2>(5, 5) = P2[b].ptp;
+            G.block<2, 2>(3, 5) = cross;
+            G.block<2, 3>(3, 0) = P1[a].ftp.transpose();
+            G.block<2, 3>(5, 0) = P2[b].ftp.transpose();
+            G.block<2, 2>(5, 3) = cross.transpose();
+            h.segment<3>(0) = FtY;
+            h.segment<2>(3) = P1[a].pty;
+            h.segment<2>(5) = P2[b].pty;
+            Vec7 s;
+            for (int j = 0; j < 7; ++j) s(j) = G(j, j) > 0.0 ? 1.0 / std::sqrt(G(j, j)) : 1.0;
+            const Mat7 Gs = s.asDiagonal() * G * s.asDiagonal();
+            Candidate c;
+            c.theta = s.asDiagonal() * Gs.ldlt().solve(s.asDiagonal() * h);
+            if (!c.theta.allFinite()) continue;
+            c.cost = 0.5 * std::max(0.0, YtY - 2.0 * c.theta.dot(h) + c.theta.dot(G * c.theta));
+            c.tau = fixed;
+            if (dir < 0) {
+                c.tau[0] = g1[a];
+                c.tau[1] = g2[b];
+            } else {
+                c.tau[2] = g1[a];
+                c.tau[3] = g2[b];
+            }
+            c.feasible = (c.theta.segment<6>(1).array() >= 0.0).all();
+            all.push_back(c);
+            if (better(c, best)) best = c;
+        }
+    }
+    return best;
+}
+
+ceres::Solver::Options solver_options(int max_iterations, double function_tolerance = 1e-12) {
+    ceres::Solver::Options opt;
+    opt.linear_solver_type = ceres::DENSE_QR;
+    opt.max_num_iterations = max_iterations;
+    opt.function_tolerance = function_tolerance;
+    opt.gradient_tolerance = 1e-14;
+    opt.parameter_tolerance = 1e-10;
+    opt.logging_type = ceres::SILENT;
+    opt.minimizer_progress_to_stdout = false;
+    opt.num_threads = 1;
+    return opt;
+}
+
+// Bounds of one direction's (tau1, tau2); split_at keeps tau1 <= split <= tau2.
+struct TauBounds {
+    double lo1, hi1, lo2, hi2;
+    explicit TauBounds(const PulseFitOptions& o)
+        : lo1(o.tau1_min_s), hi1(o.tau1_max_s), lo2(o.tau2_min_s), hi2(o.tau2_max_s) {}
+    TauBounds split_at(double split) const {
+        TauBounds b = *this;
+        b.hi1 = std::clamp(split, lo1, hi1);
+        b.lo2 = std::clamp(split, lo2, hi2);
+        return b;
+    }
+};
+
+bool ordered(const std::array<double, 4>& tau) { return tau[0] < tau[1] && tau[2] < tau[3]; }
+
+// Refines the four time constants by variable projection from a start (with the linear parameters solved
+// at every step).
+Candidate varpro_refine(const Window& w, const std::vector<std::size_t>& rows, const std::vector<double>& y,
+                        const Candidate& start, const TauBounds& bd, const TauBounds& bc, int max_iterations) {
+    auto* cost = new VarProCost(w, rows, y);
+    std::array<double, 4> u{};
+    const std::array<double, 4> lo{bd.lo1, bd.lo2, bc.lo1, bc.lo2}, hi{bd.hi1, bd.hi2, bc.hi1, bc.hi2};
+    for (std::size_t j = 0; j < 4; ++j) u[j] = std::log(std::clamp(start.tau[j], lo[j], hi[j]));
+    ceres::Problem problem;
+    problem.AddResidualBlock(cost, nullptr, u.data());
+    for (int j = 0; j < 4; ++j) {
+        problem.SetParameterLowerBound(u.data(), j, std::log(lo[static_cast<std::size_t>(j)]));
+        problem.SetParameterUpperBound(u.data(), j, std::log(hi[static_cast<std::size_t>(j)]));
+    }
+    ceres::Solver::Summary sum;
+    ceres::Solve(solver_options(max_iterations, 1e-9), &problem, &sum);
+    Candidate c;
+    for (std::size_t j = 0; j < 4; ++j) c.tau[j] = std::exp(u[j]);
+    if (!cost->linear(c.tau, c.theta, c.cost)) return start;
+    c.feasible = (c.theta.segment<6>(1).array() >= 0.0).all();
+    return c;
+}
+
+struct JointResult {
+    std::array<double, kNumJoint> p{};
+    std::array<double, kNumJoint> sigma{};
+    double cost = std::numeric_limits<double>::infinity();
+    bool converged = false;
+    bool sigma_ok = false;
+};
+
+// Final refinement of all 11 parameters with the exact model (JointCost) under the bounds, then covariance.
+JointResult polish(const Window& w, const std::vector<std::size_t>& rows, const Candidate& start,
+                   const TauBounds& bd, const TauBounds& bc, const PulseFitOptions& o) {
+    JointResult res;
+    auto& p = res.p;
+    const auto& th = start.theta;  // c, R0d, R0c, R1d, R1c, R2d, R2c
+    p = {std::max(0.0, th(1)), std::max(0.0, th(3)), start.tau[0], std::max(0.0, th(5)), start.tau[1],
+         std::max(0.0, th(2)), std::max(0.0, th(4)), start.tau[2], std::max(0.0, th(6)), start.tau[3], th(0)};
+    ceres::Problem problem;
+    problem.AddResidualBlock(new JointCost(w, rows), nullptr, p.data());
+    for (int b : {0, 5}) {
+        const TauBounds& tb = b == 0 ? bd : bc;
+        for (int j : {0, 1, 3}) problem.SetParameterLowerBound(p.data(), b + j, 0.0);
+        p[b + 2] = std::clamp(p[b + 2], tb.lo1, tb.hi1);
+        p[b + 4] = std::clamp(p[b + 4], tb.lo2, tb.hi2);
+        problem.SetParameterLowerBound(p.data(), b + 2, tb.lo1);
+        problem.SetParameterUpperBound(p.data(), b + 2, tb.hi1);
+        problem.SetParameterLowerBound(p.data(), b + 4, tb.lo2);
+        problem.SetParameterUpperBound(p.data(), b + 4, tb.hi2);
+    }
+    ceres::Solver::Summary sum;
+    ceres::Solve(solver_options(o.max_iterations), &problem, &sum);
+    res.cost = sum.final_cost;
+    res.converged = sum.termination_type == ceres::CONVERGENCE;
+
+    res.sigma.fill(kNaN);
+    if (!o.compute_covariance || rows.size() <= kNumJoint) return res;
+    // ceres::Covariance fails (and logs) on a rank-deficient Jacobian: check the conditioning first.
+    ceres::CRSMatrix crs;
+    double cost = 0.0;
+    problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, &crs);
+    Eigen::Matrix<double, kNumJoint, kNumJoint> jtj = Eigen::Matrix<double, kNumJoint, kNumJoint>::Zero();
+    for (int r = 0; r < crs.num_rows; ++r) {
+        for (int a = crs.rows[r]; a < crs.rows[r + 1]; ++a)
+            for (int b = crs.rows[r]; b < crs.rows[r + 1]; ++b)
+                jtj(crs.cols[a], crs.cols[b]) += crs.values[a] * crs.values[b];
+    }
+    // Singular values of the symmetric positive semi-definite J'J are its eigenvalues.
+    const Eigen::JacobiSVD<Eigen::Matrix<double, kNumJoint, kNumJoint>> svd(jtj);
+    double lmax = 0.0, lmin = std::numeric_limits<double>::infinity();
+    for (int j = 0; j < kNumJoint; ++j) {
+        const double sv = svd.singularValues()(j);
+        lmax = std::max(lmax, sv);
+        lmin = std::min(lmin, sv);
+    }
+    if (!(lmax > 0.0) || !(lmin > 1e-13 * lmax)) return res;
+    ceres::Covariance::Options copt;
+    copt.algorithm_type = ceres::DENSE_SVD;
+    copt.num_threads = 1;
+    ceres::Covariance cov(copt);
+    const std::vector<std::pair<const double*, const double*>> blocks{{p.data(), p.data()}};
+    std::array<double, kNumJoint * kNumJoint> m{};
+    if (cov.Compute(blocks, &problem) && cov.GetCovarianceBlock(p.data(), p.data(), m.data())) {
+        // (J'J)^-1 scaled by the residual variance.
+        const double s2 = 2.0 * sum.final_cost / static_cast<double>(rows.size() - kNumJoint);
+        for (int j = 0; j < kNumJoint; ++j) {
+            const double var = m[static_cast<std::size_t>(j * kNumJoint + j)] * s2;
+            res.sigma[static_cast<std::size_t>(j)] = var >= 0.0 ? std::sqrt(var) : kNaN;
+        }
+        res.sigma_ok = true;
+    }
+    return res;
+}
+
+Rc2Params<double> unpack(const std::array<double, kNumJoint>& p, int b) {
+    return {p[b], p[b + 1], p[b + 2], p[b + 3], p[b + 4]};
+}
+
+void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
+    std::vector<std::size_t> rows;
+    std::vector<double> y;
+    for (std::size_t k = 0; k < w.n(); ++k) {
+        if (!std::isfinite(w.v[k]) || !std::isfinite(w.t[k])) continue;
+        rows.push_back(k);
+        y.push_back(w.v[k] - w.ocv[k]);
+    }
+    if (rows.size() < 4 * kNumJoint) {
+        out.warnings.push_back("joint method: too few valid rows to fit");
+        return;
+    }
+    const auto g1 = log_grid(o.tau1_min_s, o.tau1_max_s, o.tau1_grid);
+    const auto g2 = log_grid(o.tau2_min_s, o.tau2_max_s, o.tau2_grid);
+
+    // 1. Coordinate-wise variable projection on the grid: discharge taus, then charge taus, twice.
+    std::array<double, 4> tau{2.0, 30.0, 2.0, 30.0};
+    std::vector<Candidate> all;
+    for (int sweep = 0; sweep < 2; ++sweep) {
+        for (int dir : {-1, +1}) {
+            if (sweep == 1 && dir < 0) all.clear();
+            const Candidate c = grid_search(w, rows, y, tau, dir, g1, g2, all);
+            if (std::isfinite(c.cost)) tau = c.tau;
+        }
+    }
+    std::sort(all.begin(), all.end(), better);
+    std::vector<Candidate> starts;
+    for (const Candidate& c : all) {
+        if (starts.size() >= std::max<std::size_t>(1, o.refine_starts)) break;
+        const bool distinct = std::all_of(starts.begin(), starts.end(), [&](const Candidate& s) {
+            for (std::size_t j = 0; j < 4; ++j)
+                if (std::abs(std::log(c.tau[j] / s.tau[j])) > std::log(1.3)) return true;
+            return false;
+        });
+        if (distinct) starts.push_back(c);
+    }
+    if (starts.empty()) {
+        out.warnings.push_back("joint method: the time-constant search found no usable start");
+        return;
+    }
+
+    // 2. Variable-projection refinement of the time constants from each start. tau1 < tau2 is kept by
+    //    re-running with the pairs split at the start's geometric mean when the free run crosses them.
+    Candidate best;
+    const TauBounds box(o);
+    TauBounds best_bd = box, best_bc = box;
+    for (const Candidate& s : starts) {
+        TauBounds bd = box, bc = box;
+        Candidate c = varpro_refine(w, rows, y, s, bd, bc, o.max_iterations);
+        if (!ordered(c.tau)) {
+            if (!(c.tau[0] < c.tau[1])) bd = box.split_at(std::sqrt(s.tau[0] * s.tau[1]));
+            if (!(c.tau[2] < c.tau[3])) bc = box.split_at(std::sqrt(s.tau[2] * s.tau[3]));
+            c = varpro_refine(w, rows, y, s, bd, bc, o.max_iterations);
+        }
+        if (!ordered(c.tau)) continue;
+        if (better(c, best)) {
+            best = c;
+            best_bd = bd;
+            best_bc = bc;
+        }
+    }
+    if (!std::isfinite(best.cost)) best = starts.front();
+
+    // 3. All 11 parameters with the exact model, resistances bounded at zero; if the pairs cross, again with
+    //    them split at the geometric mean of the variable-projection result.
+    JointResult r = polish(w, rows, best, best_bd, best_bc, o);
+    if (!(r.p[2] < r.p[4]) || !(r.p[7] < r.p[9])) {
+        if (!(r.p[2] < r.p[4])) best_bd = box.split_at(std::sqrt(best.tau[0] * best.tau[1]));
+        if (!(r.p[7] < r.p[9])) best_bc = box.split_at(std::sqrt(best.tau[2] * best.tau[3]));
+        r = polish(w, rows, best, best_bd, best_bc, o);
+    }
+
+    out.joint_discharge = unpack(r.p, 0);
+    out.joint_charge = unpack(r.p, 5);
+    out.joint_ocv_offset_v = r.p[kC];
+    out.joint_converged = r.converged;
+    if (r.sigma_ok) {
+        out.joint_discharge_sigma = unpack(r.sigma, 0);
+        out.joint_charge_sigma = unpack(r.sigma, 5);
+        out.joint_ocv_offset_sigma_v = r.sigma[kC];
+    } else if (o.compute_covariance) {
+        out.warnings.push_back("joint method: covariance not computable (the Jacobian is rank deficient: a "
+                               "parameter is not identifiable from this pulse set)");
+    }
+    out.joint_fit_rms_v = std::sqrt(2.0 * r.cost / static_cast<double>(rows.size()));
+    if (!r.converged) out.warnings.push_back("joint method: Ceres did not report convergence");
+
+    auto check = [&](const Rc2Params<double>& p, const char* name) {
+        auto near = [](double x, double b) { return std::abs(x - b) <= 1e-6 * b; };
+        if (near(p.tau1_s, o.tau1_min_s) || near(p.tau1_s, o.tau1_max_s) || near(p.tau2_s, o.tau2_min_s) ||
+            near(p.tau2_s, o.tau2_max_s))
+            out.warnings.push_back(std::string("joint method: a ") + name +
+                                   fmt(" time constant is on its bound (tau1 = %.3g s, tau2 = %.3g s)",
+                                       p.tau1_s, p.tau2_s));
+        if (!(p.r1_ohm > 0.0) || !(p.r2_ohm > 0.0) || !(p.r0_ohm > 0.0))
+            out.warnings.push_back(std::string("joint method: a ") + name + " resistance is zero (on its bound)");
+    };
+    check(out.joint_discharge, "discharge");
+    check(out.joint_charge, "charge");
+}
+
+}  // namespace
+
+PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseFitOptions& o) {
+    PulseSetFit out;
+    out.pulse_set = ps;
+    out.ocv_v = ps.ocv_v;
+    const std::size_t n = rec.size();
+    const bool sizes_ok = rec.voltage_v.size() == n && rec.current_a.size() == n;
+    if (!sizes_ok || ps.pulse_begin < 1 || !(ps.pulse_begin < ps.discharge_end) ||
+        !(ps.discharge_end < ps.charge_begin) || !(ps.charge_begin < ps.charge_end) ||
+        !(ps.charge_end < ps.end) || ps.end > n) {
+        out.warnings.push_back("pulse set row indices do not fit this recording: nothing fitted");
+        return out;
+    }
+    if (!std::isfinite(out.ocv_v)) out.ocv_v = rec.voltage_v[ps.pulse_begin - 1];
+
+    // Rows used: A .. end of the charge relaxation, cut after max_relaxation_s.
+    const std::size_t first = ps.pulse_begin - 1;
+    std::size_t end = ps.end;
+    {
+        const double t_g = rec.time_s[ps.charge_end - 1];
+        std::size_t k = ps.charge_end;
+        while (k < ps.end && rec.time_s[k] - t_g <= o.max_relaxation_s) ++k;
+        end = std::max(k, std::min(ps.end, ps.charge_end + 2));
+    }
+    out.begin = first;
+    out.end = end;
+    const Window w = make_window(rec, first, end, out.ocv_v, o.docv_dah_v_per_ah);
+
+    // Temperature: mean surface temperature, else ambient.
+    for (const auto* ch : {&rec.surface_c, &rec.ambient_c}) {
+        if (ch->size() != n) continue;
+        double s = 0.0;
+        std::size_t m = 0;
+        for (std::size_t k = first; k < end; ++k)
+            if (std::isfinite((*ch)[k])) { s += (*ch)[k]; ++m; }
+        if (m) {
+            out.temperature_c = s / static_cast<double>(m);
+            break;
+        }
+    }
+
+    // R0, thesis eq. 3.2 / Script 3.2: the rows on either side of each current step.
+    {
+        const auto& v = rec.voltage_v;
+        const auto& c = rec.current_a;
+        const std::size_t pb = ps.pulse_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
+        out.r0.ab_ohm = (v[pb - 1] - v[pb]) / std::abs(c[pb]);
+        out.r0.cd_ohm = (v[de] - v[de - 1]) / std::abs(c[de - 1]);
+        out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
+        out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
+        out.r0.discharge_ohm = finite_mean({out.r0.ab_ohm, out.r0.cd_ohm});
+        out.r0.charge_ohm = finite_mean({out.r0.ef_ohm, out.r0.gh_ohm});
+    }
+
+    if (ps.charge_cv)
+        out.warnings.push_back(
+            fmt("the charge pulse hit the upper voltage limit and turned CV (current fell from %.2f A to %.2f A): "
+                "its charge parameters (and R0 GH) are not those of a constant-current pulse",
+                std::abs(rec.current_a[ps.charge_begin]), std::abs(rec.current_a[ps.charge_end - 1])));
+    if (ps.discharge_cv)
+        out.warnings.push_back(
+            fmt("the discharge pulse hit the lower voltage limit and turned CV (current fell from %.2f A to "
+                "%.2f A): its discharge parameters are not those of a constant-current pulse",
+                std::abs(rec.current_a[ps.pulse_begin]), std::abs(rec.current_a[ps.discharge_end - 1])));
+    if (o.docv_dah_v_per_ah == 0.0)
+        out.warnings.push_back("OCV slope unknown (docv_dah_v_per_ah = 0): the OCV is held at V_A during the "
+                               "pulse set");
+    if (ps.charge_relaxation_s > 0.0 && ps.charge_relaxation_s < 30.0)
+        out.warnings.push_back(fmt("the charge relaxation lasts only %.1f s", ps.charge_relaxation_s));
+
+    if (o.thesis_method) thesis_fits(rec, ps, w, end, o, out);
+    if (o.joint_method) joint_fit(w, o, out);
+
+    out.thesis_rms_v = simulated_rms(w, out.thesis_discharge, out.thesis_charge, 0.0);
+    out.joint_rms_v = simulated_rms(w, out.joint_discharge, out.joint_charge, 0.0);
+
+    // Choice: the better predictor among the results with usable parameters (see the header).
+    auto usable = [](const Rc2Params<double>& p) {
+        for (double x : {p.r0_ohm, p.r1_ohm, p.tau1_s, p.r2_ohm, p.tau2_s})
+            if (!std::isfinite(x) || !(x > 0.0)) return false;
+        return true;
+    };
+    const auto& th = out.thesis;
+    out.thesis_at_bound = !usable(out.thesis_discharge) || !usable(out.thesis_charge) || th.discharge.at_bound ||
+                          th.discharge_relaxation.at_bound || th.charge.at_bound || th.charge_relaxation.at_bound;
+    auto on_box = [&](const Rc2Params<double>& p) {
+        auto near = [](double x, double b) { return std::abs(x - b) <= 1e-6 * b; };
+        return near(p.tau1_s, o.tau1_min_s) || near(p.tau1_s, o.tau1_max_s) || near(p.tau2_s, o.tau2_min_s) ||
+               near(p.tau2_s, o.tau2_max_s);
+    };
+    out.joint_at_bound = !usable(out.joint_discharge) || !usable(out.joint_charge) || on_box(out.joint_discharge) ||
+                         on_box(out.joint_charge);
+    const bool thesis_ok = std::isfinite(out.thesis_rms_v), joint_ok = std::isfinite(out.joint_rms_v);
+    const bool joint_better = joint_ok && !(out.thesis_rms_v < out.joint_rms_v);
+    if (thesis_ok && joint_ok && out.thesis_at_bound != out.joint_at_bound) {
+        out.chosen = out.joint_at_bound ? PulseSetFit::Method::Thesis : PulseSetFit::Method::Joint;
+        const bool against_rms = (out.chosen == PulseSetFit::Method::Joint) != joint_better;
+        if (against_rms)
+            out.warnings.push_back(std::string("chose the ") + to_string(out.chosen) +
+                                   " result although the other predicts the pulse set better" +
+                                   fmt(" (%.2f mV vs %.2f mV RMS): the other's parameters are on a bound or not "
+                                       "positive",
+                                       1e3 * std::min(out.joint_rms_v, out.thesis_rms_v),
+                                       1e3 * std::max(out.joint_rms_v, out.thesis_rms_v)));
+    } else {
+        out.chosen = joint_better || !thesis_ok ? PulseSetFit::Method::Joint : PulseSetFit::Method::Thesis;
+    }
+    return out;
+}
+
+}  // namespace cellbench::estimator

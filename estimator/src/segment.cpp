@@ -1,0 +1,277 @@
+#include "cellbench/estimator/segment.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace cellbench::estimator {
+
+const char* to_string(PhaseKind kind) {
+    switch (kind) {
+        case PhaseKind::Rest: return "rest";
+        case PhaseKind::LongRest: return "long rest";
+        case PhaseKind::DischargePulse: return "discharge pulse";
+        case PhaseKind::ChargePulse: return "charge pulse";
+        case PhaseKind::Discharge: return "discharge";
+        case PhaseKind::Charge: return "charge";
+    }
+    return "?";
+}
+
+namespace {
+
+struct Run {
+    std::size_t begin, end;
+    int state;
+    bool step_split;  // separated from the previous run by a step boundary (same direction on both sides)
+};
+
+// Duration of rows [begin, end) under the sampling convention (row k covers (t[k-1], t[k]]).
+double span_s(const std::vector<double>& t, std::size_t begin, std::size_t end) {
+    if (end <= begin) return 0.0;
+    const double start = begin > 0 ? t[begin - 1] : t[begin];
+    const double d = t[end - 1] - start;
+    return std::isfinite(d) && d > 0.0 ? d : 0.0;
+}
+
+bool step_changes(const Recording& rec, std::size_t k) {
+    if (k == 0) return false;
+    if (rec.step_count.size() == rec.size()) {
+        const double a = rec.step_count[k - 1], b = rec.step_count[k];
+        if (std::isfinite(a) && std::isfinite(b) && a != b) return true;
+    }
+    if (rec.step_type.size() == rec.size()) {
+        const auto& a = rec.step_type[k - 1];
+        const auto& b = rec.step_type[k];
+        if (!a.empty() && !b.empty() && a != b) return true;
+    }
+    return false;
+}
+
+// Row states by hysteresis on the current: +1 charge, -1 discharge, 0 rest. Non-finite currents keep the state.
+std::vector<int> row_states(const std::vector<double>& current_a, const SegmentOptions& o) {
+    std::vector<int> st(current_a.size(), 0);
+    int s = 0;
+    for (std::size_t k = 0; k < current_a.size(); ++k) {
+        const double i = current_a[k];
+        if (std::isfinite(i)) {
+            if (s != 0 && s * i > o.off_threshold_a) {
+                // still flowing in the same direction (CV tails included)
+            } else if (i > o.on_threshold_a) {
+                s = +1;
+            } else if (i < -o.on_threshold_a) {
+                s = -1;
+            } else {
+                s = 0;
+            }
+        }
+        st[k] = s;
+    }
+    return st;
+}
+
+Phase make_phase(const Recording& rec, const Run& r, const SegmentOptions& o) {
+    const auto& t = rec.time_s;
+    const auto& cur = rec.current_a;
+    Phase p;
+    p.begin = r.begin;
+    p.end = r.end;
+    p.direction = r.state;
+    p.duration_s = span_s(t, r.begin, r.end);
+    p.open_end = r.end == rec.size();
+    p.voltage_begin_v = rec.voltage_v[r.begin];
+    p.voltage_end_v = rec.voltage_v[r.end - 1];
+
+    double sum = 0.0, ah = 0.0;
+    std::size_t cnt = 0;
+    for (std::size_t k = r.begin; k < r.end; ++k) {
+        if (!std::isfinite(cur[k])) continue;
+        sum += cur[k];
+        ++cnt;
+        if (k > 0) {
+            const double dt = t[k] - t[k - 1];
+            if (std::isfinite(dt) && dt > 0.0) ah += cur[k] * dt / 3600.0;
+        }
+    }
+    p.mean_current_a = cnt ? sum / static_cast<double>(cnt) : 0.0;
+    p.charge_ah = ah;
+
+    // Peak and end current from short moving means, so that a noise spike is not a peak.
+    const std::size_t n = r.end - r.begin;
+    const std::size_t m = std::min<std::size_t>(5, n);
+    double best = 0.0, end_mean = 0.0;
+    {
+        double acc = 0.0;
+        std::size_t acc_n = 0;
+        for (std::size_t k = r.begin; k < r.end; ++k) {
+            if (std::isfinite(cur[k])) { acc += cur[k]; ++acc_n; }
+            if (k >= r.begin + m) {
+                const double old = cur[k - m];
+                if (std::isfinite(old)) { acc -= old; --acc_n; }
+            }
+            if (k + 1 >= r.begin + m && acc_n) {
+                const double mean = acc / static_cast<double>(acc_n);
+                if (std::abs(mean) > std::abs(best)) best = mean;
+                end_mean = mean;
+            }
+        }
+    }
+    if (r.state == 0) {
+        p.peak_current_a = 0.0;
+        p.end_current_a = end_mean;
+        // 1 % slack: a cycler may end a 10 min rest step one sample early.
+        p.kind = p.duration_s >= 0.99 * o.long_rest_s ? PhaseKind::LongRest : PhaseKind::Rest;
+    } else {
+        p.peak_current_a = best;
+        p.end_current_a = end_mean;
+        p.cv_tail = std::abs(end_mean) < o.cv_tail_fraction * std::abs(best);
+        const bool pulse = p.duration_s <= o.pulse_max_s;
+        if (r.state < 0)
+            p.kind = pulse ? PhaseKind::DischargePulse : PhaseKind::Discharge;
+        else
+            p.kind = pulse ? PhaseKind::ChargePulse : PhaseKind::Charge;
+    }
+    return p;
+}
+
+}  // namespace
+
+std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& o) {
+    std::vector<Phase> phases;
+    const std::size_t n = rec.size();
+    if (n == 0 || rec.current_a.size() != n || rec.voltage_v.size() != n) return phases;
+
+    const std::vector<int> st = row_states(rec.current_a, o);
+
+    // Raw runs of one state; step boundaries split runs of one direction.
+    std::vector<Run> runs;
+    std::size_t b = 0;
+    bool split_flag = false;
+    for (std::size_t k = 1; k <= n; ++k) {
+        const bool state_change = k == n || st[k] != st[b];
+        const bool step_split = !state_change && o.use_step_boundaries && st[k] != 0 && step_changes(rec, k);
+        if (state_change || step_split) {
+            runs.push_back({b, k, st[b], split_flag});
+            split_flag = step_split;
+            b = k;
+        }
+    }
+
+    auto is_glitch = [&](std::size_t begin, std::size_t end) {
+        return end - begin < o.min_phase_samples && span_s(rec.time_s, begin, end) < o.min_phase_s;
+    };
+
+    // Absorb glitches into the preceding run (the following one at the start) and merge equal neighbours,
+    // except across a step boundary that separates two real phases of one direction.
+    std::vector<Run> out;
+    std::optional<std::size_t> leading_glitch_begin;
+    for (const Run& r : runs) {
+        // A short run at the end of the window is not a glitch yet: it may be the start of a new phase.
+        if (is_glitch(r.begin, r.end) && r.end < n) {
+            if (!out.empty())
+                out.back().end = r.end;
+            else if (!leading_glitch_begin)
+                leading_glitch_begin = r.begin;
+            continue;
+        }
+        Run cur = r;
+        if (leading_glitch_begin) {
+            cur.begin = *leading_glitch_begin;
+            leading_glitch_begin.reset();
+        }
+        if (!out.empty() && out.back().state == cur.state && !cur.step_split) {
+            out.back().end = cur.end;
+            continue;
+        }
+        if (!out.empty() && out.back().state != cur.state) cur.step_split = false;
+        out.push_back(cur);
+    }
+    if (leading_glitch_begin) {  // the whole window is one glitch: call it what its rows mostly are
+        out.push_back({*leading_glitch_begin, n, st[n - 1], false});
+    }
+
+    phases.reserve(out.size());
+    for (const Run& r : out) {
+        Phase p = make_phase(rec, r, o);
+        p.index = phases.size();
+        phases.push_back(p);
+    }
+    return phases;
+}
+
+RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& o) {
+    RecordingSegments seg;
+    seg.phases = split_phases(rec, o);
+    const auto& ph = seg.phases;
+
+    for (const Phase& p : ph) {
+        if (p.kind == PhaseKind::LongRest) seg.long_rests.push_back(p);
+        if (p.kind == PhaseKind::Discharge) seg.cc_discharges.push_back(p);
+    }
+
+    // Pulse sets: long rest -> discharge pulse -> rest -> charge pulse -> rest of at least min_relaxation_s.
+    std::vector<bool> is_soc_step(ph.size(), false);
+    for (std::size_t i = 0; i + 4 < ph.size(); ++i) {
+        const Phase& rest = ph[i];
+        const Phase& dis = ph[i + 1];
+        const Phase& rel = ph[i + 2];
+        const Phase& chg = ph[i + 3];
+        const Phase& crel = ph[i + 4];
+        if (rest.kind != PhaseKind::LongRest || dis.kind != PhaseKind::DischargePulse || !rel.is_rest() ||
+            chg.kind != PhaseKind::ChargePulse || !crel.is_rest() || crel.duration_s < o.min_relaxation_s)
+            continue;
+        PulseSet ps;
+        ps.phase_index = i;
+        ps.rest_begin = rest.begin;
+        ps.pulse_begin = dis.begin;
+        ps.discharge_end = dis.end;
+        ps.charge_begin = chg.begin;
+        ps.charge_end = chg.end;
+        ps.end = crel.end;
+        ps.ocv_v = rec.voltage_v[dis.begin - 1];
+        ps.rest_duration_s = rest.duration_s;
+        ps.discharge_current_a = dis.mean_current_a;
+        ps.charge_current_a = chg.mean_current_a;
+        ps.discharge_duration_s = dis.duration_s;
+        ps.discharge_relaxation_s = rel.duration_s;
+        ps.charge_duration_s = chg.duration_s;
+        ps.charge_relaxation_s = crel.duration_s;
+        ps.discharge_ah = dis.charge_ah;
+        ps.charge_ah = chg.charge_ah;
+        ps.discharge_cv = dis.cv_tail;
+        ps.charge_cv = chg.cv_tail;
+        ps.relaxation_open = crel.open_end;
+        seg.pulse_sets.push_back(ps);
+
+        if (i + 5 < ph.size() && ph[i + 5].kind == PhaseKind::Discharge) {
+            const Phase& d = ph[i + 5];
+            SocStep s;
+            s.phase_index = d.index;
+            s.pulse_set_index = seg.pulse_sets.size() - 1;
+            s.begin = d.begin;
+            s.end = d.end;
+            s.charge_ah = d.charge_ah;
+            s.mean_current_a = d.mean_current_a;
+            s.followed_by_long_rest = i + 6 < ph.size() && ph[i + 6].kind == PhaseKind::LongRest;
+            seg.soc_steps.push_back(s);
+            is_soc_step[d.index] = true;
+        }
+    }
+
+    // Pilot discharge: the first long discharge after a CCCV charge and a rest, ended (not open).
+    for (std::size_t p = 2; p + 1 < ph.size(); ++p) {
+        const Phase& d = ph[p];
+        if (d.kind != PhaseKind::Discharge || is_soc_step[p] || d.duration_s < o.pilot_min_s) continue;
+        if (!ph[p - 1].is_rest() || ph[p - 2].kind != PhaseKind::Charge || !ph[p - 2].cv_tail) continue;
+        seg.pilot_discharge = d;
+        break;
+    }
+    return seg;
+}
+
+std::optional<PulseSet> last_complete_pulse_set(const Recording& window, const SegmentOptions& options) {
+    RecordingSegments seg = segment_recording(window, options);
+    if (seg.pulse_sets.empty()) return std::nullopt;
+    return seg.pulse_sets.back();
+}
+
+}  // namespace cellbench::estimator

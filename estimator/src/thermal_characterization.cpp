@@ -1,0 +1,249 @@
+#include "cellbench/estimator/thermal_characterization.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include "cellbench/estimator/model.hpp"
+#include "cellbench/estimator/simulate.hpp"
+#include "cellbench/estimator/thermal_fit.hpp"
+
+namespace cellbench::estimator {
+
+namespace {
+
+bool has_thermal(const Recording& r) { return r.has_surface() && r.has_heat_flux(); }
+
+nlohmann::json num(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
+
+// Surface temperature RMS of the first-order thermal model driven by the MEASURED heat generation
+// I*(V - OCV(SOC)) + I*T*dU/dT, for a given R_th (C_th and dU/dT held). Using the measured voltage keeps the
+// thermal identification independent of the electrical model's errors. Exact ZOH per interval.
+struct ThermalFitData {
+    std::vector<double> dt_s, heat_irr_w, current_a, ehc_v_per_k, surface_c;
+    std::vector<bool> segment_start;  // first row of each recording
+    std::vector<double> ambient_c;    // per row
+};
+
+double measured_heat_temperature_rms(const ThermalFitData& d, double c_th, double r_th) {
+    double sum = 0, weight = 0, t = kNaN;
+    for (std::size_t k = 0; k < d.dt_s.size(); ++k) {
+        if (d.segment_start[k] || !std::isfinite(t)) {
+            t = d.surface_c[k];
+            continue;
+        }
+        // C dT/dt = Qirr + I*EHC*(T + 273.15) - (T - Ta)/Rth  ->  dT/dt = -beta*T + c
+        const double i = d.current_a[k], ehc = d.ehc_v_per_k[k];
+        const double beta = (1.0 / r_th - i * ehc) / c_th;
+        const double c = (d.heat_irr_w[k] + i * ehc * kZeroCelsiusK + d.ambient_c[k] / r_th) / c_th;
+        const double e = std::exp(-beta * d.dt_s[k]);
+        t = t * e + c / beta * (1.0 - e);
+        if (std::isfinite(d.surface_c[k])) {
+            const double err = t - d.surface_c[k];
+            sum += err * err * d.dt_s[k];
+            weight += d.dt_s[k];
+        }
+    }
+    return weight > 0 ? std::sqrt(sum / weight) : kNaN;
+}
+
+ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, const ParameterSet& p,
+                                  const std::vector<std::vector<double>>& soc_of_rec) {
+    ThermalFitData d;
+    for (std::size_t r = 0; r < recs.size(); ++r) {
+        const auto& rec = *recs[r];
+        const auto& soc = soc_of_rec[r];
+        double ambient = kNaN;
+        for (double v : rec.surface_c)
+            if (std::isfinite(v)) { ambient = v; break; }
+        bool started = false;
+        for (std::size_t k = 0; k < rec.size(); ++k) {
+            // Rows before the DAQ started carry no temperature: begin at the first measured one.
+            if (!started && !std::isfinite(rec.surface_c[k])) continue;
+            d.segment_start.push_back(!started);
+            started = true;
+            d.dt_s.push_back(k > 0 ? rec.time_s[k] - rec.time_s[k - 1] : 0.0);
+            const double i = rec.current_a[k];
+            d.current_a.push_back(i);
+            d.heat_irr_w.push_back(i * (rec.voltage_v[k] - p.ocv_at(soc[k])));
+            d.ehc_v_per_k.push_back(p.ehc_at(soc[k]));
+            d.surface_c.push_back(rec.surface_c[k]);
+            d.ambient_c.push_back(rec.has_ambient() && std::isfinite(rec.ambient_c[k]) ? rec.ambient_c[k] : ambient);
+        }
+    }
+    return d;
+}
+
+// Golden-section search of a unimodal function of log(x) on [lo, hi].
+template <typename F>
+double golden_minimum(F f, double lo, double hi, int iterations) {
+    const double g = (std::sqrt(5.0) - 1) / 2;
+    double a = std::log(lo), b = std::log(hi);
+    double c = b - g * (b - a), d = a + g * (b - a);
+    double fc = f(std::exp(c)), fd = f(std::exp(d));
+    for (int i = 0; i < iterations; ++i) {
+        if (fc < fd) {
+            b = d, d = c, fd = fc;
+            c = b - g * (b - a);
+            fc = f(std::exp(c));
+        } else {
+            a = c, c = d, fc = fd;
+            d = a + g * (b - a);
+            fd = f(std::exp(d));
+        }
+    }
+    return std::exp(0.5 * (a + b));
+}
+
+}  // namespace
+
+ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& recordings,
+                                               const std::vector<RecordingSegments>& segments,
+                                               const std::vector<std::vector<double>>& soc_of_row,
+                                               const ParameterSet& electrical, const CharacterizationOptions& options) {
+    // SOC of every row: given, or from the state the recording implies, then Coulomb counting.
+    std::vector<std::vector<double>> socs(recordings.size());
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        const auto& rec = recordings[r];
+        if (r < soc_of_row.size() && soc_of_row[r].size() == rec.size()) {
+            socs[r] = soc_of_row[r];
+            continue;
+        }
+        const int dir = current_direction(rec.current_a[0], -1);
+        const double r0 = electrical.rc_at(electrical.soc_from_ocv(rec.voltage_v[0]), dir).r0_ohm;
+        const double soc0 = electrical.soc_from_ocv(rec.voltage_v[0] - r0 * rec.current_a[0]);
+        const auto q = cumulative_charge_ah(rec);
+        socs[r].resize(rec.size());
+        for (std::size_t k = 0; k < rec.size(); ++k) socs[r][k] = soc0 + q[k] / electrical.capacity_ah;
+    }
+    ThermalCharacterization out;
+    const double area = options.area_m2;
+
+    // C_th from the long rests (eq. 4.8): the recording with the most usable rows wins.
+    ThermalCapacityFit best_cth;
+    std::string cth_source;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        if (!has_thermal(recordings[r]) || segments[r].long_rests.empty()) continue;
+        std::vector<RowRange> rests;
+        for (const auto& lr : segments[r].long_rests) rests.push_back({lr.begin, lr.end});
+        const auto fit = fit_thermal_capacity(recordings[r], rests, area);
+        if (std::isfinite(fit.c_th_j_per_k) && fit.points > best_cth.points) {
+            best_cth = fit;
+            cth_source = recordings[r].source;
+        }
+    }
+    if (!std::isfinite(best_cth.c_th_j_per_k)) {
+        if (options.fallback_c_th_j_per_k <= 0) return out;
+        best_cth.c_th_j_per_k = options.fallback_c_th_j_per_k;
+        out.notes.push_back("thermal capacity not measured (no rests with temperature and heat flux): fallback used");
+    }
+    out.c_th_j_per_k = best_cth.c_th_j_per_k;
+    out.c_th_sigma_j_per_k = best_cth.c_th_se_j_per_k;
+    out.c_th_r_squared = best_cth.r_squared;
+    out.details["c_th"] = {{"method", "rest cooling, zero-intercept regression of Q_out on -dT/dt (eq. 4.8)"},
+                           {"source", cth_source},
+                           {"c_th_j_per_k", num(best_cth.c_th_j_per_k)},
+                           {"se_j_per_k", num(best_cth.c_th_se_j_per_k)},
+                           {"r_squared", num(best_cth.r_squared)},
+                           {"points", best_cth.points},
+                           {"rests_used", best_cth.rests_used},
+                           {"skip_s", best_cth.skip_s},
+                           {"note", best_cth.note}};
+
+    // dU/dT from the longest CC discharge outside an HPPC (eqs. 4.4-4.6).
+    const Recording* ehc_rec = nullptr;
+    std::size_t ehc_index = 0;
+    const Phase* ehc_phase = nullptr;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        if (!has_thermal(recordings[r]) || !segments[r].pulse_sets.empty()) continue;
+        for (const auto& ph : segments[r].cc_discharges)
+            if (ph.duration_s > 300 && (!ehc_phase || ph.duration_s > ehc_phase->duration_s)) {
+                ehc_phase = &ph;
+                ehc_rec = &recordings[r];
+                ehc_index = r;
+            }
+    }
+    if (ehc_phase) {
+        const auto& rec = *ehc_rec;
+        const auto& soc = socs[ehc_index];
+        std::vector<double> grid;
+        for (int k = 0; k <= 20; ++k) grid.push_back(0.05 * k);
+        const auto ehc = fit_entropic_coefficient(rec, {ehc_phase->begin, ehc_phase->end}, soc, electrical.soc,
+                                                  electrical.ocv_v, out.c_th_j_per_k, area, grid);
+        for (std::size_t k = 0; k < grid.size(); ++k)
+            if (ehc.has_data[k]) {
+                out.ehc_soc.push_back(grid[k]);
+                out.ehc_v_per_k.push_back(ehc.ehc_v_per_k[k]);
+            }
+        nlohmann::json bins = nlohmann::json::array();
+        for (std::size_t k = 0; k < grid.size(); ++k)
+            bins.push_back({{"soc", grid[k]}, {"ehc_v_per_k", num(ehc.ehc_v_per_k[k])},
+                            {"spread_v_per_k", num(ehc.spread_v_per_k[k])}, {"samples", ehc.samples[k]}});
+        out.details["ehc"] = {{"source", rec.source},
+                              {"mean_abs_current_a", num(ehc.mean_abs_current_a)},
+                              {"joule_share", num(ehc.joule_share)},
+                              {"bins", bins},
+                              {"note", ehc.note}};
+        if (!ehc.note.empty()) out.notes.push_back("entropic coefficient: " + ehc.note);
+    } else {
+        out.notes.push_back("no constant-current discharge with temperature and heat flux: entropic heat left out "
+                            "(dU/dT = 0)");
+    }
+
+    // R_th (a) and (b) for every recording with thermal data.
+    nlohmann::json rth = nlohmann::json::array();
+    std::vector<const Recording*> thermal_recs;
+    std::vector<std::vector<double>> thermal_socs;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        const auto& rec = recordings[r];
+        if (!has_thermal(rec)) continue;
+        thermal_recs.push_back(&rec);
+        thermal_socs.push_back(socs[r]);
+        ThermalResistanceOptions ro;
+        ro.c_th_se_j_per_k = std::isfinite(out.c_th_sigma_j_per_k) ? out.c_th_sigma_j_per_k : 0.0;
+        if (rec.has_ambient()) ro.ambient_c = kNaN;
+        const auto flux = fit_thermal_resistance(rec, {{0, rec.size()}}, area, out.c_th_j_per_k, ro);
+        std::vector<RowRange> rests;
+        for (const auto& lr : segments[r].long_rests) rests.push_back({lr.begin, lr.end});
+        ThermalResistanceFit cool;
+        if (!rests.empty()) cool = fit_thermal_resistance(rec, rests, area, out.c_th_j_per_k, ro);
+        rth.push_back({{"source", rec.source},
+                       {"flux_k_per_w", num(flux.r_th_flux_k_per_w)},
+                       {"flux_se_k_per_w", num(flux.r_th_flux_se_k_per_w)},
+                       {"flux_ambient", flux.ambient_source},
+                       {"cooling_tau_s", num(cool.tau_s)},
+                       {"cooling_k_per_w", num(cool.r_th_tau_k_per_w)},
+                       {"cooling_se_k_per_w", num(cool.r_th_tau_se_k_per_w)},
+                       {"cooling_rests_used", cool.rests_used}});
+        if (std::isfinite(flux.r_th_flux_k_per_w) && std::isfinite(cool.r_th_tau_k_per_w)) {
+            const double rel = (flux.r_th_flux_k_per_w - cool.r_th_tau_k_per_w) /
+                               (0.5 * (flux.r_th_flux_k_per_w + cool.r_th_tau_k_per_w));
+            if (std::abs(rel) > 0.15)
+                out.notes.push_back(rec.source + ": R_th from heat flux (" + std::to_string(flux.r_th_flux_k_per_w) +
+                                    " K/W) and from the cooling time constant (" +
+                                    std::to_string(cool.r_th_tau_k_per_w) + " K/W) disagree by " +
+                                    std::to_string(static_cast<int>(std::round(100 * rel))) +
+                                    " %: the sensor sees one patch of the lateral surface, not the terminals");
+        }
+    }
+    out.details["r_th_estimates"] = rth;
+
+    // R_th (c): reproduce the measured surface temperature from the measured heat generation.
+    if (!thermal_recs.empty()) {
+        ParameterSet p = electrical;
+        p.thermal.ehc_soc = out.ehc_soc;
+        p.thermal.ehc_v_per_k = out.ehc_v_per_k;
+        const auto data = measured_heat_data(thermal_recs, p, thermal_socs);
+        auto cost = [&](double r) { return measured_heat_temperature_rms(data, out.c_th_j_per_k, r); };
+        out.r_th_k_per_w = golden_minimum(cost, 0.5, 50.0, 40);
+        out.r_th_method = "fitted: first-order model driven by the measured heat I*(V - OCV) + I*T*dU/dT reproduces "
+                          "the measured surface temperature (C_th held)";
+        out.details["r_th_temperature_fit"] = {{"r_th_k_per_w", out.r_th_k_per_w},
+                                               {"temperature_rms_c", num(cost(out.r_th_k_per_w))}};
+    } else if (options.fallback_r_th_k_per_w > 0) {
+        out.r_th_k_per_w = options.fallback_r_th_k_per_w;
+        out.r_th_method = "fallback";
+    }
+    return out;
+}
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,141 @@
+#pragma once
+// Battery Data Format (BDF 1.x) CSV recordings, and the CSV dialect shared by every recording parser in
+// protocol/ (BDF, Neware BTS export, DewesoftX export).
+//
+// Pure: text in, Recording out; no file I/O, no clocks. Bad input throws cellbench::InputError whose message
+// reads "SOURCE:LINE: what was expected", lines 1-based with the header as line 1.
+#include "cellbench/core/recording.hpp"
+
+#include <cstddef>
+#include <deque>
+#include <iosfwd>
+#include <limits>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace cellbench::protocol {
+
+// BDF labels (INTERFACES.md). Reading matches them ignoring case and whitespace; writing uses them verbatim.
+inline constexpr std::string_view kBdfTestTime = "Test Time / s";
+inline constexpr std::string_view kBdfVoltage = "Voltage / V";
+inline constexpr std::string_view kBdfCurrent = "Current / A";
+inline constexpr std::string_view kBdfUnixTime = "Unix Time / s";
+inline constexpr std::string_view kBdfStepCount = "Step Count / 1";
+inline constexpr std::string_view kBdfCycleCount = "Cycle Count / 1";
+inline constexpr std::string_view kBdfStepType = "Step Type";
+inline constexpr std::string_view kBdfAmbientTemperature = "Ambient Temperature / degC";
+inline constexpr std::string_view kBdfSurfaceTemperature = "Surface Temperature / degC";
+inline constexpr std::string_view kBdfTemperatureT1 = "Temperature T1 / degC";
+inline constexpr std::string_view kBdfTemperatureT2 = "Temperature T2 / degC";
+inline constexpr std::string_view kBdfHeatFluxDensity = "Heat Flux Density / W/m^2";
+
+struct BdfReadReport {
+    std::size_t rows = 0;
+    std::size_t repaired_timestamps = 0;
+    std::vector<std::string> ignored_columns;  // header names of columns that are not BDF labels we use
+};
+
+// Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). Tolerates a
+// UTF-8 BOM, CRLF or LF line ends, blank lines, whitespace around cells and RFC 4180 quoted cells.
+// Empty cells are NaN in optional numeric columns and errors in required ones. Timestamps that repeat or
+// step back by less than 1 s are repaired (see csv::repair_timestamps); a step back of 1 s or more is an error.
+Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfReadReport* report = nullptr);
+
+// Writes a header of the BDF labels for the channels present (required ones always), then one row per
+// sample, LF line ends. Numbers in shortest round-trip form, so finite values read back bit-exactly;
+// NaN is written as an empty cell. Throws std::invalid_argument if a present channel's length differs
+// from the number of rows.
+// extra: further numeric columns written after the BDF ones (e.g. simulated traces beside the measured ones),
+// each with one value per row.
+struct ExtraColumn {
+    std::string label;
+    const std::vector<double>* values = nullptr;
+};
+void write_bdf_csv(std::ostream& out, const Recording& rec, const std::vector<ExtraColumn>& extra = {});
+
+// ---------------------------------------------------------------------------------------------------------
+// The CSV dialect of the recording parsers, shared by bdf_csv, neware_export and dewesoft_export.
+namespace csv {
+
+// Reads CSV records one at a time from a text held by the caller: comma separated; LF, CRLF or lone CR
+// line ends; a leading UTF-8 BOM is skipped; spaces and tabs around cells are trimmed; cells may be quoted
+// ("" is a literal quote, quoted cells may span lines); lines holding nothing but whitespace are skipped.
+class RecordReader {
+public:
+    RecordReader(std::string_view text, std::string source);
+
+    // Reads the next record into `fields`. Returns false at the end of the text. The views point into the
+    // text (or into the reader for cells with "" escapes) and stay valid until the next call.
+    bool next(std::vector<std::string_view>& fields);
+
+    // 1-based line on which the record last returned by next() starts (the header is line 1).
+    [[nodiscard]] std::size_t line() const { return line_; }
+    [[nodiscard]] const std::string& source() const { return source_; }
+
+    // Throws InputError "SOURCE:LINE: what" for the current record.
+    [[noreturn]] void fail(std::string_view what) const;
+    // Throws InputError "SOURCE:LINE: column "NAME": what" for the current record.
+    [[noreturn]] void fail_column(std::string_view column, std::string_view what) const;
+    // Checks a data record against the header width: fewer cells is an error, extra cells must be empty
+    // (a trailing comma).
+    void check_width(const std::vector<std::string_view>& fields, std::size_t header_width) const;
+
+private:
+    std::string_view text_;
+    std::size_t pos_ = 0;
+    std::size_t line_ = 0;       // line of the current record
+    std::size_t next_line_ = 1;  // line at pos_
+    std::string source_;
+    std::deque<std::string> unescaped_;  // owned copies of cells that contained ""
+};
+
+enum class NumberStatus { ok, empty, invalid, out_of_range };
+
+// Parses a whole cell as a decimal floating-point number (std::from_chars, plus an optional leading '+').
+// "nan" and "inf" parse as such; the caller decides whether they are allowed.
+NumberStatus parse_double(std::string_view cell, double& value) noexcept;
+
+// Reads a numeric cell of `column`. Empty cells and NaN give NaN unless `required`; infinities, text and
+// (when required) empty cells or NaN throw InputError naming the line and column.
+double read_number(const RecordReader& reader, std::string_view cell, std::string_view column, bool required);
+
+// Column name for tolerant matching: ASCII lower case, all whitespace removed ("Test Time / s" -> "testtime/s").
+std::string normalize_column_name(std::string_view name);
+
+// Shortest round-trip decimal form of a number, for messages and writing.
+std::string format_number(double value);
+
+// Cell text for a message: quoted, shortened if long.
+std::string quote_cell(std::string_view cell);
+// A header for a message: its cells quoted and comma separated.
+std::string quote_cells(const std::vector<std::string_view>& cells);
+
+// Guards the time column while rows are read: throws when a stamp lies 1 s or more before the latest stamp
+// seen so far (smaller steps back are left for repair_timestamps).
+class TimeStepGuard {
+public:
+    explicit TimeStepGuard(std::string column) : column_(std::move(column)) {}
+    void check(double time_s, const RecordReader& reader);
+
+private:
+    std::string column_;
+    double latest_s_ = -std::numeric_limits<double>::infinity();
+};
+
+// Backward steps of at least this much are errors rather than repairable artefacts.
+inline constexpr double kMaxRepairableBackwardStepS = 1.0;
+
+// Makes finite stamps strictly increasing without drift, changing only the rows that are not after the
+// previous (repaired) stamp, and returns how many rows it changed:
+//  - a run of such rows (repeated stamps, or a small step back and the rows that are still not past the
+//    stamp before it) is spread evenly over the interval from the stamp before the run to the next stamp
+//    that is later than it, so every stamp after the run keeps its recorded value;
+//  - a run at the end of the recording, with no later stamp, continues at the recording's typical
+//    (median positive) interval.
+// Throws InputError naming `source` and `column` when there are two or more stamps and none is later than
+// the first (time never advances).
+std::size_t repair_timestamps(std::vector<double>& time_s, const std::string& source, std::string_view column);
+
+}  // namespace csv
+}  // namespace cellbench::protocol

@@ -1,0 +1,29 @@
+#pragma once
+// Neware BTS record export (CSV as saved by BTSDA), e.g.
+//   DataPoint,Step Type,Time,Total Time,Current(A),Voltage(V),Capacity(Ah),Energy(Wh),Date,Power(W),Time(s)
+//
+// Column names are matched ignoring case and whitespace; columns not listed here are ignored.
+//  - time (required): "Time(s)" in seconds if present, else "Total Time" as h:mm:ss[.fff] (hours may exceed
+//    24; "mm:ss" and plain seconds are accepted too). Repeated stamps and steps back of less than 1 s are
+//    repaired as for BDF (Recording::repaired_timestamps); a step back of 1 s or more is an error.
+//  - "Current(A)" / "Current(mA)" (required, sign kept: + = charge, as in BDF),
+//    "Voltage(V)" / "Voltage(mV)" (required).
+//  - "Step Type" -> step_type.
+//  - step_count: from a step id column ("Step ID", "Step Index", "Step No", "Step") if present; otherwise
+//    1-based, incremented whenever "Step Type" changes or the step time ("Time" / "Step Time") falls back by
+//    1 s or more while the type stays (two consecutive steps of the same type). Empty if neither exists.
+//  - cycle_count: from "Cycle" / "Cycle ID" / "Cycle Index" if present.
+//  - unix_time_s: from "Date" ("YYYY-MM-DD hh:mm:ss[.fff]", '/' also accepted, 'T' also accepted between
+//    date and time), read as UTC: the export carries no zone, so a bench clock on local time gives stamps
+//    offset by the zone. Values as exported (1 s resolution; not made monotonic).
+// When several columns map to the same channel, the first one wins.
+#include "cellbench/core/recording.hpp"
+
+#include <string>
+#include <string_view>
+
+namespace cellbench::protocol {
+
+Recording parse_neware_export(std::string_view text, const std::string& source);
+
+}  // namespace cellbench::protocol

@@ -1,0 +1,437 @@
+#include "cellbench/protocol/bdf_csv.hpp"
+
+#include <algorithm>
+#include <array>
+#include <charconv>
+#include <cmath>
+#include <cstdint>
+#include <ostream>
+#include <stdexcept>
+#include <system_error>
+
+namespace cellbench::protocol {
+namespace csv {
+
+namespace {
+constexpr std::string_view kUtf8Bom = "\xEF\xBB\xBF";
+
+bool is_blank(char c) { return c == ' ' || c == '\t'; }
+
+std::string_view trim(std::string_view s) {
+    while (!s.empty() && is_blank(s.front())) s.remove_prefix(1);
+    while (!s.empty() && is_blank(s.back())) s.remove_suffix(1);
+    return s;
+}
+}  // namespace
+
+RecordReader::RecordReader(std::string_view text, std::string source) : text_(text), source_(std::move(source)) {
+    if (text_.substr(0, kUtf8Bom.size()) == kUtf8Bom) text_.remove_prefix(kUtf8Bom.size());
+}
+
+bool RecordReader::next(std::vector<std::string_view>& fields) {
+    const std::size_t n = text_.size();
+    const char* const data = text_.data();
+    for (;;) {
+        fields.clear();
+        unescaped_.clear();
+        if (pos_ >= n) return false;
+        line_ = next_line_;
+        for (;;) {  // one cell per pass
+            while (pos_ < n && is_blank(data[pos_])) ++pos_;
+            if (pos_ < n && data[pos_] == '"') {
+                ++pos_;
+                const std::size_t begin = pos_;
+                bool has_escapes = false;
+                for (;;) {
+                    if (pos_ >= n) fail("a quoted cell is never closed (missing '\"')");
+                    const char c = data[pos_];
+                    if (c == '"') {
+                        if (pos_ + 1 < n && data[pos_ + 1] == '"') {
+                            has_escapes = true;
+                            pos_ += 2;
+                            continue;
+                        }
+                        break;
+                    }
+                    // Line breaks inside quotes still count as lines, so later line numbers stay right.
+                    if (c == '\n' || (c == '\r' && !(pos_ + 1 < n && data[pos_ + 1] == '\n'))) ++next_line_;
+                    ++pos_;
+                }
+                std::string_view cell = text_.substr(begin, pos_ - begin);
+                ++pos_;  // closing quote
+                if (has_escapes) {
+                    std::string& owned = unescaped_.emplace_back();
+                    owned.reserve(cell.size());
+                    for (std::size_t i = 0; i < cell.size(); ++i) {
+                        owned.push_back(cell[i]);
+                        if (cell[i] == '"') ++i;  // "" -> "
+                    }
+                    cell = owned;
+                }
+                while (pos_ < n && is_blank(data[pos_])) ++pos_;
+                if (pos_ < n && data[pos_] != ',' && data[pos_] != '\n' && data[pos_] != '\r')
+                    fail("unexpected text after a closing quote (expected ',' or the end of the line)");
+                fields.push_back(cell);
+            } else {
+                const std::size_t begin = pos_;
+                while (pos_ < n && data[pos_] != ',' && data[pos_] != '\n' && data[pos_] != '\r') ++pos_;
+                fields.push_back(trim(text_.substr(begin, pos_ - begin)));
+            }
+            if (pos_ < n && data[pos_] == ',') {
+                ++pos_;
+                continue;
+            }
+            // End of the record: consume its line end.
+            if (pos_ < n) {  // here data[pos_] is '\r' or '\n'
+                if (data[pos_] == '\r' && pos_ + 1 < n && data[pos_ + 1] == '\n') ++pos_;
+                ++pos_;
+                ++next_line_;
+            }
+            break;
+        }
+        if (fields.size() == 1 && fields.front().empty()) continue;  // blank line
+        return true;
+    }
+}
+
+void RecordReader::fail(std::string_view what) const {
+    throw InputError(source_ + ":" + std::to_string(line_) + ": " + std::string(what));
+}
+
+void RecordReader::fail_column(std::string_view column, std::string_view what) const {
+    fail("column \"" + std::string(column) + "\": " + std::string(what));
+}
+
+void RecordReader::check_width(const std::vector<std::string_view>& fields, std::size_t header_width) const {
+    if (fields.size() == header_width) return;
+    const bool extras_empty =
+        fields.size() > header_width &&
+        std::all_of(fields.begin() + static_cast<std::ptrdiff_t>(header_width), fields.end(),
+                    [](std::string_view f) { return f.empty(); });
+    if (extras_empty) return;
+    fail("expected " + std::to_string(header_width) + " cells as in the header, got " + std::to_string(fields.size()));
+}
+
+NumberStatus parse_double(std::string_view cell, double& value) noexcept {
+    if (cell.empty()) return NumberStatus::empty;
+    // from_chars rejects a leading '+', which spreadsheets sometimes write.
+    if (cell.front() == '+' && cell.size() > 1 && cell[1] != '-' && cell[1] != '+') cell.remove_prefix(1);
+    const char* const end = cell.data() + cell.size();
+    const auto [ptr, ec] = std::from_chars(cell.data(), end, value);
+    if (ec == std::errc::result_out_of_range) return NumberStatus::out_of_range;
+    if (ec != std::errc{} || ptr != end) return NumberStatus::invalid;
+    return NumberStatus::ok;
+}
+
+double read_number(const RecordReader& reader, std::string_view cell, std::string_view column, bool required) {
+    double v = kNaN;
+    switch (parse_double(cell, v)) {
+        case NumberStatus::ok:
+            if (std::isinf(v)) reader.fail_column(column, "expected a finite number, got " + quote_cell(cell));
+            if (std::isnan(v)) {
+                if (required) reader.fail_column(column, "expected a number, got " + quote_cell(cell));
+                return kNaN;  // canonical NaN whatever sign or payload was written
+            }
+            return v;
+        case NumberStatus::empty:
+            if (required) reader.fail_column(column, "expected a number, got an empty cell");
+            return kNaN;
+        case NumberStatus::out_of_range:
+            reader.fail_column(column, "number out of range: " + quote_cell(cell));
+        case NumberStatus::invalid:
+            break;
+    }
+    reader.fail_column(column, "expected a number, got " + quote_cell(cell));
+}
+
+std::string normalize_column_name(std::string_view name) {
+    std::string out;
+    out.reserve(name.size());
+    for (const char c : name) {
+        if (c == ' ' || c == '\t' || c == '\r' || c == '\n') continue;
+        out.push_back(c >= 'A' && c <= 'Z' ? static_cast<char>(c - 'A' + 'a') : c);
+    }
+    return out;
+}
+
+std::string format_number(double value) {
+    std::array<char, 64> buf{};
+    const auto [ptr, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), value);
+    return ec == std::errc{} ? std::string(buf.data(), ptr) : std::string("?");
+}
+
+std::string quote_cell(std::string_view cell) {
+    constexpr std::size_t kMaxShown = 40;  // fuzzed or binary junk must not flood the message
+    const bool shorten = cell.size() > kMaxShown;
+    std::string out;
+    out.reserve(kMaxShown + 5);
+    out += '"';
+    out.append(cell.substr(0, kMaxShown));
+    if (shorten) out += "...";
+    out += '"';
+    return out;
+}
+
+std::string quote_cells(const std::vector<std::string_view>& cells) {
+    std::string out;
+    for (const auto& c : cells) {
+        if (!out.empty()) out += ", ";
+        out += quote_cell(c);
+    }
+    return out;
+}
+
+void TimeStepGuard::check(double time_s, const RecordReader& reader) {
+    if (latest_s_ - time_s >= kMaxRepairableBackwardStepS) {
+        // The step itself rounded to 6 digits: 5 - 3.9 reads 1.1, not 1.0999999999999996.
+        std::array<char, 64> buf{};
+        const auto [ptr, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), latest_s_ - time_s,
+                                             std::chars_format::general, 6);
+        const std::string step = ec == std::errc{} ? std::string(buf.data(), ptr) : format_number(latest_s_ - time_s);
+        reader.fail_column(column_, "time steps back by " + step + " s (from " +
+                                        format_number(latest_s_) + " s to " + format_number(time_s) +
+                                        " s); only steps back of less than 1 s are repaired");
+    }
+    latest_s_ = std::max(latest_s_, time_s);
+}
+
+namespace {
+// Median of the positive intervals between consecutive raw stamps; NaN when there is none.
+double typical_interval_s(const std::vector<double>& t) {
+    std::vector<double> steps;
+    steps.reserve(t.size());
+    for (std::size_t i = 1; i < t.size(); ++i)
+        if (t[i] > t[i - 1]) steps.push_back(t[i] - t[i - 1]);
+    if (steps.empty()) return kNaN;
+    const auto mid = steps.begin() + static_cast<std::ptrdiff_t>(steps.size() / 2);
+    std::nth_element(steps.begin(), mid, steps.end());
+    return *mid;
+}
+}  // namespace
+
+std::size_t repair_timestamps(std::vector<double>& t, const std::string& source, std::string_view column) {
+    const std::size_t n = t.size();
+    std::size_t i = 1;
+    while (i < n && t[i] > t[i - 1]) ++i;  // the common case: nothing to repair
+    if (i >= n) return 0;
+
+    // A run reaching the end has no later stamp to spread towards; it continues at the typical interval,
+    // which must be taken from the raw stamps before they are overwritten.
+    double typical_s = kNaN;
+    const double last_raw = t[n - 1];
+    if (std::any_of(t.begin(), t.end() - 1, [last_raw](double v) { return !(v < last_raw); })) {
+        typical_s = typical_interval_s(t);
+        if (!(typical_s > 0.0))
+            throw InputError(source + ": column \"" + std::string(column) + "\": time never advances (all " +
+                             std::to_string(n) + " rows at " + format_number(t[0]) + " s)");
+    }
+
+    // Invariant: t[0, i) holds repaired, strictly increasing stamps; t[i, n) the raw ones.
+    std::size_t repaired = 0;
+    while (i < n) {
+        if (t[i] > t[i - 1]) {
+            ++i;
+            continue;
+        }
+        const double anchor = t[i - 1];
+        std::size_t end = i;
+        while (end < n && !(t[end] > anchor)) ++end;
+        const std::size_t run = end - i;
+        const double step = end < n ? (t[end] - anchor) / static_cast<double>(run + 1) : typical_s;
+        for (std::size_t k = 0; k < run; ++k) {
+            double v = anchor + step * static_cast<double>(k + 1);
+            // Rounding must never undo strict order (stamps huge relative to the interval).
+            const double floor = std::nextafter(t[i + k - 1], std::numeric_limits<double>::infinity());
+            if (!(v >= floor)) v = floor;
+            if (!std::isfinite(v))
+                throw InputError(source + ": column \"" + std::string(column) + "\": time out of range while repairing");
+            t[i + k] = v;
+        }
+        repaired += run;
+        i = end;
+    }
+    return repaired;
+}
+
+}  // namespace csv
+
+namespace {
+
+enum class Channel { time, voltage, current, unix_time, step_count, cycle_count, step_type, ambient, surface, t1, t2, heat_flux };
+
+struct Label {
+    std::string_view label;
+    Channel channel;
+    bool required;
+    std::vector<double> Recording::*values;  // nullptr for the text channel (Step Type)
+};
+
+// Header order when writing: as in the bench's own files (time, electrical, step info, temperatures, flux).
+constexpr std::array<Label, 12> kLabels{{
+    {kBdfTestTime, Channel::time, true, &Recording::time_s},
+    {kBdfVoltage, Channel::voltage, true, &Recording::voltage_v},
+    {kBdfCurrent, Channel::current, true, &Recording::current_a},
+    {kBdfUnixTime, Channel::unix_time, false, &Recording::unix_time_s},
+    {kBdfStepCount, Channel::step_count, false, &Recording::step_count},
+    {kBdfCycleCount, Channel::cycle_count, false, &Recording::cycle_count},
+    {kBdfStepType, Channel::step_type, false, nullptr},
+    {kBdfAmbientTemperature, Channel::ambient, false, &Recording::ambient_c},
+    {kBdfSurfaceTemperature, Channel::surface, false, &Recording::surface_c},
+    {kBdfTemperatureT1, Channel::t1, false, &Recording::t1_c},
+    {kBdfTemperatureT2, Channel::t2, false, &Recording::t2_c},
+    {kBdfHeatFluxDensity, Channel::heat_flux, false, &Recording::heat_flux_w_per_m2},
+}};
+
+struct UsedColumn {
+    std::size_t index;  // position in the header
+    const Label* label;
+};
+
+}  // namespace
+
+Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfReadReport* report) {
+    csv::RecordReader reader(text, source);
+    std::vector<std::string_view> fields;
+    fields.reserve(16);
+    if (!reader.next(fields))
+        throw InputError(source + ":1: empty file: expected a header row of BDF labels (\"" + std::string(kBdfTestTime) +
+                         "\", \"" + std::string(kBdfVoltage) + "\", \"" + std::string(kBdfCurrent) + "\", ...)");
+
+    Recording rec;
+    rec.source = source;
+    std::vector<std::string> ignored;
+    std::vector<UsedColumn> used;
+    std::array<std::size_t, kLabels.size()> column_of{};
+    column_of.fill(SIZE_MAX);
+    const std::size_t width = fields.size();
+    for (std::size_t c = 0; c < width; ++c) {
+        const std::string name = csv::normalize_column_name(fields[c]);
+        const auto it = std::find_if(kLabels.begin(), kLabels.end(),
+                                     [&](const Label& l) { return csv::normalize_column_name(l.label) == name; });
+        if (it == kLabels.end()) {
+            if (!(fields[c].empty() && c + 1 == width)) ignored.emplace_back(fields[c]);  // not a trailing comma
+            continue;
+        }
+        const auto k = static_cast<std::size_t>(it - kLabels.begin());
+        if (column_of[k] != SIZE_MAX)
+            reader.fail("column \"" + std::string(it->label) + "\" appears twice (columns " +
+                        std::to_string(column_of[k] + 1) + " and " + std::to_string(c + 1) + ")");
+        column_of[k] = c;
+        used.push_back({c, &*it});
+    }
+    for (std::size_t k = 0; k < kLabels.size(); ++k)
+        if (kLabels[k].required && column_of[k] == SIZE_MAX)
+            reader.fail("missing required column \"" + std::string(kLabels[k].label) + "\" (the header has " +
+                        csv::quote_cells(fields) + ")");
+
+    // One line per row in the usual file: reserve once instead of growing 436k-row vectors repeatedly.
+    const auto expected_rows = static_cast<std::size_t>(std::count(text.begin(), text.end(), '\n')) + 1;
+    for (const auto& u : used) {
+        if (u.label->values != nullptr)
+            (rec.*(u.label->values)).reserve(expected_rows);
+        else
+            rec.step_type.reserve(expected_rows);
+    }
+
+    csv::TimeStepGuard guard{std::string(kBdfTestTime)};
+    while (reader.next(fields)) {
+        reader.check_width(fields, width);
+        for (const auto& u : used) {
+            const std::string_view cell = fields[u.index];
+            if (u.label->values == nullptr) {
+                rec.step_type.emplace_back(cell);
+                continue;
+            }
+            const double v = csv::read_number(reader, cell, u.label->label, u.label->required);
+            if (u.label->channel == Channel::time) guard.check(v, reader);
+            (rec.*(u.label->values)).push_back(v);
+        }
+    }
+    if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
+
+    rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, kBdfTestTime);
+    if (report != nullptr) {
+        report->rows = rec.size();
+        report->repaired_timestamps = rec.repaired_timestamps;
+        report->ignored_columns = std::move(ignored);
+    }
+    return rec;
+}
+
+void write_bdf_csv(std::ostream& out, const Recording& rec, const std::vector<ExtraColumn>& extra) {
+    const std::size_t n = rec.size();
+    std::vector<const Label*> present;
+    for (const auto& l : kLabels) {
+        const std::size_t len = l.values != nullptr ? (rec.*(l.values)).size() : rec.step_type.size();
+        if (!l.required && len == 0) continue;
+        if (len != n)
+            throw std::invalid_argument("write_bdf_csv: channel \"" + std::string(l.label) + "\" has " +
+                                        std::to_string(len) + " values for " + std::to_string(n) + " rows");
+        present.push_back(&l);
+    }
+    for (const auto& e : extra)
+        if (e.values == nullptr || e.values->size() != n)
+            throw std::invalid_argument("write_bdf_csv: extra column \"" + e.label + "\" has " +
+                                        std::to_string(e.values ? e.values->size() : 0) + " values for " +
+                                        std::to_string(n) + " rows");
+
+    std::string buf;
+    buf.reserve(1 << 16);
+    auto append_text = [&buf](std::string_view s) {
+        const bool needs_quotes =
+            !s.empty() && (s.find_first_of(",\"\r\n") != std::string_view::npos || s.front() == ' ' ||
+                           s.front() == '\t' || s.back() == ' ' || s.back() == '\t');
+        if (!needs_quotes) {
+            buf.append(s);
+            return;
+        }
+        buf.push_back('"');
+        for (const char c : s) {
+            if (c == '"') buf.push_back('"');
+            buf.push_back(c);
+        }
+        buf.push_back('"');
+    };
+
+    for (std::size_t k = 0; k < present.size(); ++k) {
+        if (k > 0) buf.push_back(',');
+        append_text(present[k]->label);
+    }
+    for (const auto& e : extra) {
+        buf.push_back(',');
+        append_text(e.label);
+    }
+    buf.push_back('\n');
+
+    std::array<char, 64> num{};
+    for (std::size_t row = 0; row < n; ++row) {
+        for (std::size_t k = 0; k < present.size(); ++k) {
+            if (k > 0) buf.push_back(',');
+            const Label& l = *present[k];
+            if (l.values == nullptr) {
+                append_text(rec.step_type[row]);
+                continue;
+            }
+            const double v = (rec.*(l.values))[row];
+            if (std::isnan(v)) continue;  // empty cell
+            // 64 chars always hold a shortest-form double, so to_chars cannot fail here.
+            const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v);
+            if (ec == std::errc{}) buf.append(num.data(), static_cast<std::size_t>(ptr - num.data()));
+        }
+        for (const auto& e : extra) {
+            buf.push_back(',');
+            const double v = (*e.values)[row];
+            if (std::isnan(v)) continue;
+            const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v);
+            if (ec == std::errc{}) buf.append(num.data(), static_cast<std::size_t>(ptr - num.data()));
+        }
+        buf.push_back('\n');
+        if (buf.size() > (1 << 16) - 1024) {
+            out.write(buf.data(), static_cast<std::streamsize>(buf.size()));
+            buf.clear();
+        }
+    }
+    out.write(buf.data(), static_cast<std::streamsize>(buf.size()));
+}
+
+}  // namespace cellbench::protocol

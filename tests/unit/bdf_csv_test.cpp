@@ -1,0 +1,335 @@
+// BDF CSV reading and writing: the recording format every cellbench command reads and writes.
+#include "cellbench/protocol/bdf_csv.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstring>
+#include <random>
+#include <sstream>
+#include <string>
+
+namespace {
+
+using cellbench::InputError;
+using cellbench::Recording;
+using cellbench::protocol::BdfReadReport;
+using cellbench::protocol::parse_bdf_csv;
+using cellbench::protocol::write_bdf_csv;
+
+// The message of the InputError that parsing `text` throws ("" if it does not throw).
+std::string error_of(const std::string& text, const std::string& source = "rw.csv") {
+    try {
+        (void)parse_bdf_csv(text, source);
+    } catch (const InputError& e) {
+        return e.what();
+    }
+    return "";
+}
+
+bool same_bits(double a, double b) { return std::memcmp(&a, &b, sizeof a) == 0; }
+
+TEST(BdfCsv, ColumnsInAnyOrderUnknownOnesIgnoredAndReported) {
+    const std::string text =
+        "Current / A,Vendor Capacity / Ah,Test Time / s,Step Type,Voltage / V,Surface Temperature / degC\n"
+        "-4.5,0.1,0.0,CC DChg,3.9,29.5\n"
+        "0.0,0.2,0.1,Rest,4.0,29.6\n";
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv(text, "x.csv", &report);
+    ASSERT_EQ(rec.size(), 2u);
+    EXPECT_EQ(rec.source, "x.csv");
+    EXPECT_EQ(rec.time_s, (std::vector<double>{0.0, 0.1}));
+    EXPECT_EQ(rec.voltage_v, (std::vector<double>{3.9, 4.0}));
+    EXPECT_EQ(rec.current_a, (std::vector<double>{-4.5, 0.0}));
+    EXPECT_EQ(rec.step_type, (std::vector<std::string>{"CC DChg", "Rest"}));
+    EXPECT_EQ(rec.surface_c, (std::vector<double>{29.5, 29.6}));
+    // Channels the file lacks stay empty.
+    EXPECT_TRUE(rec.heat_flux_w_per_m2.empty());
+    EXPECT_TRUE(rec.unix_time_s.empty());
+    EXPECT_TRUE(rec.t1_c.empty());
+    EXPECT_EQ(report.rows, 2u);
+    EXPECT_EQ(report.repaired_timestamps, 0u);
+    EXPECT_EQ(report.ignored_columns, (std::vector<std::string>{"Vendor Capacity / Ah"}));
+}
+
+TEST(BdfCsv, EveryOptionalLabelMapsToItsChannel) {
+    const std::string text =
+        "Test Time / s,Voltage / V,Current / A,Unix Time / s,Step Count / 1,Cycle Count / 1,Step Type,"
+        "Ambient Temperature / degC,Surface Temperature / degC,Temperature T1 / degC,Temperature T2 / degC,"
+        "Heat Flux Density / W/m^2\n"
+        "1,3.7,2,1700000000.5,3,4,CC Chg,30,31,32,33,12.5\n";
+    const Recording rec = parse_bdf_csv(text, "x.csv");
+    ASSERT_EQ(rec.size(), 1u);
+    EXPECT_EQ(rec.unix_time_s.at(0), 1700000000.5);
+    EXPECT_EQ(rec.step_count.at(0), 3.0);
+    EXPECT_EQ(rec.cycle_count.at(0), 4.0);
+    EXPECT_EQ(rec.step_type.at(0), "CC Chg");
+    EXPECT_EQ(rec.ambient_c.at(0), 30.0);
+    EXPECT_EQ(rec.surface_c.at(0), 31.0);
+    EXPECT_EQ(rec.t1_c.at(0), 32.0);
+    EXPECT_EQ(rec.t2_c.at(0), 33.0);
+    EXPECT_EQ(rec.heat_flux_w_per_m2.at(0), 12.5);
+}
+
+TEST(BdfCsv, BomCrlfWhitespaceQuotesAndLabelCase) {
+    const std::string text =
+        "\xEF\xBB\xBF\"Test Time / s\" , voltage / v,CURRENT / A,\"Step Type\"\r\n"
+        " 0 , \"3.7\",-1.5,\"CC, \"\"fast\"\"\"\r\n"
+        "\r\n"  // blank line
+        "1\t,3.8,+2,  Rest  \r\n";
+    const Recording rec = parse_bdf_csv(text, "x.csv");
+    ASSERT_EQ(rec.size(), 2u);
+    EXPECT_EQ(rec.time_s, (std::vector<double>{0.0, 1.0}));
+    EXPECT_EQ(rec.voltage_v, (std::vector<double>{3.7, 3.8}));
+    EXPECT_EQ(rec.current_a, (std::vector<double>{-1.5, 2.0}));
+    EXPECT_EQ(rec.step_type, (std::vector<std::string>{"CC, \"fast\"", "Rest"}));
+}
+
+TEST(BdfCsv, EmptyOrNanOptionalCellsAreNaNAndInfinityIsRejected) {
+    const std::string text =
+        "Test Time / s,Voltage / V,Current / A,Surface Temperature / degC,Ambient Temperature / degC\n"
+        "0,3.7,0,,\n"
+        "1,3.7,0,nan,\n"
+        "2,3.7,0,29.5,\n";
+    const Recording rec = parse_bdf_csv(text, "x.csv");
+    ASSERT_EQ(rec.surface_c.size(), 3u);
+    EXPECT_TRUE(std::isnan(rec.surface_c[0]));
+    EXPECT_TRUE(std::isnan(rec.surface_c[1]));
+    EXPECT_EQ(rec.surface_c[2], 29.5);
+    EXPECT_TRUE(rec.has_surface());
+    // A column that is present but never filled is a channel without values.
+    EXPECT_EQ(rec.ambient_c.size(), 3u);
+    EXPECT_FALSE(rec.has_ambient());
+
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A,Surface Temperature / degC\n0,3.7,0,inf\n"),
+              "rw.csv:2: column \"Surface Temperature / degC\": expected a finite number, got \"inf\"");
+}
+
+TEST(BdfCsv, UnparsableNumberNamesFileLineAndColumn) {
+    std::string text = "Test Time / s,Voltage / V,Current / A\n0,3.7,0\n0.1,abc,0\n";
+    EXPECT_EQ(error_of(text), "rw.csv:3: column \"Voltage / V\": expected a number, got \"abc\"");
+    // A number followed by junk is not a number either.
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,3.7,1.5A\n"),
+              "rw.csv:2: column \"Current / A\": expected a number, got \"1.5A\"");
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,3.7,1e999\n"),
+              "rw.csv:2: column \"Current / A\": number out of range: \"1e999\"");
+}
+
+TEST(BdfCsv, LineNumbersCountBlankLinesAndQuotedLineBreaks) {
+    const std::string text =
+        "Test Time / s,Voltage / V,Current / A,Step Type\n"
+        "0,3.7,0,\"two\nlines\"\n"  // lines 2-3
+        "\n"                        // line 4
+        "1,3.7,x,Rest\n";           // line 5
+    EXPECT_EQ(error_of(text), "rw.csv:5: column \"Current / A\": expected a number, got \"x\"");
+}
+
+TEST(BdfCsv, RequiredCellsMustHoldFiniteNumbers) {
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,,0\n"),
+              "rw.csv:2: column \"Voltage / V\": expected a number, got an empty cell");
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,3.7,NaN\n"),
+              "rw.csv:2: column \"Current / A\": expected a number, got \"NaN\"");
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n-inf,3.7,0\n"),
+              "rw.csv:2: column \"Test Time / s\": expected a finite number, got \"-inf\"");
+}
+
+TEST(BdfCsv, MissingRequiredColumnIsAnError) {
+    const std::string msg = error_of("Test Time / s,Voltage / V,Current(A)\n0,3.7,0\n");
+    EXPECT_EQ(msg.rfind("rw.csv:1: missing required column \"Current / A\"", 0), 0u) << msg;
+    EXPECT_NE(msg.find("\"Current(A)\""), std::string::npos) << "the message shows what the header has: " << msg;
+}
+
+TEST(BdfCsv, EmptyFileAndHeaderOnlyAreErrors) {
+    for (const std::string empty : {"", "\xEF\xBB\xBF", "\r\n\n  \n"}) {
+        const std::string msg = error_of(empty);
+        EXPECT_EQ(msg.rfind("rw.csv:1: empty file", 0), 0u) << msg;
+    }
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\r\n"),
+              "rw.csv:1: header only: expected data rows after the header");
+}
+
+TEST(BdfCsv, RaggedRowsAndDuplicateColumnsAreErrors) {
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,3.7,0\n1,3.7\n"),
+              "rw.csv:3: expected 3 cells as in the header, got 2");
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,3.7,0,5\n"),
+              "rw.csv:2: expected 3 cells as in the header, got 4");
+    // A trailing comma is not a ragged row.
+    EXPECT_EQ(parse_bdf_csv("Test Time / s,Voltage / V,Current / A,\n0,3.7,0,\n", "x").size(), 1u);
+    EXPECT_EQ(parse_bdf_csv("Test Time / s,Voltage / V,Current / A\n0,3.7,0,\n", "x").size(), 1u);
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A,Voltage / V\n0,3.7,0,3.8\n"),
+              "rw.csv:1: column \"Voltage / V\" appears twice (columns 2 and 4)");
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,\"3.7,0\n"),
+              "rw.csv:2: a quoted cell is never closed (missing '\"')");
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A\n0,\"3.7\"x,0\n"),
+              "rw.csv:2: unexpected text after a closing quote (expected ',' or the end of the line)");
+}
+
+std::string bdf_with_times(const std::vector<std::string>& times) {
+    std::string text = "Test Time / s,Voltage / V,Current / A\n";
+    for (const auto& t : times) text += t + ",3.7,0\n";
+    return text;
+}
+
+TEST(BdfCsv, RepeatedStampsAreSpreadOverTheIntervalToTheNextStamp) {
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv(bdf_with_times({"0", "1", "1", "1", "2", "3"}), "x", &report);
+    ASSERT_EQ(rec.size(), 6u);
+    EXPECT_EQ(rec.repaired_timestamps, 2u);
+    EXPECT_EQ(report.repaired_timestamps, 2u);
+    EXPECT_DOUBLE_EQ(rec.time_s[0], 0.0);
+    EXPECT_DOUBLE_EQ(rec.time_s[1], 1.0);
+    EXPECT_DOUBLE_EQ(rec.time_s[2], 1.0 + 1.0 / 3.0);
+    EXPECT_DOUBLE_EQ(rec.time_s[3], 1.0 + 2.0 / 3.0);
+    EXPECT_EQ(rec.time_s[4], 2.0);  // untouched: no drift
+    EXPECT_EQ(rec.time_s[5], 3.0);
+}
+
+TEST(BdfCsv, SmallBackwardStepIsRepairedWithoutDrift) {
+    // The Neware artefact: 121.1 then 121.0, 121.1 again, then on at 0.1 s.
+    const Recording rec =
+        parse_bdf_csv(bdf_with_times({"120.9", "121.0", "121.1", "121.0", "121.1", "121.2", "121.3"}), "x");
+    ASSERT_EQ(rec.size(), 7u);
+    EXPECT_EQ(rec.repaired_timestamps, 2u);
+    EXPECT_EQ(rec.time_s[2], 121.1);
+    EXPECT_NEAR(rec.time_s[3], 121.1 + 0.1 / 3.0, 1e-12);
+    EXPECT_NEAR(rec.time_s[4], 121.1 + 0.2 / 3.0, 1e-12);
+    EXPECT_EQ(rec.time_s[5], 121.2);
+    EXPECT_EQ(rec.time_s[6], 121.3);
+    for (std::size_t i = 1; i < rec.size(); ++i) EXPECT_LT(rec.time_s[i - 1], rec.time_s[i]) << i;
+}
+
+TEST(BdfCsv, RunAtTheEndContinuesAtTheTypicalInterval) {
+    // Median positive interval is 0.1 s; the last two rows have no later stamp to spread towards.
+    const Recording rec = parse_bdf_csv(bdf_with_times({"0", "0.1", "0.2", "0.3", "0.25", "0.3"}), "x");
+    EXPECT_EQ(rec.repaired_timestamps, 2u);
+    EXPECT_NEAR(rec.time_s[4], 0.4, 1e-12);
+    EXPECT_NEAR(rec.time_s[5], 0.5, 1e-12);
+}
+
+TEST(BdfCsv, BackwardStepOfOneSecondOrMoreIsAnError) {
+    EXPECT_EQ(error_of(bdf_with_times({"0", "1", "2", "1"})),
+              "rw.csv:5: column \"Test Time / s\": time steps back by 1 s (from 2 s to 1 s); only steps back of "
+              "less than 1 s are repaired");
+    // Measured from the latest stamp, not the previous row: two small steps back that add up to 1.1 s.
+    const std::string msg = error_of(bdf_with_times({"0", "5", "4.5", "3.9"}));
+    EXPECT_EQ(msg.rfind("rw.csv:5: column \"Test Time / s\": time steps back by", 0), 0u) << msg;
+    // Just under 1 s is repaired.
+    EXPECT_EQ(parse_bdf_csv(bdf_with_times({"0", "5", "4.01", "6"}), "x").repaired_timestamps, 1u);
+}
+
+TEST(BdfCsv, TimeThatNeverAdvancesIsAnErrorButOneRowIsFine) {
+    EXPECT_EQ(error_of(bdf_with_times({"7", "7", "7"})),
+              "rw.csv: column \"Test Time / s\": time never advances (all 3 rows at 7 s)");
+    EXPECT_EQ(parse_bdf_csv(bdf_with_times({"7"}), "x").size(), 1u);
+}
+
+TEST(BdfCsv, WritesLabelsOfPresentChannelsOnly) {
+    Recording rec;
+    rec.time_s = {0.0, 0.1, 0.2};
+    rec.voltage_v = {3.7, 3.69, 3.68};
+    rec.current_a = {-1.5, -1.5, 0.0};
+    rec.surface_c = {29.5, cellbench::kNaN, 29.7};
+    std::ostringstream out;
+    write_bdf_csv(out, rec);
+    EXPECT_EQ(out.str(),
+              "Test Time / s,Voltage / V,Current / A,Surface Temperature / degC\n"
+              "0,3.7,-1.5,29.5\n"
+              "0.1,3.69,-1.5,\n"
+              "0.2,3.68,0,29.7\n");
+}
+
+TEST(BdfCsv, WriteRejectsChannelsOfTheWrongLength) {
+    Recording rec;
+    rec.time_s = {0.0, 1.0};
+    rec.voltage_v = {3.7, 3.7};
+    rec.current_a = {0.0, 0.0};
+    rec.t1_c = {30.0};
+    std::ostringstream out;
+    EXPECT_THROW(write_bdf_csv(out, rec), std::invalid_argument);
+}
+
+TEST(BdfCsv, WriteThenParseRoundTripsBitExactly) {
+    Recording rec;
+    rec.source = "round.bdf.csv";
+    const std::size_t n = 2000;
+    std::mt19937_64 rng(42);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    for (std::size_t i = 0; i < n; ++i) {
+        rec.time_s.push_back(static_cast<double>(i) * 0.1);  // 0.1 s steps, as the bench records
+        rec.voltage_v.push_back(3.6 + 0.5 * u(rng));
+        rec.current_a.push_back(i % 7 == 0 ? -0.0 : 18.0 * u(rng));
+        rec.unix_time_s.push_back(1747992938.0 + static_cast<double>(i) * 0.1);
+        rec.step_count.push_back(static_cast<double>(i / 100 + 1));
+        rec.cycle_count.push_back(i % 3 == 0 ? cellbench::kNaN : 1.0);
+        rec.step_type.push_back(i % 5 == 0 ? "CC, \"odd\"" : (i % 5 == 1 ? "" : (i % 5 == 2 ? " padded " : "Rest")));
+        rec.ambient_c.push_back(30.0 + u(rng) * 1e-12);
+        rec.surface_c.push_back(i % 11 == 0 ? cellbench::kNaN : 29.0 + u(rng));
+        rec.t1_c.push_back(i % 13 == 0 ? 5e-324 : u(rng) * 1e300);
+        rec.t2_c.push_back(0.30000000000000004);
+        rec.heat_flux_w_per_m2.push_back(u(rng) * 400.0);
+    }
+    std::ostringstream out;
+    write_bdf_csv(out, rec);
+    BdfReadReport report;
+    const Recording back = parse_bdf_csv(out.str(), "round.bdf.csv", &report);
+    EXPECT_TRUE(report.ignored_columns.empty());
+    EXPECT_EQ(back.repaired_timestamps, 0u);
+    ASSERT_EQ(back.size(), n);
+    EXPECT_EQ(back.step_type, rec.step_type);
+    auto expect_same = [](const std::vector<double>& a, const std::vector<double>& b, const char* what) {
+        ASSERT_EQ(a.size(), b.size()) << what;
+        for (std::size_t i = 0; i < a.size(); ++i) {
+            if (std::isnan(a[i])) {
+                EXPECT_TRUE(std::isnan(b[i])) << what << " row " << i;
+            } else {
+                EXPECT_TRUE(same_bits(a[i], b[i])) << what << " row " << i << ": " << a[i] << " vs " << b[i];
+            }
+        }
+    };
+    expect_same(rec.time_s, back.time_s, "time");
+    expect_same(rec.voltage_v, back.voltage_v, "voltage");
+    expect_same(rec.current_a, back.current_a, "current");
+    expect_same(rec.unix_time_s, back.unix_time_s, "unix time");
+    expect_same(rec.step_count, back.step_count, "step count");
+    expect_same(rec.cycle_count, back.cycle_count, "cycle count");
+    expect_same(rec.ambient_c, back.ambient_c, "ambient");
+    expect_same(rec.surface_c, back.surface_c, "surface");
+    expect_same(rec.t1_c, back.t1_c, "t1");
+    expect_same(rec.t2_c, back.t2_c, "t2");
+    expect_same(rec.heat_flux_w_per_m2, back.heat_flux_w_per_m2, "heat flux");
+}
+
+// Mangled input must end in a result or an InputError, never a crash or another exception type
+// (a cheap stand-in for the libFuzzer target; run it under ASan/UBSan to make it bite harder).
+TEST(BdfCsv, MangledInputEitherParsesOrThrowsInputError) {
+    const std::string valid =
+        "\xEF\xBB\xBF"
+        "Test Time / s,Voltage / V,Current / A,Step Type,Surface Temperature / degC\r\n"
+        "0,3.7,0,Rest,29.5\r\n0.1,3.7,\"-4.5\",\"CC DChg\",29.6\r\n0.1,3.71,-4.5,CC DChg,\r\n0.2,3.72,-4.5,Rest,29.7\r\n";
+    const std::string alphabet = ",\"\r\n .-+e0123456789naif\xEF\xBB\xBF\t/";
+    std::mt19937 rng(7);
+    std::size_t parsed = 0, rejected = 0;
+    for (int trial = 0; trial < 5000; ++trial) {
+        std::string text = valid;
+        const int edits = 1 + static_cast<int>(rng() % 4);
+        for (int e = 0; e < edits && !text.empty(); ++e) {
+            const std::size_t at = rng() % text.size();
+            switch (rng() % 3) {
+                case 0: text[at] = alphabet[rng() % alphabet.size()]; break;
+                case 1: text.erase(at, 1 + rng() % 8); break;
+                default: text.insert(at, 1, alphabet[rng() % alphabet.size()]); break;
+            }
+        }
+        try {
+            const Recording rec = parse_bdf_csv(text, "fuzz");
+            ++parsed;
+            for (std::size_t i = 1; i < rec.size(); ++i) ASSERT_LT(rec.time_s[i - 1], rec.time_s[i]);
+        } catch (const InputError&) {
+            ++rejected;
+        }
+    }
+    EXPECT_GT(parsed, 0u);
+    EXPECT_GT(rejected, 0u);
+}
+
+}  // namespace

@@ -1,0 +1,77 @@
+#include <cmath>
+#include <cstdio>
+
+#include <spdlog/spdlog.h>
+
+#include "cellbench/estimator/fit.hpp"
+#include "cli/commands.hpp"
+#include "cli/files.hpp"
+
+namespace cellbench::cli {
+
+namespace {
+
+void print_parameter_table(const estimator::Characterization& c) {
+    const auto& p = c.params;
+    std::printf("capacity %.4f Ah (%s, %s)\n", p.capacity_ah, c.capacity.method.c_str(), c.capacity.source.c_str());
+    std::printf("%5s %7s | %-36s | %-36s\n", "SOC", "OCV", "discharge R0  R1 mOhm  C1 F  R2 mOhm  C2 F",
+                "charge R0  R1 mOhm  C1 F  R2 mOhm  C2 F");
+    for (std::size_t k = 0; k < p.soc.size(); ++k) {
+        auto row = [&](const estimator::RcTable& t) {
+            std::printf(" %6.3f %6.3f %6.0f %7.3f %6.0f |", t.r0_ohm[k] * 1e3, t.r1_ohm[k] * 1e3, t.c1_f[k],
+                        t.r2_ohm[k] * 1e3, t.c2_f[k]);
+        };
+        std::printf("%5.1f %7.4f |", p.soc[k] * 100, p.ocv_v[k]);
+        row(p.discharge);
+        row(p.charge);
+        std::printf("\n");
+    }
+    std::printf("pulse sets: %zu fitted;", c.pulse_fits.size());
+    std::size_t joint = 0;
+    double rms_t = 0, rms_j = 0;
+    std::size_t n = 0;
+    for (const auto& f : c.pulse_fits) {
+        joint += f.chosen == estimator::PulseSetFit::Method::Joint;
+        if (std::isfinite(f.thesis_rms_v) && std::isfinite(f.joint_rms_v)) rms_t += f.thesis_rms_v, rms_j += f.joint_rms_v, ++n;
+    }
+    std::printf(" joint fit chosen for %zu, thesis per-segment for %zu", joint, c.pulse_fits.size() - joint);
+    if (n) std::printf(" (mean pulse-set RMS: thesis %.2f mV, joint %.2f mV)", rms_t / n * 1e3, rms_j / n * 1e3);
+    std::printf("\nthermal: C_th %.2f J/K", p.thermal.c_th_j_per_k);
+    if (std::isfinite(c.thermal.c_th_sigma_j_per_k)) std::printf(" +- %.2f", c.thermal.c_th_sigma_j_per_k);
+    if (std::isfinite(c.thermal.c_th_r_squared)) std::printf(" (R^2 %.3f)", c.thermal.c_th_r_squared);
+    std::printf(", R_th %.3f K/W (%s)\n", p.thermal.r_th_k_per_w, c.thermal.r_th_method.c_str());
+    if (!p.thermal.ehc_soc.empty()) {
+        std::printf("entropic coefficient dU/dT (mV/K) by SOC:");
+        for (std::size_t k = 0; k < p.thermal.ehc_soc.size(); ++k)
+            std::printf(" %.0f%%:%.3f", p.thermal.ehc_soc[k] * 100, p.thermal.ehc_v_per_k[k] * 1e3);
+        std::printf("\n");
+    }
+}
+
+}  // namespace
+
+int run_fit(const FitOptions& o) {
+    if (!o.db.empty())
+        throw InputError(o.db + ": replaying a daemon run (--db/--run) needs cellbenchd's database support, "
+                                "which this build does not have yet");
+    std::vector<Recording> recs;
+    for (const auto& path : o.recordings) {
+        recs.push_back(load_recording(path));
+        spdlog::info("{}: {} rows, {:.0f} s", path, recs.back().size(), recs.back().time_s.back() - recs.back().time_s.front());
+    }
+    estimator::CharacterizationOptions co;
+    co.cell = o.cell_name;
+    const bool tty = stderr_is_terminal();
+    auto progress = [tty](const std::string& stage, std::size_t done, std::size_t total) {
+        if (tty) std::fprintf(stderr, "\r%s: %zu/%zu%s", stage.c_str(), done, total, done == total ? "\n" : "");
+    };
+    const auto c = estimator::characterize(recs, co, progress);
+    for (const auto& w : c.warnings) spdlog::warn("{}", w);
+    print_parameter_table(c);
+    write_json_file(o.output, c.params.to_json());
+    if (!o.summary_json.empty()) write_json_file(o.summary_json, c.summary_json());
+    spdlog::info("wrote {}", o.output);
+    return 0;
+}
+
+}  // namespace cellbench::cli

@@ -1,0 +1,100 @@
+#include <cmath>
+
+#include <spdlog/spdlog.h>
+
+#include "cellbench/estimator/align.hpp"
+#include "cellbench/estimator/merge.hpp"
+#include "cellbench/protocol/bdf_csv.hpp"
+#include "cellbench/protocol/dewesoft_export.hpp"
+#include "cellbench/protocol/heat_flux.hpp"
+#include "cellbench/protocol/neware_export.hpp"
+#include "cli/commands.hpp"
+#include "cli/files.hpp"
+
+namespace cellbench::cli {
+
+namespace {
+
+// Nominal P45B values used only to weigh DAQ heat against cycler current when aligning clocks.
+constexpr double kAlignThermalCapacityJPerK = 63.3;
+constexpr double kCellAreaM2 = 5.311e-3;
+
+// Adds the DAQ's channels to the cycler recording, on the cycler's clock.
+void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, double sensitivity, double max_offset_s) {
+    // Heat flux from the raw thermopile voltage with the Type-T sensitivity correction (thesis eq. 2.2), the
+    // same function the DEWE-43A driver uses. Fall back to the export's own column if there is no raw voltage.
+    std::vector<double> q = daq.heat_flux_w_per_m2;
+    if (!daq.thermopile_v.empty() && !daq.type_t_c.empty()) {
+        q.resize(daq.thermopile_v.size());
+        double sum_rel = 0, max_rel = 0;
+        std::size_t n_rel = 0;
+        for (std::size_t k = 0; k < q.size(); ++k) {
+            q[k] = protocol::heat_flux_density_w_per_m2(daq.thermopile_v[k], daq.type_t_c[k], sensitivity);
+            if (k < daq.heat_flux_w_per_m2.size() && std::abs(daq.heat_flux_w_per_m2[k]) > 5.0) {
+                const double rel = std::abs(q[k] / daq.heat_flux_w_per_m2[k] - 1.0);
+                sum_rel += rel;
+                max_rel = std::max(max_rel, rel);
+                ++n_rel;
+            }
+        }
+        if (n_rel > 0)
+            spdlog::info("heat flux recomputed from thermopile voltage (S = {:.4g} V/(W/m^2), Type-T corrected): "
+                         "vs the export's own column mean |rel diff| {:.4f} %, max {:.4f} % (|q| > 5 W/m^2)",
+                         sensitivity, 100 * sum_rel / n_rel, 100 * max_rel);
+    } else {
+        spdlog::warn("{}: no raw thermopile voltage; using the export's heat flux column as is", daq.source);
+    }
+    if (daq.type_t_c.empty()) throw InputError(daq.source + ": no sensor temperature column (Type-T)");
+
+    const auto al = estimator::estimate_clock_offset(rec.time_s, rec.current_a, daq.time_s, daq.type_t_c, q,
+                                                     kAlignThermalCapacityJPerK, kCellAreaM2, max_offset_s);
+    std::printf("clock offset applied to %s: %+.1f s (DAQ time + offset = cycler time; correlation %.3f)\n",
+                daq.source.c_str(), al.offset_s, al.correlation);
+    if (!al.note.empty()) spdlog::info("alignment: {}", al.note);
+
+    std::vector<double> daq_time(daq.time_s.size());
+    for (std::size_t k = 0; k < daq_time.size(); ++k) daq_time[k] = daq.time_s[k] + al.offset_s;
+    rec.surface_c = estimator::resample_linear(daq_time, daq.type_t_c, rec.time_s);
+    rec.heat_flux_w_per_m2 = estimator::resample_linear(daq_time, q, rec.time_s);
+    if (!daq.t1_c.empty()) rec.t1_c = estimator::resample_linear(daq_time, daq.t1_c, rec.time_s);
+    if (!daq.t2_c.empty()) rec.t2_c = estimator::resample_linear(daq_time, daq.t2_c, rec.time_s);
+    std::size_t covered = 0;
+    for (double v : rec.surface_c) covered += std::isfinite(v);
+    if (covered < rec.size())
+        spdlog::warn("DAQ covers {} of {} cycler rows; the others have empty thermal cells", covered, rec.size());
+}
+
+}  // namespace
+
+int run_import(const ImportOptions& o) {
+    if (o.neware.empty() && o.bdf.empty())
+        throw InputError("import: give a cycler recording (--neware and/or --bdf); --dewesoft alone has no current");
+    Recording rec;
+    if (!o.neware.empty()) rec = protocol::parse_neware_export(read_file(o.neware), o.neware);
+    if (rec.repaired_timestamps > 0)
+        spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.neware, rec.repaired_timestamps);
+    if (!o.bdf.empty()) {
+        protocol::BdfReadReport report;
+        Recording bdf = protocol::parse_bdf_csv(read_file(o.bdf), o.bdf, &report);
+        if (report.repaired_timestamps > 0)
+            spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.bdf, report.repaired_timestamps);
+        if (rec.empty()) {
+            rec = std::move(bdf);
+        } else {
+            // One instrument, two exports: the BDF may start anywhere in the cycler's record, so search it all.
+            const auto al = estimator::align_by_current(rec, bdf, INFINITY);
+            std::printf("clock offset applied to %s: %+.2f s (%zu of %zu current steps matched, current RMS "
+                        "mismatch %.3f A)\n",
+                        o.bdf.c_str(), al.offset_s, al.matched_edges, al.edges_b, al.current_rms_a);
+            rec = estimator::splice_recordings(rec, bdf, al.offset_s);
+        }
+    }
+    if (!o.dewesoft.empty())
+        add_daq_channels(rec, protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft),
+                         o.sensitivity_v_per_w_per_m2, o.max_offset_s);
+    write_file_atomic(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec); });
+    spdlog::info("wrote {} rows ({:.0f} s) to {}", rec.size(), rec.time_s.back() - rec.time_s.front(), o.output);
+    return 0;
+}
+
+}  // namespace cellbench::cli

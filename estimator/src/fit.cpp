@@ -10,6 +10,9 @@ namespace cellbench::estimator {
 
 namespace {
 
+// How much of the long rest after a SOC step the extended joint fit covers (see PulseFitOptions).
+constexpr double kExtendedRestS = 300.0;
+
 bool usable(const Rc2Params<double>& p) {
     for (double v : {p.r0_ohm, p.r1_ohm, p.tau1_s, p.r2_ohm, p.tau2_s})
         if (!std::isfinite(v) || v <= 0) return false;
@@ -169,6 +172,20 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
                 const double h = 0.01;
                 po.docv_dah_v_per_ah =
                     (interp_extrap(ocv_soc, ocv_v, s + h) - interp_extrap(ocv_soc, ocv_v, s - h)) / (2 * h) / cap;
+            }
+            // Extend the joint fit over the SOC step and the long rest after it, when the recording has them.
+            const std::size_t idx = static_cast<std::size_t>(&ps - segs[r].pulse_sets.data());
+            for (const auto& step : segs[r].soc_steps) {
+                if (step.pulse_set_index != idx || !step.followed_by_long_rest) continue;
+                for (const auto& lr : segs[r].long_rests)
+                    if (lr.begin >= step.end && lr.begin <= step.end + 1) {
+                        // The first minutes of the rest hold the relaxation on the time scales a drive
+                        // profile excites; its end holds the relaxed OCV at the same SOC.
+                        std::size_t e = lr.begin;
+                        while (e < lr.end && recordings[r].time_s[e] - recordings[r].time_s[lr.begin] < kExtendedRestS) ++e;
+                        po.extended_end = e;
+                        po.extended_end_ocv_v = recordings[r].voltage_v[lr.end - 1];
+                    }
             }
             auto fit = fit_pulse_set(recordings[r], ps, po);
             fit.soc = s;

@@ -38,55 +38,62 @@ CellState CellModel::rested_state(double terminal_voltage_v, double temperature_
 
 CellOutputs CellModel::step(CellState& s, double current_a, double ambient_c, double dt_s) const {
     const auto& th = params_.thermal;
-    s.direction = current_direction(current_a, s.direction);
 
-    // Parameters are frozen over the interval at the state it starts from (SOC, temperature, direction).
-    Rc2Params<double> p = params_.rc_at(s.soc, s.direction);
+    // Parameters are frozen over the interval at the state it starts from (SOC, temperature).
+    Rc2Params<double> pd = params_.rc_at(s.soc, -1), pc = params_.rc_at(s.soc, +1);
     const double f = resistance_factor(s.temperature_c);
-    p.r0_ohm *= f;
-    p.r1_ohm *= f;  // C is held, so tau = R*C scales with R
-    p.tau1_s *= f;
-    p.r2_ohm *= f;
-    p.tau2_s *= f;
+    for (auto* p : {&pd, &pc}) {  // C is held, so tau = R*C scales with R
+        p->r0_ohm *= f;
+        p->r1_ohm *= f;
+        p->tau1_s *= f;
+        p->r2_ohm *= f;
+        p->tau2_s *= f;
+    }
     const double ehc = params_.ehc_at(s.soc);
     const double i = current_a;
+    const double ohmic_v = ohmic_drop_v(pd, pc, i);
 
     CellOutputs out;
     if (dt_s > 0) {
-        // RC voltages: v_k(t) = vss_k + (v0_k - vss_k) * exp(-t/tau_k)   (exact under the held current)
-        const double v1ss = p.r1_ohm * i, v2ss = p.r2_ohm * i;
-        const double d1 = s.v1_v - v1ss, d2 = s.v2_v - v2ss;
-        const double a1 = 1.0 / p.tau1_s, a2 = 1.0 / p.tau2_s;
+        // Each RC voltage: v_j(t) = vss_j + (v0_j - vss_j) * exp(-a_j t)   (exact under the held current)
+        const double id = discharge_part(i), ic = charge_part(i);
+        double* v[4] = {&s.rc.v1_discharge_v, &s.rc.v2_discharge_v, &s.rc.v1_charge_v, &s.rc.v2_charge_v};
+        const double vss[4] = {pd.r1_ohm * id, pd.r2_ohm * id, pc.r1_ohm * ic, pc.r2_ohm * ic};
+        const double rate[4] = {1.0 / pd.tau1_s, 1.0 / pd.tau2_s, 1.0 / pc.tau1_s, 1.0 / pc.tau2_s};
+        double d[4], vss_sum = 0;
+        for (int j = 0; j < 4; ++j) {
+            d[j] = *v[j] - vss[j];
+            vss_sum += vss[j];
+        }
 
-        // Thermal: C dT/dt = I*(R0*I + v1 + v2) + I*EHC*(T + 273.15) - (T - Ta)/Rth
-        //        dT/dt = -beta*T + c0 + c1*exp(-a1 t) + c2*exp(-a2 t)
+        // Thermal: C dT/dt = I*(R0*I + sum v_j) + I*EHC*(T + 273.15) - (T - Ta)/Rth
+        //        dT/dt = -beta*T + c0 + sum_j c_j*exp(-a_j t)
         const double beta = (1.0 / th.r_th_k_per_w - i * ehc) / th.c_th_j_per_k;
         const double c0 =
-            (i * (p.r0_ohm * i + v1ss + v2ss) + i * ehc * kZeroCelsiusK + ambient_c / th.r_th_k_per_w) /
-            th.c_th_j_per_k;
-        const double c1 = i * d1 / th.c_th_j_per_k, c2 = i * d2 / th.c_th_j_per_k;
-        const double e_beta = std::exp(-beta * dt_s);
-        // integral_0^dt exp(-beta (dt - u)) exp(-a u) du = exp(-a dt) * (1 - exp(-(beta - a) dt)) / (beta - a)
+            (i * (ohmic_v + vss_sum) + i * ehc * kZeroCelsiusK + ambient_c / th.r_th_k_per_w) / th.c_th_j_per_k;
         const double t0 = s.temperature_c;
-        const double t1 = t0 * e_beta + c0 * integral_of_decay(beta, dt_s) +
-                          c1 * std::exp(-a1 * dt_s) * integral_of_decay(beta - a1, dt_s) +
-                          c2 * std::exp(-a2 * dt_s) * integral_of_decay(beta - a2, dt_s);
+        // integral_0^dt exp(-beta (dt - u)) exp(-a u) du = exp(-a dt) * (1 - exp(-(beta - a) dt)) / (beta - a)
+        double t1 = t0 * std::exp(-beta * dt_s) + c0 * integral_of_decay(beta, dt_s);
+        double transient_heat_j = 0;
+        for (int j = 0; j < 4; ++j) {
+            if (d[j] == 0.0) continue;
+            t1 += i * d[j] / th.c_th_j_per_k * std::exp(-rate[j] * dt_s) * integral_of_decay(beta - rate[j], dt_s);
+            transient_heat_j += i * d[j] * integral_of_decay(rate[j], dt_s);
+        }
 
         // Mean heats over the interval (outputs only).
-        out.heat_irreversible_w = i * (p.r0_ohm * i + v1ss + v2ss) +
-                                  i * (d1 * integral_of_decay(a1, dt_s) + d2 * integral_of_decay(a2, dt_s)) / dt_s;
+        out.heat_irreversible_w = i * (ohmic_v + vss_sum) + transient_heat_j / dt_s;
         out.heat_reversible_w = i * ehc * (0.5 * (t0 + t1) + kZeroCelsiusK);
 
-        s.v1_v = v1ss + d1 * std::exp(-a1 * dt_s);
-        s.v2_v = v2ss + d2 * std::exp(-a2 * dt_s);
+        for (int j = 0; j < 4; ++j) *v[j] = vss[j] + d[j] * std::exp(-rate[j] * dt_s);
         s.temperature_c = t1;
         s.soc += i * dt_s / (3600.0 * params_.capacity_ah);
     } else {
-        out.heat_irreversible_w = i * (p.r0_ohm * i + s.v1_v + s.v2_v);
+        out.heat_irreversible_w = i * (ohmic_v + s.rc.sum());
         out.heat_reversible_w = i * ehc * (s.temperature_c + kZeroCelsiusK);
     }
     out.ocv_v = params_.ocv_at(s.soc);
-    out.voltage_v = out.ocv_v + p.r0_ohm * i + s.v1_v + s.v2_v;
+    out.voltage_v = out.ocv_v + ohmic_v + s.rc.sum();
     out.heat_flow_out_w = (s.temperature_c - ambient_c) / th.r_th_k_per_w;
     return out;
 }

@@ -49,7 +49,7 @@ struct Window {
     std::size_t first = 0;          // recording row of window row 0
     std::vector<double> t, i, v;    // time, current (non-finite -> 0), voltage (may be NaN)
     std::vector<double> q_ah;       // charge throughput since row 0 (+ = charge), sampling convention
-    std::vector<int> dir;           // current_direction, starting from discharge (-1)
+    std::vector<int> dir;           // sign of the current: -1 discharge (R0_dis), +1 charge (R0_chg), 0 none
     std::vector<double> ocv;        // ocv_v + docv_dah * q_ah
     std::size_t n() const { return t.size(); }
 };
@@ -64,17 +64,52 @@ Window make_window(const Recording& rec, std::size_t first, std::size_t end, dou
     w.q_ah.resize(n);
     w.dir.resize(n);
     w.ocv.resize(n);
-    int d = -1;
     double q = 0.0;
     for (std::size_t k = 0; k < n; ++k) {
         const double c = rec.current_a[first + k];
         w.i[k] = std::isfinite(c) ? c : 0.0;
         if (k > 0) q += w.i[k] * (w.t[k] - w.t[k - 1]) / 3600.0;
         w.q_ah[k] = q;
-        d = current_direction(w.i[k], d);
-        w.dir[k] = d;
+        w.dir[k] = w.i[k] < 0 ? -1 : (w.i[k] > 0 ? +1 : 0);
         w.ocv[k] = ocv_v + docv * q;
     }
+    return w;
+}
+
+// The pulse set's rows at full resolution, then rows [pulse_end, ext_end) merged where the current holds: full
+// resolution for 10 s after each current step, 1 s steps up to 120 s, 10 s after that. The merged row's
+// current is the mean over its interval. OCV linear in throughput from ocv_v to ocv_end_v.
+Window make_extended_window(const Recording& rec, std::size_t first, std::size_t pulse_end, std::size_t ext_end,
+                            double ocv_v, double ocv_end_v) {
+    Window w = make_window(rec, first, pulse_end, ocv_v, 0.0);
+    double q = w.q_ah.back();
+    double charge_since = 0.0, t_last = w.t.back(), t_edge = w.t.back();
+    for (std::size_t k = pulse_end; k < ext_end; ++k) {
+        const double c = std::isfinite(rec.current_a[k]) ? rec.current_a[k] : 0.0;
+        const double dt = rec.time_s[k] - rec.time_s[k - 1];
+        charge_since += c * dt;
+        const double prev = std::isfinite(rec.current_a[k - 1]) ? rec.current_a[k - 1] : 0.0;
+        if (std::abs(c - prev) > 0.2) t_edge = rec.time_s[k - 1];
+        const double age = rec.time_s[k] - t_edge;
+        const double step = age < 10.0 ? 0.0 : age < 120.0 ? 1.0 : 10.0;
+        const bool next_is_edge = k + 1 < ext_end && std::isfinite(rec.current_a[k + 1]) &&
+                                  std::abs(rec.current_a[k + 1] - c) > 0.2;
+        if (rec.time_s[k] - t_last + 1e-9 < step && !next_is_edge && k + 1 != ext_end) continue;
+        const double span = rec.time_s[k] - t_last;
+        const double i = span > 0 ? charge_since / span : c;
+        q += charge_since / 3600.0;
+        w.t.push_back(rec.time_s[k]);
+        w.v.push_back(rec.voltage_v[k]);
+        w.i.push_back(i);
+        w.q_ah.push_back(q);
+        w.dir.push_back(i < 0 ? -1 : (i > 0 ? +1 : 0));
+        w.ocv.push_back(0.0);
+        charge_since = 0.0;
+        t_last = rec.time_s[k];
+    }
+    const double q_total = w.q_ah.back();
+    for (std::size_t k = 0; k < w.n(); ++k)
+        w.ocv[k] = q_total != 0.0 ? ocv_v + (ocv_end_v - ocv_v) * w.q_ah[k] / q_total : ocv_v;
     return w;
 }
 
@@ -84,7 +119,7 @@ double simulated_rms(const Window& w, const Rc2Params<double>& dis, const Rc2Par
                      chg.tau1_s, chg.r2_ohm, chg.tau2_s})
         if (!std::isfinite(x)) return kNaN;
     std::vector<double> eta(w.n());
-    simulate_overpotential<double>(w.t.data(), w.i.data(), w.n(), dis, chg, 0.0, 0.0, -1, eta.data());
+    simulate_overpotential<double>(w.t.data(), w.i.data(), w.n(), dis, chg, RcVoltages<double>{}, eta.data());
     double s = 0.0;
     std::size_t m = 0;
     for (std::size_t k = 0; k < w.n(); ++k) {
@@ -316,43 +351,44 @@ public:
     bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
         const double* p = parameters[0];
         double* jac = jacobians ? jacobians[0] : nullptr;
-        // State and sensitivities of each RC pair with respect to [R_dis, tau_dis, R_chg, tau_chg].
-        double v[2] = {0.0, 0.0};
-        double dv[2][4] = {{0, 0, 0, 0}, {0, 0, 0, 0}};
+        // RC voltages v[direction][pair] (direction 0 = discharge, driven by I-; 1 = charge, by I+) and their
+        // sensitivities with respect to that pair's own [R, tau].
+        double v[2][2] = {{0, 0}, {0, 0}};
+        double dv[2][2][2] = {};
         std::size_t r = 0;
         const std::size_t n = w_.n();
         for (std::size_t k = 0; k < n; ++k) {
-            const int dir = w_.dir[k];
-            const int b = base_of(dir);
             const double i = w_.i[k];
             if (k > 0) {
                 const double dt = w_.t[k] - w_.t[k - 1];
-                for (int pair = 0; pair < 2; ++pair) {
-                    const double rr = p[b + 1 + 2 * pair];
-                    const double tau = p[b + 2 + 2 * pair];
-                    const double a = std::exp(-dt / tau);
-                    if (jac) {
-                        const double da = a * dt / (tau * tau);
-                        const int o = dir > 0 ? 2 : 0;
-                        for (double& d : dv[pair]) d *= a;
-                        dv[pair][o] += (1.0 - a) * i;
-                        dv[pair][o + 1] += da * (v[pair] - rr * i);
+                for (int d = 0; d < 2; ++d) {
+                    const double u = d == 0 ? discharge_part(i) : charge_part(i);
+                    for (int pair = 0; pair < 2; ++pair) {
+                        const double rr = p[5 * d + 1 + 2 * pair];
+                        const double tau = p[5 * d + 2 + 2 * pair];
+                        const double a = std::exp(-dt / tau);
+                        if (jac) {
+                            const double da = a * dt / (tau * tau);
+                            dv[d][pair][1] = a * dv[d][pair][1] + da * (v[d][pair] - rr * u);
+                            dv[d][pair][0] = a * dv[d][pair][0] + (1.0 - a) * u;
+                        }
+                        v[d][pair] = a * v[d][pair] + rr * (1.0 - a) * u;
                     }
-                    v[pair] = a * v[pair] + rr * (1.0 - a) * i;
                 }
             }
             if (r < rows_.size() && rows_[r] == k) {
-                residuals[r] = p[kC] + p[b] * i + v[0] + v[1] - (w_.v[k] - w_.ocv[k]);
+                const int b = base_of(w_.dir[k]);
+                residuals[r] = p[kC] + (w_.dir[k] != 0 ? p[b] * i : 0.0) + v[0][0] + v[0][1] + v[1][0] + v[1][1] -
+                               (w_.v[k] - w_.ocv[k]);
                 if (jac) {
                     double* row = jac + r * kNumJoint;
                     std::fill(row, row + kNumJoint, 0.0);
-                    row[b] = i;
-                    for (int pair = 0; pair < 2; ++pair) {
-                        row[0 + 1 + 2 * pair] = dv[pair][0];
-                        row[0 + 2 + 2 * pair] = dv[pair][1];
-                        row[5 + 1 + 2 * pair] = dv[pair][2];
-                        row[5 + 2 + 2 * pair] = dv[pair][3];
-                    }
+                    if (w_.dir[k] != 0) row[b] = i;
+                    for (int d = 0; d < 2; ++d)
+                        for (int pair = 0; pair < 2; ++pair) {
+                            row[5 * d + 1 + 2 * pair] = dv[d][pair][0];
+                            row[5 * d + 2 + 2 * pair] = dv[d][pair][1];
+                        }
                     row[kC] = 1.0;
                 }
                 ++r;
@@ -380,8 +416,8 @@ struct DecayCache {
     }
 };
 
-// Unit-resistance responses of one RC pair with per-direction time constants, on the fitted rows: x_d (the
-// part multiplied by R_dis) and x_c (by R_chg); v = R_dis * x_d + R_chg * x_c solves the model's recursion.
+// Unit-resistance responses of one RC pair of each direction, on the fitted rows: x_d (multiplied by R_dis)
+// and x_c (by R_chg); v = R_dis * x_d + R_chg * x_c solves the model's recursion.
 // With `deriv`, also their derivatives with respect to tau_dis and tau_chg (forward sensitivities).
 struct PairColumns {
     std::vector<double> xd, xc, dxd_dtd, dxd_dtc, dxc_dtd, dxc_dtc;
@@ -398,41 +434,30 @@ void pair_columns(const Window& w, const std::vector<std::size_t>& rows, double 
         out.dxc_dtd.resize(m);
         out.dxc_dtc.resize(m);
     }
+    // x_d responds to the discharge part of the current with tau_dis only, x_c to the charge part with tau_chg
+    // only (electrical.hpp), so the cross sensitivities are zero.
     DecayCache cache_d, cache_c;
-    double xd = 0, xc = 0, xd_td = 0, xd_tc = 0, xc_td = 0, xc_tc = 0;
+    double xd = 0, xc = 0, xd_td = 0, xc_tc = 0;
     std::size_t r = 0;
     for (std::size_t k = 0; k < w.n() && r < m; ++k) {
         if (k > 0) {
             const double dt = w.t[k] - w.t[k - 1];
-            const bool chg = w.dir[k] > 0;
-            const double tau = chg ? tau_chg : tau_dis;
-            const double a = chg ? cache_c(dt, tau) : cache_d(dt, tau);
-            const double i = w.i[k];
+            const double ad = cache_d(dt, tau_dis), ac = cache_c(dt, tau_chg);
+            const double id = discharge_part(w.i[k]), ic = charge_part(w.i[k]);
             if (deriv) {
-                const double da = a * dt / (tau * tau);
-                if (chg) {
-                    xd_tc = a * xd_tc + da * xd;
-                    xc_tc = a * xc_tc + da * (xc - i);
-                    xd_td *= a;
-                    xc_td *= a;
-                } else {
-                    xd_td = a * xd_td + da * (xd - i);
-                    xc_td = a * xc_td + da * xc;
-                    xd_tc *= a;
-                    xc_tc *= a;
-                }
+                xd_td = ad * xd_td + ad * dt / (tau_dis * tau_dis) * (xd - id);
+                xc_tc = ac * xc_tc + ac * dt / (tau_chg * tau_chg) * (xc - ic);
             }
-            const double u = (1.0 - a) * i;
-            xd = a * xd + (chg ? 0.0 : u);
-            xc = a * xc + (chg ? u : 0.0);
+            xd = ad * xd + (1.0 - ad) * id;
+            xc = ac * xc + (1.0 - ac) * ic;
         }
         if (rows[r] == k) {
             out.xd[r] = xd;
             out.xc[r] = xc;
             if (deriv) {
                 out.dxd_dtd[r] = xd_td;
-                out.dxd_dtc[r] = xd_tc;
-                out.dxc_dtd[r] = xc_td;
+                out.dxd_dtc[r] = 0.0;
+                out.dxc_dtd[r] = 0.0;
                 out.dxc_dtc[r] = xc_tc;
             }
             ++r;
@@ -745,14 +770,21 @@ struct JointResult {
 
 // Final refinement of all 11 parameters with the exact model (JointCost) under the bounds, then covariance.
 JointResult polish(const Window& w, const std::vector<std::size_t>& rows, const Candidate& start,
-                   const TauBounds& bd, const TauBounds& bc, const PulseFitOptions& o) {
+                   const TauBounds& bd, const TauBounds& bc, const PulseFitOptions& o, const R0Steps& r0) {
     JointResult res;
     auto& p = res.p;
     const auto& th = start.theta;  // c, R0d, R0c, R1d, R1c, R2d, R2c
     p = {std::max(0.0, th(1)), std::max(0.0, th(3)), start.tau[0], std::max(0.0, th(5)), start.tau[1],
          std::max(0.0, th(2)), std::max(0.0, th(4)), start.tau[2], std::max(0.0, th(6)), start.tau[3], th(0)};
+    std::vector<int> held;
+    if (o.r0_from_steps && std::isfinite(r0.discharge_ohm) && std::isfinite(r0.charge_ohm)) {
+        p[0] = r0.discharge_ohm;
+        p[5] = r0.charge_ohm;
+        held = {0, 5};
+    }
     ceres::Problem problem;
     problem.AddResidualBlock(new JointCost(w, rows), nullptr, p.data());
+    if (!held.empty()) problem.SetManifold(p.data(), new ceres::SubsetManifold(kNumJoint, held));
     for (int b : {0, 5}) {
         const TauBounds& tb = b == 0 ? bd : bc;
         for (int j : {0, 1, 3}) problem.SetParameterLowerBound(p.data(), b + j, 0.0);
@@ -774,16 +806,17 @@ JointResult polish(const Window& w, const std::vector<std::size_t>& rows, const 
     ceres::CRSMatrix crs;
     double cost = 0.0;
     problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, &crs);
-    Eigen::Matrix<double, kNumJoint, kNumJoint> jtj = Eigen::Matrix<double, kNumJoint, kNumJoint>::Zero();
+    // The Jacobian is in the tangent space: held parameters (R0 from the steps) have no column.
+    Eigen::MatrixXd jtj = Eigen::MatrixXd::Zero(crs.num_cols, crs.num_cols);
     for (int r = 0; r < crs.num_rows; ++r) {
         for (int a = crs.rows[r]; a < crs.rows[r + 1]; ++a)
             for (int b = crs.rows[r]; b < crs.rows[r + 1]; ++b)
                 jtj(crs.cols[a], crs.cols[b]) += crs.values[a] * crs.values[b];
     }
     // Singular values of the symmetric positive semi-definite J'J are its eigenvalues.
-    const Eigen::JacobiSVD<Eigen::Matrix<double, kNumJoint, kNumJoint>> svd(jtj);
+    const Eigen::JacobiSVD<Eigen::MatrixXd> svd(jtj);
     double lmax = 0.0, lmin = std::numeric_limits<double>::infinity();
-    for (int j = 0; j < kNumJoint; ++j) {
+    for (int j = 0; j < crs.num_cols; ++j) {
         const double sv = svd.singularValues()(j);
         lmax = std::max(lmax, sv);
         lmin = std::min(lmin, sv);
@@ -797,10 +830,11 @@ JointResult polish(const Window& w, const std::vector<std::size_t>& rows, const 
     std::array<double, kNumJoint * kNumJoint> m{};
     if (cov.Compute(blocks, &problem) && cov.GetCovarianceBlock(p.data(), p.data(), m.data())) {
         // (J'J)^-1 scaled by the residual variance.
-        const double s2 = 2.0 * sum.final_cost / static_cast<double>(rows.size() - kNumJoint);
+        const double s2 = 2.0 * sum.final_cost / static_cast<double>(rows.size() - static_cast<std::size_t>(crs.num_cols));
         for (int j = 0; j < kNumJoint; ++j) {
             const double var = m[static_cast<std::size_t>(j * kNumJoint + j)] * s2;
-            res.sigma[static_cast<std::size_t>(j)] = var >= 0.0 ? std::sqrt(var) : kNaN;
+            const bool is_held = std::find(held.begin(), held.end(), j) != held.end();
+            res.sigma[static_cast<std::size_t>(j)] = var >= 0.0 && !is_held ? std::sqrt(var) : kNaN;
         }
         res.sigma_ok = true;
     }
@@ -876,11 +910,11 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
 
     // 3. All 11 parameters with the exact model, resistances bounded at zero; if the pairs cross, again with
     //    them split at the geometric mean of the variable-projection result.
-    JointResult r = polish(w, rows, best, best_bd, best_bc, o);
+    JointResult r = polish(w, rows, best, best_bd, best_bc, o, out.r0);
     if (!(r.p[2] < r.p[4]) || !(r.p[7] < r.p[9])) {
         if (!(r.p[2] < r.p[4])) best_bd = box.split_at(std::sqrt(best.tau[0] * best.tau[1]));
         if (!(r.p[7] < r.p[9])) best_bc = box.split_at(std::sqrt(best.tau[2] * best.tau[3]));
-        r = polish(w, rows, best, best_bd, best_bc, o);
+        r = polish(w, rows, best, best_bd, best_bc, o, out.r0);
     }
 
     out.joint_discharge = unpack(r.p, 0);
@@ -984,10 +1018,16 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
         out.warnings.push_back(fmt("the charge relaxation lasts only %.1f s", ps.charge_relaxation_s));
 
     if (o.thesis_method) thesis_fits(rec, ps, w, end, o, out);
-    if (o.joint_method) joint_fit(w, o, out);
+    const bool extended = o.extended_end > ps.end && o.extended_end <= n && std::isfinite(o.extended_end_ocv_v);
+    const Window wx = extended ? make_extended_window(rec, first, ps.end, o.extended_end, out.ocv_v,
+                                                      o.extended_end_ocv_v)
+                               : Window{};
+    const Window& wj = extended ? wx : w;
+    if (extended) out.end = o.extended_end;
+    if (o.joint_method) joint_fit(wj, o, out);
 
-    out.thesis_rms_v = simulated_rms(w, out.thesis_discharge, out.thesis_charge, 0.0);
-    out.joint_rms_v = simulated_rms(w, out.joint_discharge, out.joint_charge, 0.0);
+    out.thesis_rms_v = simulated_rms(wj, out.thesis_discharge, out.thesis_charge, 0.0);
+    out.joint_rms_v = simulated_rms(wj, out.joint_discharge, out.joint_charge, 0.0);
 
     // Choice: the better predictor among the results with usable parameters (see the header).
     auto usable = [](const Rc2Params<double>& p) {

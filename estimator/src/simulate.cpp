@@ -46,13 +46,13 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     CellState s;
     s.temperature_c = options.initial_temperature_c.value_or(std::isfinite(first_surface) ? first_surface
                                                                                           : ambient_at(0));
-    s.direction = current_direction(rec.current_a[0], -1);
     if (options.initial_soc) {
         s.soc = *options.initial_soc;
     } else {
         // The state the recording implies: a rested cell's voltage is its OCV; under current, remove R0*I.
-        const double r0 = p.rc_at(p.soc_from_ocv(rec.voltage_v[0]), s.direction).r0_ohm;
-        s.soc = p.soc_from_ocv(rec.voltage_v[0] - r0 * rec.current_a[0]);
+        const double soc_guess = p.soc_from_ocv(rec.voltage_v[0]);
+        const double ohmic = ohmic_drop_v(p.rc_at(soc_guess, -1), p.rc_at(soc_guess, +1), rec.current_a[0]);
+        s.soc = p.soc_from_ocv(rec.voltage_v[0] - ohmic);
     }
     tr.initial_soc = s.soc;
     tr.ambient_c = ambient_const;

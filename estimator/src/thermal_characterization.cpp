@@ -108,9 +108,10 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
             socs[r] = soc_of_row[r];
             continue;
         }
-        const int dir = current_direction(rec.current_a[0], -1);
-        const double r0 = electrical.rc_at(electrical.soc_from_ocv(rec.voltage_v[0]), dir).r0_ohm;
-        const double soc0 = electrical.soc_from_ocv(rec.voltage_v[0] - r0 * rec.current_a[0]);
+        const double guess = electrical.soc_from_ocv(rec.voltage_v[0]);
+        const double ohmic =
+            ohmic_drop_v(electrical.rc_at(guess, -1), electrical.rc_at(guess, +1), rec.current_a[0]);
+        const double soc0 = electrical.soc_from_ocv(rec.voltage_v[0] - ohmic);
         const auto q = cumulative_charge_ah(rec);
         socs[r].resize(rec.size());
         for (std::size_t k = 0; k < rec.size(); ++k) socs[r][k] = soc0 + q[k] / electrical.capacity_ah;

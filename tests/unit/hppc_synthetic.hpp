@@ -54,15 +54,15 @@ inline Recording synthesize(const std::vector<Step>& program, const SyntheticOpt
     std::mt19937 rng(o.seed);
     std::normal_distribution<double> vn(0.0, o.voltage_noise_v > 0 ? o.voltage_noise_v : 1.0);
     std::normal_distribution<double> in(0.0, o.current_noise_a > 0 ? o.current_noise_a : 1.0);
-    double soc = o.soc0, v1 = 0, v2 = 0, t = 0;
-    int dir = -1;
-    auto step_model = [&](double i, double dt, double& nv1, double& nv2, int& ndir, double& nsoc) {
-        ndir = estimator::current_direction(i, dir);
-        const auto& p = ndir > 0 ? o.charge : o.discharge;
-        nv1 = estimator::rc_zoh_step(v1, p.r1_ohm, p.tau1_s, i, dt);
-        nv2 = estimator::rc_zoh_step(v2, p.r2_ohm, p.tau2_s, i, dt);
+    double soc = o.soc0, t = 0;
+    estimator::RcVoltages<double> rc;
+    // The model of electrical.hpp: each direction's RC pairs driven by its own part of the current.
+    auto step_model = [&](double i, double dt, estimator::RcVoltages<double>& nrc, double& nsoc) {
+        nrc = rc;
+        estimator::rc_step(nrc, o.discharge, o.charge, i, dt);
         nsoc = soc + i * dt / 3600.0 / kCapacityAh;
-        return (o.flat_ocv ? synthetic_ocv(o.soc0) : synthetic_ocv(nsoc)) + p.r0_ohm * i + nv1 + nv2;
+        return (o.flat_ocv ? synthetic_ocv(o.soc0) : synthetic_ocv(nsoc)) +
+               estimator::ohmic_drop_v(o.discharge, o.charge, i) + nrc.sum();
     };
     // Row 0: rest state.
     auto push = [&](double time, double v, double i, const std::string& type) {
@@ -78,22 +78,20 @@ inline Recording synthesize(const std::vector<Step>& program, const SyntheticOpt
         const auto rows = static_cast<std::size_t>(std::llround(s.duration_s / o.dt_s));
         for (std::size_t r = 0; r < rows; ++r) {
             t += o.dt_s;
-            double i = s.current_a, nv1, nv2, nsoc;
-            int ndir;
-            double v = step_model(i, o.dt_s, nv1, nv2, ndir, nsoc);
+            double i = s.current_a, nsoc;
+            estimator::RcVoltages<double> nrc;
+            double v = step_model(i, o.dt_s, nrc, nsoc);
             if (s.cv_limit_v > 0 && ((s.current_a > 0 && v > s.cv_limit_v) || (s.current_a < 0 && v < s.cv_limit_v))) {
                 double lo = 0, hi = s.current_a;  // bisection on the current magnitude
                 for (int it = 0; it < 60; ++it) {
                     const double mid = 0.5 * (lo + hi);
-                    const double vm = step_model(mid, o.dt_s, nv1, nv2, ndir, nsoc);
+                    const double vm = step_model(mid, o.dt_s, nrc, nsoc);
                     if ((s.current_a > 0) == (vm > s.cv_limit_v)) hi = mid; else lo = mid;
                 }
                 i = lo;
-                v = step_model(i, o.dt_s, nv1, nv2, ndir, nsoc);
+                v = step_model(i, o.dt_s, nrc, nsoc);
             }
-            v1 = nv1;
-            v2 = nv2;
-            dir = ndir;
+            rc = nrc;
             soc = nsoc;
             push(t, v, i, s.type);
             rec.step_count.back() = step_no;

@@ -38,7 +38,8 @@ TEST(CellModel, ChargingRaisesVoltageAboveOcvAndDischargingLowersIt) {
     s.soc = 0.5;
     out = m.step(s, -4.5, 25.0, 1.0);
     EXPECT_LT(out.voltage_v, out.ocv_v - 4.5 * 0.0075 + 1e-12);
-    EXPECT_EQ(s.direction, -1);
+    EXPECT_LT(s.rc.v1_discharge_v, 0.0);
+    EXPECT_EQ(s.rc.v1_charge_v, 0.0);
 }
 
 TEST(CellModel, CoulombCountingUsesCapacity) {
@@ -59,8 +60,8 @@ TEST(CellModel, DiscretizationIsExactWhateverTheStep) {
     const auto big = m.step(a, -13.5, 25.0, 60.0);
     CellOutputs small;
     for (int k = 0; k < 600; ++k) small = m.step(b, -13.5, 25.0, 0.1);
-    EXPECT_NEAR(a.v1_v, b.v1_v, 1e-12);
-    EXPECT_NEAR(a.v2_v, b.v2_v, 1e-12);
+    EXPECT_NEAR(a.rc.v1_discharge_v, b.rc.v1_discharge_v, 1e-12);
+    EXPECT_NEAR(a.rc.v2_discharge_v, b.rc.v2_discharge_v, 1e-12);
     EXPECT_NEAR(a.temperature_c, b.temperature_c, 1e-9);
     EXPECT_NEAR(a.soc, b.soc, 1e-12);
     EXPECT_NEAR(big.voltage_v, small.voltage_v, 1e-9);
@@ -72,8 +73,8 @@ TEST(CellModel, RcVoltageFollowsTheAnalyticStepResponse) {
     s.soc = 0.5;
     const double i = -4.5, t = 12.0;
     m.step(s, i, 25.0, t);
-    EXPECT_NEAR(s.v1_v, 0.0015 * i * (1 - std::exp(-t / 1.5)), 1e-12);
-    EXPECT_NEAR(s.v2_v, 0.008 * i * (1 - std::exp(-t / 24.0)), 1e-12);
+    EXPECT_NEAR(s.rc.v1_discharge_v, 0.0015 * i * (1 - std::exp(-t / 1.5)), 1e-12);
+    EXPECT_NEAR(s.rc.v2_discharge_v, 0.008 * i * (1 - std::exp(-t / 24.0)), 1e-12);
 }
 
 TEST(CellModel, ThermalSteadyStateBalancesJouleHeat) {
@@ -101,15 +102,37 @@ TEST(CellModel, ReversibleHeatSignFollowsCurrentAndCoefficient) {
     EXPECT_GT(m.step(s, +4.5, 25.0, 1.0).heat_reversible_w, 0.0);
 }
 
-TEST(CellModel, RestKeepsTheDirectionOfTheLastCurrent) {
-    const CellModel m(flat_params());
+TEST(CellModel, EachDirectionsPolarizationRelaxesWithItsOwnTimeConstants) {
+    // Discharge, then a charge pulse: the discharge polarization keeps decaying with the discharge tau (the
+    // charge pulse builds its own), so after the sequence it equals the plain exponential decay.
+    auto p = flat_params();
+    p.charge.c1_f = {200, 200};  // charge tau1 = 0.3 s, far from the discharge's 1.5 s
+    const CellModel m(p);
     CellState s;
-    m.step(s, +4.5, 25.0, 1.0);
-    m.step(s, 0.0, 25.0, 1.0);
-    EXPECT_EQ(s.direction, +1);
-    m.step(s, -4.5, 25.0, 1.0);
-    m.step(s, 0.0, 25.0, 1.0);
-    EXPECT_EQ(s.direction, -1);
+    s.soc = 0.5;
+    m.step(s, -4.5, 25.0, 30.0);
+    const double v_after_discharge = s.rc.v1_discharge_v;
+    m.step(s, +4.5, 25.0, 10.0);
+    m.step(s, 0.0, 25.0, 5.0);
+    EXPECT_NEAR(s.rc.v1_discharge_v, v_after_discharge * std::exp(-15.0 / 1.5), 1e-15);
+    EXPECT_GT(s.rc.v1_charge_v, 0.0);
+    EXPECT_NEAR(s.rc.v1_charge_v, 0.0015 * 4.5 * (1 - std::exp(-10.0 / 0.3)) * std::exp(-5.0 / 0.3), 1e-12);
+}
+
+TEST(CellModel, EqualDirectionParametersGiveThePlainLinearModel) {
+    // Superposition: with identical tables the split states sum to the single 2RC response.
+    auto p = flat_params();
+    p.charge = p.discharge;
+    const CellModel m(p);
+    CellState s;
+    s.soc = 0.5;
+    double v1 = 0.0;
+    const double currents[] = {-9.0, 4.5, 0.0, -13.5, 2.0};
+    for (double i : currents) {
+        m.step(s, i, 25.0, 7.0);
+        v1 = rc_zoh_step(v1, 0.0015, 1.5, i, 7.0);
+    }
+    EXPECT_NEAR(s.rc.v1_discharge_v + s.rc.v1_charge_v, v1, 1e-12);
 }
 
 TEST(CellModel, ArrheniusExtensionLowersResistanceWhenWarm) {

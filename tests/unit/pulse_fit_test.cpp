@@ -49,9 +49,17 @@ Hppc make_hppc(std::size_t n_sets, const test::SyntheticOptions& o) {
     return h;
 }
 
+// The free joint fit (R0 estimated with the rest): the model is identifiable from one pulse set.
 PulseFitOptions options_at(double soc) {
     PulseFitOptions po;
     po.docv_dah_v_per_ah = test::synthetic_docv_dsoc(soc) / test::kCapacityAh;
+    po.r0_from_steps = false;
+    return po;
+}
+
+PulseFitOptions free_r0() {
+    PulseFitOptions po;
+    po.r0_from_steps = false;
     return po;
 }
 
@@ -135,7 +143,7 @@ TEST(PulseFit, ThesisSegmentsAreExactOnFlatOcv) {
     o.flat_ocv = true;
     const auto h = make_hppc(1, o);
     ASSERT_EQ(h.seg.pulse_sets.size(), 1u);
-    const auto fit = fit_pulse_set(h.rec, h.seg.pulse_sets[0]);
+    const auto fit = fit_pulse_set(h.rec, h.seg.pulse_sets[0], free_r0());
     const auto& s = fit.thesis;
     // Scripts 3.3-3.6 put t = 0 at the first row of each segment, 0.1 s after the current step, so the fast
     // pair's amplitude reads exp(-0.1 s / tau1) low: 4.9 % for tau1 = 2 s, 6.5 % for 1.5 s. Faithful to the
@@ -148,14 +156,16 @@ TEST(PulseFit, ThesisSegmentsAreExactOnFlatOcv) {
         EXPECT_LT(rel(f->r2_ohm, o.discharge.r2_ohm), 0.02);
         EXPECT_LT(rel(f->tau2_s, o.discharge.tau2_s), 0.02);
     }
-    // Charge pulse and relaxation carry the initial RC voltages (eqs. 3.13, 3.17).
+    // Charge pulse and relaxation carry the initial RC voltages (eqs. 3.13, 3.17). Those equations let the
+    // discharge's leftover polarization decay with the CHARGE time constants; in the model (electrical.hpp)
+    // it keeps its own, so the charge segments are only approximately exact: within 10 %.
     EXPECT_GT(s.v1_residual_v, 0.0);  // discharge polarization left at F (thesis sign)
     EXPECT_GT(s.v2_residual_v, 0.0);
     for (const auto* f : {&s.charge, &s.charge_relaxation}) {
         EXPECT_NEAR(f->r1_ohm / o.charge.r1_ohm, 1.0 - bias_c, 0.02);
         EXPECT_LT(rel(f->tau1_s, o.charge.tau1_s), 0.05);
-        EXPECT_LT(rel(f->r2_ohm, o.charge.r2_ohm), 0.05);
-        EXPECT_LT(rel(f->tau2_s, o.charge.tau2_s), 0.05);
+        EXPECT_LT(rel(f->r2_ohm, o.charge.r2_ohm), 0.10);
+        EXPECT_LT(rel(f->tau2_s, o.charge.tau2_s), 0.10);
     }
     EXPECT_NEAR(fit.thesis_discharge.r1_ohm / o.discharge.r1_ohm, 1.0 - bias_d, 0.01);
     EXPECT_LT(rel(fit.thesis_charge.r2_ohm, o.charge.r2_ohm), 0.05);
@@ -215,4 +225,21 @@ TEST(PulseFit, InvalidPulseSetDoesNotCrash) {
     PulseSet beyond = segment_recording(rec).pulse_sets.at(0);
     beyond.end = rec.size() + 10;
     EXPECT_FALSE(fit_pulse_set(rec.slice(0, rec.size()), beyond).warnings.empty());
+}
+
+TEST(PulseFit, DefaultJointFitHoldsR0AtTheStepValues) {
+    // By default R0 is measured by the steps (eq. 3.2) and the joint fit finds the rest; on noise-free data
+    // the prediction stays close even though the steps read R0 a little high (0.1 s of RC response).
+    test::SyntheticOptions o;
+    o.soc0 = 0.7;
+    const auto h = make_hppc(1, o);
+    ASSERT_EQ(h.seg.pulse_sets.size(), 1u);
+    PulseFitOptions po;
+    po.docv_dah_v_per_ah = test::synthetic_docv_dsoc(h.soc[0]) / test::kCapacityAh;
+    const auto fit = fit_pulse_set(h.rec, h.seg.pulse_sets[0], po);
+    EXPECT_DOUBLE_EQ(fit.joint_discharge.r0_ohm, fit.r0.discharge_ohm);
+    EXPECT_DOUBLE_EQ(fit.joint_charge.r0_ohm, fit.r0.charge_ohm);
+    EXPECT_TRUE(std::isnan(fit.joint_discharge_sigma.r0_ohm));  // held, not estimated
+    EXPECT_LT(fit.joint_rms_v, 2e-4);
+    EXPECT_NEAR(fit.joint_discharge.r2_ohm, o.discharge.r2_ohm, 0.02 * o.discharge.r2_ohm);
 }

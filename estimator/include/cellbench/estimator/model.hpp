@@ -16,9 +16,7 @@ namespace cellbench::estimator {
 
 struct CellState {
     double soc = 1.0;            // fraction of capacity_ah
-    double v1_v = 0.0;           // RC pair 1 voltage
-    double v2_v = 0.0;           // RC pair 2 voltage
-    int direction = -1;          // +1 charge, -1 discharge (the parameters a rest uses)
+    RcVoltages<double> rc;       // RC voltages of both directions (electrical.hpp)
     double temperature_c = 25.0; // lumped cell temperature (what the surface sensor sees in this model)
 };
 

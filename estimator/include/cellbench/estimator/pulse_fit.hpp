@@ -51,6 +51,18 @@ struct PulseFitOptions {
     double docv_dah_v_per_ah = 0.0;
     // The charge relaxation used in the fits is cut after this long (a pulse set followed by a long rest).
     double max_relaxation_s = 300.0;
+    // Extended window (offline): when extended_end > the pulse set's end, the joint fit and both RMS values
+    // also cover the rows up to extended_end (the SOC-step discharge and the long rest after it), where the
+    // slow pair's time constant shows; a 70 s pulse set cannot tell tau2 = 100 s from 500 s. Over that span the
+    // OCV runs linearly in charge throughput from ocv_v to extended_end_ocv_v (the next rest's OCV), as the
+    // parameter set's OCV table does, and rows are merged where the current holds (exact under ZOH; the merged
+    // row carries the mean current, so charge is conserved).
+    std::size_t extended_end = 0;
+    // Hold R0 of each direction at its eq. 3.2 step value (mean of the two steps) in the joint fit's final
+    // refinement: with 0.1 s sampling a fast RC pair and R0 trade off (the fit can move part of R0 into a
+    // sub-second pair), while the steps measure R0 directly.
+    bool r0_from_steps = true;
+    double extended_end_ocv_v = kNaN;
     bool thesis_method = true;     // run the per-segment fits (method 1)
     bool joint_method = true;      // run the joint fit (method 2)
     bool compute_covariance = true;

@@ -1,0 +1,112 @@
+// The command line's contract for bad input (INTERFACES.md): exit 1 with one message naming the file and
+// what was expected, no output file left behind; exit 2 for usage errors.
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+
+namespace fs = std::filesystem;
+
+namespace {
+
+const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
+const fs::path kThesis = fs::path(CELLBENCH_SOURCE_DIR) / "config/cells/p45b-thesis.json";
+
+struct CliRun {
+    int status;
+    std::string output;
+};
+
+CliRun run(const std::string& args) {
+    FILE* p = popen((kBin.string() + " " + args + " 2>&1").c_str(), "r");
+    CliRun r{0, {}};
+    char buf[4096];
+    while (p && fgets(buf, sizeof buf, p)) r.output += buf;
+    const int st = p ? pclose(p) : -1;
+    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+    return r;
+}
+
+class CliErrors : public ::testing::Test {
+protected:
+    void SetUp() override {
+        dir_ = fs::temp_directory_path() / ("cellbench-cli-" + std::to_string(::getpid()) + "-" +
+                                            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        fs::create_directories(dir_);
+    }
+    void TearDown() override { fs::remove_all(dir_); }
+    fs::path write(const std::string& name, const std::string& text) {
+        std::ofstream(dir_ / name) << text;
+        return dir_ / name;
+    }
+    fs::path dir_;
+};
+
+}  // namespace
+
+TEST_F(CliErrors, UsageErrorsExitWithTwo) {
+    EXPECT_EQ(run("").status, 2);
+    EXPECT_EQ(run("frobnicate").status, 2);
+    EXPECT_EQ(run("simulate --params").status, 2);
+    EXPECT_EQ(run("--help").status, 0);
+    EXPECT_NE(run("simulate --help").output.find("--params"), std::string::npos);
+}
+
+TEST_F(CliErrors, RecordingWithoutRequiredColumnIsRejectedWithoutOutput) {
+    const auto rec = write("bad.bdf.csv", "Test Time / s,Voltage / V\n0,3.7\n1,3.7\n");
+    const auto r = run("simulate --params " + kThesis.string() + " " + rec.string() + " --json " +
+                       (dir_ / "m.json").string());
+    EXPECT_EQ(r.status, 1) << r.output;
+    EXPECT_NE(r.output.find("bad.bdf.csv"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("Current / A"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(dir_ / "m.json"));
+}
+
+TEST_F(CliErrors, UnsortedTimeAndNaNAreClearErrors) {
+    auto rec = write("back.bdf.csv", "Test Time / s,Voltage / V,Current / A\n0,3.7,0\n5,3.7,0\n2,3.7,0\n");
+    auto r = run("simulate --params " + kThesis.string() + " " + rec.string());
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.output.find("back.bdf.csv:4"), std::string::npos) << r.output;
+    rec = write("nan.bdf.csv", "Test Time / s,Voltage / V,Current / A\n0,3.7,0\n1,nan,0\n");
+    r = run("simulate --params " + kThesis.string() + " " + rec.string());
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.output.find("nan.bdf.csv:3"), std::string::npos) << r.output;
+}
+
+TEST_F(CliErrors, MalformedParameterSetNamesTheJsonPath) {
+    const auto rec = write("ok.bdf.csv", "Test Time / s,Voltage / V,Current / A\n0,3.7,0\n1,3.69,-1\n");
+    auto params = write("p.json", "{\"schema\": \"cellbench.params/1\", \"capacity_ah\": \"four\"}");
+    auto r = run("simulate --params " + params.string() + " " + rec.string());
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.output.find("$.capacity_ah"), std::string::npos) << r.output;
+    params = write("broken.json", "{\n  \"schema\": \"cellbench.params/1\",\n  oops\n}");
+    r = run("simulate --params " + params.string() + " " + rec.string());
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.output.find("broken.json:3"), std::string::npos) << r.output;
+}
+
+TEST_F(CliErrors, FitWithoutPulseSetsSaysWhatIsMissingAndWritesNothing) {
+    std::string text = "Test Time / s,Voltage / V,Current / A\n";
+    for (int k = 0; k < 100; ++k) text += std::to_string(k) + ",3.7,0\n";
+    const auto rec = write("rest.bdf.csv", text);
+    const auto r = run("fit " + rec.string() + " -o " + (dir_ / "p.json").string());
+    EXPECT_EQ(r.status, 1) << r.output;
+    EXPECT_NE(r.output.find("capacity"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(dir_ / "p.json"));
+}
+
+TEST_F(CliErrors, SimulateWritesMetricsJsonWithNullForUnmeasuredQuantities) {
+    const auto rec = write("v.bdf.csv", "Test Time / s,Voltage / V,Current / A\n0,3.70,0\n1,3.66,-4.5\n2,3.66,-4.5\n");
+    const auto r = run("simulate --params " + kThesis.string() + " " + rec.string() + " --json " +
+                       (dir_ / "m.json").string());
+    ASSERT_EQ(r.status, 0) << r.output;
+    std::ifstream in(dir_ / "m.json");
+    std::stringstream ss;
+    ss << in.rdbuf();
+    const auto j = ss.str();
+    EXPECT_NE(j.find("\"temperature\": null"), std::string::npos) << j;
+    EXPECT_NE(j.find("\"rms_v\""), std::string::npos) << j;
+}

@@ -2,7 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <atomic>
 #include <map>
+#include <thread>
 
 #include "cellbench/estimator/thermal_characterization.hpp"
 
@@ -164,6 +166,13 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
     std::vector<double> ocv_soc, ocv_v;
     for (const auto& pt : ocv) ocv_soc.push_back(pt.soc), ocv_v.push_back(pt.ocv_v);
 
+    struct Job {
+        std::size_t r;
+        const PulseSet* ps;
+        PulseFitOptions po;
+        double soc;
+    };
+    std::vector<Job> jobs;
     for (std::size_t r = 0; r < recordings.size(); ++r) {
         for (const auto& ps : segs[r].pulse_sets) {
             const double s = soc_of_row[r][ps.pulse_begin > 0 ? ps.pulse_begin - 1 : 0];
@@ -182,16 +191,35 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
                         // The first minutes of the rest hold the relaxation on the time scales a drive
                         // profile excites; its end holds the relaxed OCV at the same SOC.
                         std::size_t e = lr.begin;
-                        while (e < lr.end && recordings[r].time_s[e] - recordings[r].time_s[lr.begin] < kExtendedRestS) ++e;
+                        while (e < lr.end && recordings[r].time_s[e] - recordings[r].time_s[lr.begin] < kExtendedRestS)
+                            ++e;
                         po.extended_end = e;
                         po.extended_end_ocv_v = recordings[r].voltage_v[lr.end - 1];
                     }
             }
-            auto fit = fit_pulse_set(recordings[r], ps, po);
-            fit.soc = s;
-            out.pulse_fits.push_back(std::move(fit));
-            if (progress) progress("pulse sets", ++done_sets, total_sets);
+            jobs.push_back({r, &ps, po, s});
         }
+    }
+    // Pulse sets are independent: fit them on every core, keep the results in time order.
+    std::vector<PulseSetFit> fits(jobs.size());
+    std::atomic<std::size_t> next{0};
+    auto worker = [&] {
+        for (std::size_t j; (j = next.fetch_add(1)) < jobs.size();) {
+            fits[j] = fit_pulse_set(recordings[jobs[j].r], *jobs[j].ps, jobs[j].po);
+            fits[j].soc = jobs[j].soc;
+        }
+    };
+    {
+        const std::size_t n_threads =
+            std::clamp<std::size_t>(std::thread::hardware_concurrency(), 1, std::max<std::size_t>(jobs.size(), 1));
+        std::vector<std::thread> pool;
+        for (std::size_t t = 1; t < n_threads; ++t) pool.emplace_back(worker);
+        worker();
+        for (auto& t : pool) t.join();
+    }
+    for (auto& f : fits) {
+        out.pulse_fits.push_back(std::move(f));
+        if (progress) progress("pulse sets", ++done_sets, total_sets);
     }
     if (out.pulse_fits.empty()) throw InputError("characterization: no HPPC pulse set found in the recordings");
 

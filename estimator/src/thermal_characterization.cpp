@@ -46,6 +46,10 @@ double measured_heat_temperature_rms(const ThermalFitData& d, double c_th, doubl
     return weight > 0 ? std::sqrt(sum / weight) : kNaN;
 }
 
+// Rows merged into intervals of at least kThermalStepS (means of current and heat over each interval): the
+// thermal time constant is minutes, so 1 s intervals lose nothing and make the R_th search 10x cheaper.
+constexpr double kThermalStepS = 1.0;
+
 ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, const ParameterSet& p,
                                   const std::vector<std::vector<double>>& soc_of_rec) {
     ThermalFitData d;
@@ -56,18 +60,35 @@ ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, con
         for (double v : rec.surface_c)
             if (std::isfinite(v)) { ambient = v; break; }
         bool started = false;
+        double span = 0, charge = 0, heat = 0;
         for (std::size_t k = 0; k < rec.size(); ++k) {
             // Rows before the DAQ started carry no temperature: begin at the first measured one.
-            if (!started && !std::isfinite(rec.surface_c[k])) continue;
-            d.segment_start.push_back(!started);
-            started = true;
-            d.dt_s.push_back(k > 0 ? rec.time_s[k] - rec.time_s[k - 1] : 0.0);
+            if (!started) {
+                if (!std::isfinite(rec.surface_c[k])) continue;
+                started = true;
+                d.segment_start.push_back(true);
+                d.dt_s.push_back(0.0);
+                d.current_a.push_back(0.0);
+                d.heat_irr_w.push_back(0.0);
+                d.ehc_v_per_k.push_back(0.0);
+                d.surface_c.push_back(rec.surface_c[k]);
+                d.ambient_c.push_back(ambient);
+                continue;
+            }
+            const double dt = rec.time_s[k] - rec.time_s[k - 1];
             const double i = rec.current_a[k];
-            d.current_a.push_back(i);
-            d.heat_irr_w.push_back(i * (rec.voltage_v[k] - p.ocv_at(soc[k])));
+            span += dt;
+            charge += i * dt;
+            heat += i * (rec.voltage_v[k] - p.ocv_at(soc[k])) * dt;
+            if (span < kThermalStepS && k + 1 < rec.size()) continue;
+            d.segment_start.push_back(false);
+            d.dt_s.push_back(span);
+            d.current_a.push_back(charge / span);
+            d.heat_irr_w.push_back(heat / span);
             d.ehc_v_per_k.push_back(p.ehc_at(soc[k]));
             d.surface_c.push_back(rec.surface_c[k]);
             d.ambient_c.push_back(rec.has_ambient() && std::isfinite(rec.ambient_c[k]) ? rec.ambient_c[k] : ambient);
+            span = charge = heat = 0;
         }
     }
     return d;

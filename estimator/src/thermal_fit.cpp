@@ -227,8 +227,9 @@ RestCoolingFit fit_rest_cooling(const Recording& rec, RowRange range, const Ther
         out.reason = "shorter than skip + 60 s";
         return out;
     }
-    // At most ~4000 points: the time constant is hundreds of seconds, 0.1 s rows add nothing but cost.
-    const std::size_t stride = std::max<std::size_t>(1, ts.size() / 4000);
+    // At most ~600 points (one every ~5 s of a 1 h rest): the time constant is hundreds of seconds, so denser
+    // rows add nothing but cost (each row is one Ceres residual block).
+    const std::size_t stride = std::max<std::size_t>(1, ts.size() / 600);
     std::vector<double> tr, yr;
     for (std::size_t i = 0; i < ts.size(); i += stride) tr.push_back(ts[i] - ts.front()), yr.push_back(ys[i]);
     const double duration = tr.back();

@@ -68,7 +68,6 @@ std::size_t segment_index(const std::vector<double>& x, double xq) {
     return std::min(i, x.size() - 2);
 }
 
-constexpr double kGasConstantJPerMolK = 8.314462618;
 
 }  // namespace
 
@@ -87,6 +86,75 @@ double interp_extrap(const std::vector<double>& x, const std::vector<double>& y,
     const std::size_t i = segment_index(x, xq);
     const double w = (xq - x[i]) / (x[i + 1] - x[i]);
     return y[i] + w * (y[i + 1] - y[i]);
+}
+
+bool ModelExtensions::empty() const { return to_json().empty(); }
+
+json ModelExtensions::to_json() const {
+    json j = other;
+    if (entropic_heat)
+        j["entropic_heat"] = {{"ehc_v_per_k", entropic_heat->ehc_v_per_k},
+                              {"ehc_slope_v_per_k", entropic_heat->ehc_slope_v_per_k}};
+    if (thermal_second_order)
+        j["thermal_second_order"] = {{"core_fraction", thermal_second_order->core_fraction},
+                                     {"r_core_surface_k_per_w", thermal_second_order->r_core_surface_k_per_w}};
+    if (resistance_temperature)
+        j["resistance_temperature"] = {{"activation_energy_j_per_mol", resistance_temperature->activation_energy_j_per_mol}};
+    if (resistance_current)
+        j["resistance_current"] = {{"exchange_current_a", resistance_current->exchange_current_a},
+                                   {"reference_current_a", resistance_current->reference_current_a}};
+    if (ocv_hysteresis)
+        j["ocv_hysteresis"] = {{"magnitude_v", ocv_hysteresis->magnitude_v},
+                               {"rate_per_capacity", ocv_hysteresis->rate_per_capacity}};
+    if (extra_rc) j["extra_rc"] = {{"r_ohm", extra_rc->r_ohm}, {"tau_s", extra_rc->tau_s}};
+    if (capacity_error) j["capacity_error"] = {{"capacity_scale", capacity_error->capacity_scale}};
+    if (series_resistance_offset) j["series_resistance_offset"] = {{"r_ohm", series_resistance_offset->r_ohm}};
+    if (heat_flux_sensor_gain) j["heat_flux_sensor_gain"] = {{"gain", heat_flux_sensor_gain->gain}};
+    if (ambient_drift)
+        j["ambient_drift"] = {{"offset_c", ambient_drift->offset_c}, {"rate_c_per_h", ambient_drift->rate_c_per_h}};
+    return j;
+}
+
+ModelExtensions ModelExtensions::from_json(const json& j, const std::string& source) {
+    if (!j.is_object()) fail(source, "$.extensions", "expected an object keyed by effect id");
+    ModelExtensions e;
+    for (const auto& [key, v] : j.items()) {
+        const std::string path = "$.extensions." + key;
+        auto num = [&](const char* name) { return number_member(v, name, source, path); };
+        auto positive = [&](const char* name) {
+            const double x = num(name);
+            if (!(x > 0)) fail(source, path + "." + name, "expected a positive number");
+            return x;
+        };
+        if (key == "entropic_heat") {
+            e.entropic_heat = EntropicHeatExt{num("ehc_v_per_k"), num("ehc_slope_v_per_k")};
+        } else if (key == "thermal_second_order") {
+            const double f = num("core_fraction");
+            if (!(f > 0 && f < 1)) fail(source, path + ".core_fraction", "expected a fraction strictly between 0 and 1");
+            e.thermal_second_order = ThermalSecondOrderExt{f, positive("r_core_surface_k_per_w")};
+        } else if (key == "resistance_temperature") {
+            e.resistance_temperature = ResistanceTemperatureExt{num("activation_energy_j_per_mol")};
+        } else if (key == "resistance_current") {
+            e.resistance_current = ResistanceCurrentExt{positive("exchange_current_a"), positive("reference_current_a")};
+        } else if (key == "ocv_hysteresis") {
+            e.ocv_hysteresis = OcvHysteresisExt{num("magnitude_v"), positive("rate_per_capacity")};
+        } else if (key == "extra_rc") {
+            const double r = num("r_ohm");
+            if (r < 0) fail(source, path + ".r_ohm", "expected a non-negative resistance");
+            e.extra_rc = ExtraRcExt{r, positive("tau_s")};
+        } else if (key == "capacity_error") {
+            e.capacity_error = CapacityErrorExt{positive("capacity_scale")};
+        } else if (key == "series_resistance_offset") {
+            e.series_resistance_offset = SeriesResistanceOffsetExt{num("r_ohm")};
+        } else if (key == "heat_flux_sensor_gain") {
+            e.heat_flux_sensor_gain = HeatFluxSensorGainExt{positive("gain")};
+        } else if (key == "ambient_drift") {
+            e.ambient_drift = AmbientDriftExt{num("offset_c"), num("rate_c_per_h")};
+        } else {
+            e.other[key] = v;
+        }
+    }
+    return e;
 }
 
 ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
@@ -109,28 +177,13 @@ ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
     p.thermal.area_m2 = number_member(th, "area_m2", source, "$.thermal");
     if (th.contains("ehc_soc")) p.thermal.ehc_soc = array_member(th, "ehc_soc", source, "$.thermal");
     if (th.contains("ehc_v_per_k")) p.thermal.ehc_v_per_k = array_member(th, "ehc_v_per_k", source, "$.thermal");
-    if (auto it = j.find("extensions"); it != j.end()) {
-        if (!it->is_object()) fail(source, "$.extensions", "expected an object keyed by effect id");
-        for (const auto& [key, value] : it->items()) {
-            const std::string path = "$.extensions." + key;
-            if (key == "resistance_temperature") {
-                ResistanceTemperatureExt e;
-                e.activation_energy_j_per_mol = number_member(value, "activation_energy_j_per_mol", source, path);
-                p.extensions.resistance_temperature = e;
-            } else {
-                p.extensions.other[key] = value;
-            }
-        }
-    }
+    if (auto it = j.find("extensions"); it != j.end()) p.extensions = ModelExtensions::from_json(*it, source);
     p.validate(source);
     return p;
 }
 
 json ParameterSet::to_json() const {
-    json ext = extensions.other;
-    if (extensions.resistance_temperature)
-        ext["resistance_temperature"] = {
-            {"activation_energy_j_per_mol", extensions.resistance_temperature->activation_energy_j_per_mol}};
+    const json ext = extensions.to_json();
     return json{{"schema", kParamsSchema},
                 {"cell", cell},
                 {"capacity_ah", capacity_ah},

@@ -68,7 +68,7 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
         tr.ocv_v.push_back(o.ocv_v);
         tr.soc.push_back(s.soc);
         tr.temperature_c.push_back(s.temperature_c);
-        tr.heat_flow_out_w.push_back(o.heat_flow_out_w);
+        tr.heat_flow_out_w.push_back(o.sensor_heat_flow_w);
         tr.heat_generated_w.push_back(o.heat_irreversible_w + o.heat_reversible_w);
     }
     return tr;

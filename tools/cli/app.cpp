@@ -55,6 +55,18 @@ int run_cli(int argc, char** argv) {
     sim_cmd->add_option("--initial-soc", sim.initial_soc, "Initial SOC (0..1); default: from the first rested voltage");
     sim_cmd->add_option("--ambient", sim.ambient_c, "Ambient temperature, degC; default: measured, else first surface reading");
 
+    DiagnoseCliOptions diag;
+    auto* diag_cmd = app.add_subcommand(
+        "diagnose", "Locate where the model misses a recording, name the physics left out, model it, show the gain");
+    diag_cmd->add_option("--params", diag.params, "Parameter set JSON")->required()->check(CLI::ExistingFile);
+    diag_cmd->add_option("recording", diag.recording, "BDF recording")->required()->check(CLI::ExistingFile);
+    diag_cmd->add_option("--json", diag.json, "Write the diagnosis JSON (cellbench.diagnosis/1)");
+    diag_cmd->add_option("--report", diag.report, "Write a self-contained HTML report");
+    diag_cmd->add_option("--improved", diag.improved, "Write the parameter set with the accepted extensions");
+    diag_cmd->add_option("--effects", diag.effects, "Only try these effect ids (default: the whole catalogue)");
+
+    const auto client = add_client_commands(app);  // status, runs, start, stop, pause, resume, export
+
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
@@ -73,6 +85,8 @@ int run_cli(int argc, char** argv) {
             return run_fit(fit);
         }
         if (*sim_cmd) return run_simulate(sim);
+        if (const auto status = run_client_command(*client)) return *status;
+        if (*diag_cmd) return run_diagnose(diag);
     } catch (const InputError& e) {
         spdlog::error("{}", e.what());
         return 1;

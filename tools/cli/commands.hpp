@@ -1,6 +1,7 @@
 #pragma once
 // The `cellbench` commands. Each run_* returns the process exit status (0 ok, 1 bad input or failed run);
 // InputError escaping from them is reported by the caller as one clear line and status 1.
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -8,6 +9,10 @@
 #include <nlohmann/json.hpp>
 
 #include "cellbench/estimator/simulate.hpp"
+
+namespace CLI {
+class App;
+}
 
 namespace cellbench::cli {
 
@@ -33,8 +38,20 @@ struct SimulateOptions {
 };
 int run_simulate(const SimulateOptions& o);
 
+struct DiagnoseCliOptions {
+    std::string params, recording, json, report, improved;
+    std::vector<std::string> effects;  // empty = whole catalogue
+};
+int run_diagnose(const DiagnoseCliOptions& o);
+
 // The metrics JSON of INTERFACES.md ("cellbench.metrics/1"); an unmeasured quantity is null.
 nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);
+
+// Client of cellbenchd (cmd_client.cpp): status, runs, start, stop, pause, resume, export. Registers the
+// subcommands on `app`; run_client_command runs the one parsed (nullopt when none of them was).
+struct ClientCommands;
+std::shared_ptr<ClientCommands> add_client_commands(CLI::App& app);
+std::optional<int> run_client_command(const ClientCommands& commands);
 
 // Entry point used by main(): parses argv (usage errors -> 2), runs the command.
 int run_cli(int argc, char** argv);

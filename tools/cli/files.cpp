@@ -27,7 +27,11 @@ void write_file_atomic(const std::filesystem::path& path, const std::function<vo
     const auto dir = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
     if (!std::filesystem::is_directory(dir)) throw InputError(path.string() + ": folder " + dir.string() + " does not exist");
     std::random_device rd;
-    const auto tmp = dir / ("." + path.filename().string() + ".tmp" + std::to_string(rd()));
+    std::string tmp_name = ".";  // appended piecewise: GCC 12 warns (-Wrestrict) on a chain of operator+
+    tmp_name += path.filename().string();
+    tmp_name += ".tmp";
+    tmp_name += std::to_string(rd());
+    const auto tmp = dir / tmp_name;
     try {
         {
             std::ofstream out(tmp, std::ios::binary | std::ios::trunc);

@@ -8,8 +8,17 @@
 // heat input over the interval is a constant plus exponentials and the linear thermal ODE is solved in
 // closed form (no Euler step, no averaging).
 //
-// Two-way coupling: when the parameter set carries the `resistance_temperature` extension, R0, R1 and R2 are
-// scaled by an Arrhenius factor of the cell temperature at the start of each interval.
+// Extensions (params.hpp, the physics `diagnose` adds) change the step as follows:
+//  - resistance_temperature: R0, R1, R2 scaled by an Arrhenius factor of the (core) temperature at the start
+//    of each interval (two-way electrothermal coupling); capacitances held, so time constants scale too;
+//  - resistance_current: R1, R2 scaled by asinh(x)/x, x = |I|/(2 I0), relative to the reference current;
+//  - series_resistance_offset: added to R0; extra_rc: a third pair driven by the whole current;
+//  - ocv_hysteresis: V += h, h relaxing towards sign(I)*M exponentially in charge throughput (exact);
+//  - capacity_error: Coulomb counting with the scaled capacity; entropic_heat: dU/dT added to the table;
+//  - ambient_drift: T_amb + offset + rate*t; heat_flux_sensor_gain: the sensor reading is gain * true;
+//  - thermal_second_order: core and surface nodes (heat into the core, surface to ambient via R_th), solved
+//    exactly for the interval's mean heat (matrix exponential of the 2x2 system).
+#include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/params.hpp"
 
 namespace cellbench::estimator {
@@ -17,7 +26,11 @@ namespace cellbench::estimator {
 struct CellState {
     double soc = 1.0;            // fraction of capacity_ah
     RcVoltages<double> rc;       // RC voltages of both directions (electrical.hpp)
-    double temperature_c = 25.0; // lumped cell temperature (what the surface sensor sees in this model)
+    double temperature_c = 25.0; // surface temperature (what the sensors see); the lumped one without core node
+    double core_temperature_c = kNaN;  // core node (thermal_second_order), NaN without it
+    double extra_rc_v = 0.0;     // extra_rc pair
+    double hysteresis_v = 0.0;   // ocv_hysteresis state
+    double elapsed_s = 0.0;      // time since the start (ambient_drift)
 };
 
 struct CellOutputs {
@@ -26,6 +39,8 @@ struct CellOutputs {
     double heat_irreversible_w = 0.0;  // mean over the interval
     double heat_reversible_w = 0.0;    // mean over the interval
     double heat_flow_out_w = 0.0;      // (T - T_amb)/R_th at the end of the interval
+    double sensor_heat_flow_w = 0.0;   // what the heat flux sensor reports (heat_flux_sensor_gain applied)
+    double ambient_c = 0.0;            // ambient in force (ambient_drift applied)
 };
 
 class CellModel {
@@ -43,6 +58,9 @@ public:
 
     // Resistance scale factor at a cell temperature (1 without the resistance_temperature extension).
     [[nodiscard]] double resistance_factor(double temperature_c) const;
+    // Polarization (R1, R2) scale factor at a current (1 without the resistance_current extension).
+    [[nodiscard]] double current_factor(double current_a) const;
+    [[nodiscard]] double capacity_ah() const;
 
 private:
     ParameterSet params_;

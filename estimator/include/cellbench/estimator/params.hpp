@@ -24,13 +24,62 @@ struct ThermalParams {
     std::vector<double> ehc_v_per_k;  // dU/dT
 };
 
-// Physics added by `diagnose` (effect ids of INTERFACES.md). Each is absent unless fitted.
-struct ResistanceTemperatureExt {  // Arrhenius: R(T) = R(T_ref) * exp(Ea/Rgas * (1/T - 1/T_ref))
+// Physics added by `diagnose` (effect ids of INTERFACES.md), each absent unless fitted. Every effect has few
+// parameters, so that it can be identified from one recording without rewarding parameters for nothing.
+struct EntropicHeatExt {  // reversible heat I*T*dU/dT with dU/dT = a + b*(SOC - 0.5), added to the table
+    double ehc_v_per_k = 0.0;
+    double ehc_slope_v_per_k = 0.0;
+};
+struct ThermalSecondOrderExt {  // core and surface nodes; heat enters the core, the sensors see the surface
+    double core_fraction = 0.7;           // C_core / C_th (the rest is the can and the surface)
+    double r_core_surface_k_per_w = 1.0;  // conduction core -> surface
+};
+struct ResistanceTemperatureExt {  // Arrhenius: R(T) = R(T_ref) * exp(Ea/Rgas * (1/T - 1/T_ref)), R0, R1, R2
     double activation_energy_j_per_mol = 0.0;
 };
+struct ResistanceCurrentExt {  // Butler-Volmer: polarization resistance falls with |I| like asinh(x)/x
+    double exchange_current_a = 10.0;   // I0: the larger, the more linear
+    double reference_current_a = 4.5;   // current at which the tables were identified (factor 1 there)
+};
+struct OcvHysteresisExt {  // one-state hysteresis h -> +-M with rate gamma per unit of charge throughput
+    double magnitude_v = 0.0;
+    double rate_per_capacity = 20.0;    // gamma: h settles after ~1/gamma of the capacity
+};
+struct ExtraRcExt {  // a slow diffusion pair beyond the two RC pairs, driven by the whole current
+    double r_ohm = 0.0;
+    double tau_s = 600.0;
+};
+struct CapacityErrorExt {
+    double capacity_scale = 1.0;        // usable capacity / parameter set's capacity
+};
+struct SeriesResistanceOffsetExt {
+    double r_ohm = 0.0;                 // added to R0 of both directions
+};
+struct HeatFluxSensorGainExt {
+    double gain = 1.0;                  // measured heat flux / true heat flux
+};
+struct AmbientDriftExt {  // T_amb(t) = T_amb + offset + rate * t (t since the recording's start)
+    double offset_c = 0.0;
+    double rate_c_per_h = 0.0;
+};
+
 struct ModelExtensions {
+    std::optional<EntropicHeatExt> entropic_heat;
+    std::optional<ThermalSecondOrderExt> thermal_second_order;
     std::optional<ResistanceTemperatureExt> resistance_temperature;
+    std::optional<ResistanceCurrentExt> resistance_current;
+    std::optional<OcvHysteresisExt> ocv_hysteresis;
+    std::optional<ExtraRcExt> extra_rc;
+    std::optional<CapacityErrorExt> capacity_error;
+    std::optional<SeriesResistanceOffsetExt> series_resistance_offset;
+    std::optional<HeatFluxSensorGainExt> heat_flux_sensor_gain;
+    std::optional<AmbientDriftExt> ambient_drift;
     nlohmann::json other = nlohmann::json::object();  // effects this build does not model: kept verbatim
+
+    [[nodiscard]] bool empty() const;
+    [[nodiscard]] nlohmann::json to_json() const;
+    // Parses the known effect ids (parameters checked for range), keeps unknown ones in `other`.
+    static ModelExtensions from_json(const nlohmann::json& j, const std::string& source);
 };
 
 struct ParameterSet {

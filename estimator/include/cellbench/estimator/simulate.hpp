@@ -17,6 +17,7 @@ struct SimulationOptions {
 };
 
 struct SimulationTrace {
+    // heat_flow_out_w is what the heat flux sensor would report over the whole surface (sensor gain applied).
     std::vector<double> time_s, voltage_v, ocv_v, soc, temperature_c, heat_flow_out_w, heat_generated_w;
     double ambient_c = 0.0;  // the constant ambient used when the recording has none
     double initial_soc = 0.0;

@@ -1,0 +1,98 @@
+#pragma once
+// `cellbench diagnose`: where does the simulation miss the recording, which physics did the model leave out,
+// and how much does adding it help — decided on data the candidate was not fitted to.
+//
+// 1. Locate: simulate with the given parameters; split the residuals of voltage, surface temperature and heat
+//    flux by operating condition (direction, C-rate band, SOC band, temperature rise, time since the last
+//    current step, charge throughput) and rank where the error concentrates.
+// 2. Name and model: every candidate of the catalogue (params.hpp ModelExtensions, the effect ids of
+//    INTERFACES.md) is fitted to the recording with the base parameters held. The objective is the sum over
+//    the measured quantities of their mean squared error relative to the baseline's, so each quantity's
+//    relative improvement counts alike. Searches run on a copy merged to 1 s intervals (charge conserved);
+//    every figure reported is measured at full resolution.
+// 3. Evidence: K-fold cross-validation over contiguous time blocks (fit on K-1 blocks, score on the held-out
+//    one; the simulation always runs the whole recording so the states stay continuous) and BIC with an
+//    effective sample count (residuals 10 s apart are taken as independent). A finding is significant when
+//    (a) it removes at least min_cv_improvement of the held-out error on average, (b) it improves at least
+//    K-1 of the K held-out blocks, and (c) its BIC improves by more than bic_threshold.
+// 4. Combinations: after accepting the strongest significant finding, the remaining candidates are fitted
+//    again on top of it (a recording may hide two effects), up to max_accepted.
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/params.hpp"
+#include "cellbench/estimator/simulate.hpp"
+
+namespace cellbench::estimator {
+
+struct DiagnoseOptions {
+    std::size_t folds = 4;
+    double min_cv_improvement = 0.10;  // fraction of the held-out error removed, averaged over the folds
+    double bic_threshold = -10.0;      // required BIC change (negative = better)
+    std::size_t max_accepted = 3;
+    double search_step_s = 1.0;        // interval of the merged copy used by the searches
+    std::vector<std::string> effects;  // candidates to try; empty = the whole catalogue
+};
+
+struct QuantityRms {
+    std::optional<double> voltage_v, temperature_c, heat_flux_w;
+};
+
+// One operating condition and how much of the error it carries.
+struct ConditionError {
+    std::string dimension;  // "direction", "c_rate", "soc", "temperature_rise", "since_step", "throughput", "combined"
+    std::string condition;  // in words, e.g. "discharge above 3C, SOC 10-30 %"
+    double time_share = 0.0;
+    double share_of_voltage_error = 0.0;  // of the total squared voltage error (time-weighted)
+    double voltage_rms_v = 0.0, voltage_bias_v = 0.0;
+    std::optional<double> temperature_rms_c, temperature_bias_c;
+};
+
+struct Finding {
+    std::string effect;
+    bool significant = false;
+    double score = 0.0;           // mean held-out error reduction (fraction), the ranking key
+    std::size_t folds_improved = 0;
+    double delta_bic = 0.0;
+    std::size_t parameters_count = 0;
+    nlohmann::json parameters = nlohmann::json::object();
+    QuantityRms improved;         // full-resolution RMS with this effect added to the accepted ones
+    std::string explanation;
+};
+
+struct Diagnosis {
+    QuantityRms baseline;
+    std::vector<ConditionError> where;       // the largest shares of the voltage error, strongest first
+    std::vector<ConditionError> breakdown;   // every condition of every dimension (report)
+    std::vector<Finding> findings;           // ordered by score, strongest first
+    std::vector<std::string> accepted;       // effects accepted, in order
+    ParameterSet improved_params;            // base + accepted extensions
+    QuantityRms improved;                    // with all accepted effects
+    SimulationTrace baseline_trace, improved_trace;
+    std::string summary;                     // plain words
+};
+
+using DiagnoseProgress = std::function<void(const std::string& stage, std::size_t done, std::size_t total)>;
+
+// Throws InputError if the recording is too short to cross-validate (fewer than folds * 60 s).
+Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options = {},
+                   const DiagnoseProgress& progress = {});
+
+// "cellbench.diagnosis/1" (INTERFACES.md).
+nlohmann::json diagnosis_to_json(const Diagnosis& d);
+
+// Residuals by condition (step 1 alone).
+std::vector<ConditionError> locate_errors(const ParameterSet& params, const Recording& rec, const SimulationTrace& trace);
+
+// The catalogue of effect ids this build can fit.
+const std::vector<std::string>& effect_catalogue();
+
+// Copy of rec merged into intervals of at least step_s (mean current, values at the interval end).
+Recording merge_intervals(const Recording& rec, double step_s);
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,596 @@
+#include "cellbench/estimator/diagnose.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <numeric>
+
+#include <ceres/ceres.h>
+
+namespace cellbench::estimator {
+
+namespace {
+
+// ------------------------------------------------------------------------------------------------ catalogue
+
+struct ParamSpec {
+    const char* name;
+    double lo, hi;
+    bool log;  // searched in log space
+};
+
+struct EffectSpec {
+    std::string id;
+    std::vector<ParamSpec> params;
+    std::vector<std::vector<double>> starts;  // natural units
+    void (*apply)(ParameterSet&, const std::vector<double>&);
+};
+
+const std::vector<EffectSpec>& specs() {
+    static const std::vector<EffectSpec> s = {
+        {"entropic_heat",
+         {{"ehc_v_per_k", -1e-3, 1e-3, false}, {"ehc_slope_v_per_k", -2e-3, 2e-3, false}},
+         {{0.0, 0.0}, {2e-4, 0.0}, {-2e-4, 0.0}},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.entropic_heat = EntropicHeatExt{x[0], x[1]}; }},
+        {"thermal_second_order",
+         {{"core_fraction", 0.05, 0.95, false}, {"r_core_surface_k_per_w", 0.05, 20.0, true}},
+         {{0.7, 1.0}, {0.5, 0.3}, {0.85, 3.0}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             p.extensions.thermal_second_order = ThermalSecondOrderExt{x[0], x[1]};
+         }},
+        {"resistance_temperature",
+         {{"activation_energy_j_per_mol", -2e4, 1.2e5, false}},
+         {{3e4}, {6e4}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             p.extensions.resistance_temperature = ResistanceTemperatureExt{x[0]};
+         }},
+        {"resistance_current",
+         {{"exchange_current_a", 0.3, 300.0, true}},
+         {{2.0}, {10.0}, {50.0}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             // Tables are identified with 1C pulses (thesis Table 2.12): the factor is 1 at 1C.
+             p.extensions.resistance_current = ResistanceCurrentExt{x[0], p.capacity_ah};
+         }},
+        {"ocv_hysteresis",
+         {{"magnitude_v", 0.0, 0.08, false}, {"rate_per_capacity", 1.0, 300.0, true}},
+         {{0.01, 20.0}, {0.02, 100.0}},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ocv_hysteresis = OcvHysteresisExt{x[0], x[1]}; }},
+        {"extra_rc",
+         {{"r_ohm", 1e-5, 0.05, true}, {"tau_s", 60.0, 5000.0, true}},
+         {{2e-3, 200.0}, {5e-3, 800.0}, {2e-3, 2500.0}},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.extra_rc = ExtraRcExt{x[0], x[1]}; }},
+        {"capacity_error",
+         {{"capacity_scale", 0.6, 1.4, false}},
+         {{0.95}, {1.05}},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.capacity_error = CapacityErrorExt{x[0]}; }},
+        {"series_resistance_offset",
+         {{"r_ohm", -5e-3, 0.03, false}},
+         {{1e-3}, {-1e-3}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             p.extensions.series_resistance_offset = SeriesResistanceOffsetExt{x[0]};
+         }},
+        {"heat_flux_sensor_gain",
+         {{"gain", 0.4, 2.5, true}},
+         {{0.9}, {1.1}},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.heat_flux_sensor_gain = HeatFluxSensorGainExt{x[0]}; }},
+        {"ambient_drift",
+         {{"offset_c", -5.0, 5.0, false}, {"rate_c_per_h", -10.0, 10.0, false}},
+         {{0.0, 0.0}, {0.5, 1.0}, {-0.5, -1.0}},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ambient_drift = AmbientDriftExt{x[0], x[1]}; }},
+    };
+    return s;
+}
+
+double to_u(const ParamSpec& s, double x) { return s.log ? std::log(x) : x; }
+double from_u(const ParamSpec& s, double u) { return s.log ? std::exp(u) : u; }
+
+// ------------------------------------------------------------------------------------------------ objective
+
+// The data a search needs: the merged recording, which rows train, the baseline's mean squared errors.
+struct Problem {
+    const Recording* rec = nullptr;  // merged copy
+    double ms_v = kNaN, ms_t = kNaN, ms_q = kNaN;  // baseline mean squared errors (normalisation)
+    double area_m2 = 0.0;
+};
+
+struct Errors {
+    std::vector<double> v, t, q;  // per row, NaN where not measured
+};
+
+Errors errors_of(const ParameterSet& p, const Recording& rec) {
+    const CellModel model(p);
+    const auto tr = simulate(model, rec);
+    Errors e;
+    const std::size_t n = rec.size();
+    e.v.resize(n);
+    e.t.assign(n, kNaN);
+    e.q.assign(n, kNaN);
+    for (std::size_t k = 0; k < n; ++k) {
+        e.v[k] = tr.voltage_v[k] - rec.voltage_v[k];
+        if (rec.has_surface()) e.t[k] = tr.temperature_c[k] - rec.surface_c[k];
+        if (rec.has_heat_flux()) e.q[k] = tr.heat_flow_out_w[k] - rec.heat_flux_w_per_m2[k] * p.thermal.area_m2;
+    }
+    return e;
+}
+
+// Sum over quantities of mean squared error / baseline mean squared error, over the masked rows.
+double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask) {
+    double sv = 0, st = 0, sq = 0;
+    std::size_t nv = 0, nt = 0, nq = 0;
+    for (std::size_t k = 0; k < e.v.size(); ++k) {
+        if (!mask[k]) continue;
+        if (std::isfinite(e.v[k])) sv += e.v[k] * e.v[k], ++nv;
+        if (std::isfinite(e.t[k])) st += e.t[k] * e.t[k], ++nt;
+        if (std::isfinite(e.q[k])) sq += e.q[k] * e.q[k], ++nq;
+    }
+    double j = 0;
+    if (nv && pb.ms_v > 0) j += sv / nv / pb.ms_v;
+    if (nt && pb.ms_t > 0) j += st / nt / pb.ms_t;
+    if (nq && pb.ms_q > 0) j += sq / nq / pb.ms_q;
+    return j;
+}
+
+class EffectCost {
+public:
+    EffectCost(const Problem& pb, const ParameterSet& base, const EffectSpec& spec, const std::vector<char>& mask)
+        : pb_(pb), base_(base), spec_(spec), mask_(mask) {
+        for (std::size_t k = 0; k < mask.size(); ++k)
+            if (mask[k]) rows_.push_back(k);
+        nv_ = nt_ = nq_ = 0;
+        for (std::size_t k : rows_) {
+            nv_ += 1;
+            nt_ += pb.rec->has_surface() && std::isfinite(pb.rec->surface_c[k]);
+            nq_ += pb.rec->has_heat_flux() && std::isfinite(pb.rec->heat_flux_w_per_m2[k]);
+        }
+    }
+    int residuals() const { return static_cast<int>(3 * rows_.size()); }
+
+    bool operator()(double const* const* u, double* r) const {
+        ParameterSet p = base_;
+        std::vector<double> x(spec_.params.size());
+        for (std::size_t j = 0; j < x.size(); ++j) x[j] = from_u(spec_.params[j], u[0][j]);
+        spec_.apply(p, x);
+        Errors e;
+        try {
+            e = errors_of(p, *pb_.rec);
+        } catch (const std::exception&) {
+            return false;
+        }
+        const double wv = nv_ && pb_.ms_v > 0 ? 1.0 / std::sqrt(nv_ * pb_.ms_v) : 0.0;
+        const double wt = nt_ && pb_.ms_t > 0 ? 1.0 / std::sqrt(nt_ * pb_.ms_t) : 0.0;
+        const double wq = nq_ && pb_.ms_q > 0 ? 1.0 / std::sqrt(nq_ * pb_.ms_q) : 0.0;
+        for (std::size_t i = 0; i < rows_.size(); ++i) {
+            const std::size_t k = rows_[i];
+            r[3 * i] = std::isfinite(e.v[k]) ? wv * e.v[k] : 0.0;
+            r[3 * i + 1] = std::isfinite(e.t[k]) ? wt * e.t[k] : 0.0;
+            r[3 * i + 2] = std::isfinite(e.q[k]) ? wq * e.q[k] : 0.0;
+            if (!std::isfinite(r[3 * i] + r[3 * i + 1] + r[3 * i + 2])) return false;
+        }
+        return true;
+    }
+
+private:
+    const Problem& pb_;
+    const ParameterSet& base_;
+    const EffectSpec& spec_;
+    const std::vector<char>& mask_;
+    std::vector<std::size_t> rows_;
+    std::size_t nv_, nt_, nq_;
+};
+
+struct Fit {
+    std::vector<double> x;  // natural units
+    double j = INFINITY;    // objective on the fitted rows
+};
+
+Fit fit_effect(const Problem& pb, const ParameterSet& base, const EffectSpec& spec, const std::vector<char>& mask,
+               const std::vector<std::vector<double>>& starts, int max_iterations) {
+    Fit best;
+    for (const auto& start : starts) {
+        std::vector<double> u(spec.params.size());
+        for (std::size_t j = 0; j < u.size(); ++j) u[j] = to_u(spec.params[j], start[j]);
+        auto* functor = new EffectCost(pb, base, spec, mask);
+        auto* cost = new ceres::DynamicNumericDiffCostFunction<EffectCost, ceres::CENTRAL>(functor);
+        cost->AddParameterBlock(static_cast<int>(u.size()));
+        cost->SetNumResiduals(functor->residuals());
+        ceres::Problem problem;
+        problem.AddResidualBlock(cost, nullptr, u.data());
+        for (std::size_t j = 0; j < u.size(); ++j) {
+            problem.SetParameterLowerBound(u.data(), static_cast<int>(j), to_u(spec.params[j], spec.params[j].lo));
+            problem.SetParameterUpperBound(u.data(), static_cast<int>(j), to_u(spec.params[j], spec.params[j].hi));
+        }
+        ceres::Solver::Options so;
+        so.linear_solver_type = ceres::DENSE_QR;
+        so.max_num_iterations = max_iterations;
+        so.function_tolerance = 1e-6;
+        so.parameter_tolerance = 1e-6;
+        so.logging_type = ceres::SILENT;
+        ceres::Solver::Summary sum;
+        ceres::Solve(so, &problem, &sum);
+        if (!sum.IsSolutionUsable()) continue;
+        Fit f;
+        for (std::size_t j = 0; j < u.size(); ++j) f.x.push_back(from_u(spec.params[j], u[j]));
+        ParameterSet p = base;
+        spec.apply(p, f.x);
+        f.j = objective(pb, errors_of(p, *pb.rec), mask);
+        if (f.j < best.j) best = f;
+    }
+    return best;
+}
+
+// ------------------------------------------------------------------------------------------------ metrics
+
+QuantityRms rms_of(const ParameterSet& p, const Recording& rec, SimulationTrace* trace_out = nullptr) {
+    const CellModel model(p);
+    auto tr = simulate(model, rec);
+    const auto m = compare(p, rec, tr);
+    if (trace_out) *trace_out = std::move(tr);
+    return {m.voltage_v.rms, m.temperature_c.rms, m.heat_flux_w.rms};
+}
+
+nlohmann::json rms_json(const QuantityRms& q) {
+    auto n = [](const std::optional<double>& x) -> nlohmann::json { return x ? nlohmann::json(*x) : nlohmann::json(nullptr); };
+    return {{"voltage_rms_v", n(q.voltage_v)}, {"temperature_rms_c", n(q.temperature_c)}, {"heat_flux_rms_w", n(q.heat_flux_w)}};
+}
+
+std::string pct(double x) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%.0f %%", 100.0 * x);
+    return b;
+}
+std::string num(const char* fmt, double x) {
+    char b[64];
+    std::snprintf(b, sizeof b, fmt, x);
+    return b;
+}
+
+double reduction(const std::optional<double>& before, const std::optional<double>& after) {
+    if (!before || !after || !(*before > 0)) return 0.0;
+    return 1.0 - (*after * *after) / (*before * *before);
+}
+
+// Plain-words account of a finding, with its parameters and what it fixed.
+std::string explain(const std::string& id, const std::vector<double>& x, const QuantityRms& before,
+                    const QuantityRms& after, double score, const ParameterSet& base) {
+    const double dv = reduction(before.voltage_v, after.voltage_v), dt = reduction(before.temperature_c, after.temperature_c),
+                 dq = reduction(before.heat_flux_w, after.heat_flux_w);
+    std::string what;
+    if (id == "entropic_heat")
+        what = "reversible (entropic) heat I*T*dU/dT was missing or wrong: dU/dT " + num("%+.3f", x[0] * 1e3) +
+               " mV/K at 50 % SOC (" + num("%+.3f", x[1] * 1e3) + " mV/K per unit SOC)";
+    else if (id == "thermal_second_order")
+        what = "the cell is not one lump: a core node holding " + pct(x[0]) + " of the heat capacity behind " +
+               num("%.2f", x[1]) + " K/W lags the surface the sensors see";
+    else if (id == "resistance_temperature") {
+        const double f10 = std::exp(x[0] / 8.314462618 *
+                                    (1.0 / (base.reference_temperature_c + 283.15) - 1.0 / (base.reference_temperature_c + 273.15)));
+        what = "resistances depend on cell temperature: they fall " + pct(1.0 - f10) + " per 10 K (Ea = " +
+               num("%.0f", x[0] / 1e3) + " kJ/mol), coupling the heat back into the voltage";
+    } else if (id == "resistance_current") {
+        const double x4 = 4.0 * base.capacity_ah / (2 * x[0]), x1 = base.capacity_ah / (2 * x[0]);
+        what = "polarization is not linear in current (Butler-Volmer): at 4C the RC resistances are " +
+               pct(std::asinh(x4) / x4 / (std::asinh(x1) / x1)) + " of their 1C value (I0 = " + num("%.1f", x[0]) + " A)";
+    } else if (id == "ocv_hysteresis")
+        what = "the OCV depends on the direction of the last current: +-" + num("%.1f", x[0] * 1e3) +
+               " mV, settling over " + pct(1.0 / x[1]) + " of the capacity";
+    else if (id == "extra_rc")
+        what = "a slow diffusion time constant beyond the two RC pairs: " + num("%.2f", x[0] * 1e3) + " mOhm with tau " +
+               num("%.0f", x[1]) + " s";
+    else if (id == "capacity_error")
+        what = "the usable capacity is " + pct(x[0]) + " of the parameter set's (" + num("%.3f", x[0] * base.capacity_ah) +
+               " Ah instead of " + num("%.3f", base.capacity_ah) + " Ah): the SOC drifts";
+    else if (id == "series_resistance_offset")
+        what = "extra series resistance of " + num("%+.2f", x[0] * 1e3) +
+               " mOhm (harness, contacts) that was not there in characterization";
+    else if (id == "heat_flux_sensor_gain")
+        what = "the heat flux sensor reads " + pct(x[0]) + " of the heat leaving the cell (sensitivity or coverage)";
+    else if (id == "ambient_drift")
+        what = "the ambient was not constant: offset " + num("%+.2f", x[0]) + " K and drift " + num("%+.2f", x[1]) + " K/h";
+    std::string fixed;
+    auto add = [&](const char* name, double r) {
+        if (r > 0.02) fixed += (fixed.empty() ? "" : ", ") + std::string(name) + " " + pct(r);
+    };
+    add("voltage", dv);
+    add("temperature", dt);
+    add("heat flux", dq);
+    return what + ". On blocks of the recording it was not fitted to, it removes " + pct(score) +
+           " of the remaining error" + (fixed.empty() ? "" : "; over the whole recording it explains " + fixed +
+                                                                  " of the squared error");
+}
+
+}  // namespace
+
+const std::vector<std::string>& effect_catalogue() {
+    static const std::vector<std::string> ids = [] {
+        std::vector<std::string> v;
+        for (const auto& s : specs()) v.push_back(s.id);
+        return v;
+    }();
+    return ids;
+}
+
+Recording merge_intervals(const Recording& rec, double step_s) {
+    Recording out;
+    out.source = rec.source;
+    if (rec.empty()) return out;
+    auto copy_row = [&](std::size_t k, double current) {
+        out.time_s.push_back(rec.time_s[k]);
+        out.voltage_v.push_back(rec.voltage_v[k]);
+        out.current_a.push_back(current);
+        auto opt = [&](const std::vector<double>& src, std::vector<double>& dst) {
+            if (!src.empty()) dst.push_back(src[k]);
+        };
+        opt(rec.ambient_c, out.ambient_c);
+        opt(rec.surface_c, out.surface_c);
+        opt(rec.t1_c, out.t1_c);
+        opt(rec.t2_c, out.t2_c);
+        opt(rec.heat_flux_w_per_m2, out.heat_flux_w_per_m2);
+    };
+    copy_row(0, rec.current_a[0]);
+    double charge = 0, span = 0;
+    for (std::size_t k = 1; k < rec.size(); ++k) {
+        const double dt = rec.time_s[k] - rec.time_s[k - 1];
+        charge += rec.current_a[k] * dt;
+        span += dt;
+        if (span + 1e-9 < step_s && k + 1 < rec.size()) continue;
+        copy_row(k, charge / span);
+        charge = span = 0;
+    }
+    return out;
+}
+
+std::vector<ConditionError> locate_errors(const ParameterSet& params, const Recording& rec, const SimulationTrace& tr) {
+    const std::size_t n = std::min(rec.size(), tr.time_s.size());
+    const auto w = time_weights(rec.time_s);
+    const double c1 = params.capacity_ah;  // 1C in A
+    // Per-row condition labels.
+    std::vector<std::string> dir(n), crate(n), socb(n), rise(n), since(n), thr(n);
+    double t_last_step = rec.time_s.empty() ? 0.0 : rec.time_s[0], ah = 0;
+    const double t0 = rec.has_surface() ? rec.surface_c[0] : kNaN;
+    const double total_ah = [&] {
+        double a = 0;
+        for (std::size_t k = 1; k < n; ++k) a += std::abs(rec.current_a[k]) * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0;
+        return a;
+    }();
+    for (std::size_t k = 0; k < n; ++k) {
+        const double i = rec.current_a[k];
+        if (k > 0) {
+            if (std::abs(i - rec.current_a[k - 1]) > std::max(0.1, 0.05 * c1)) t_last_step = rec.time_s[k - 1];
+            ah += std::abs(i) * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0;
+        }
+        const double c = std::abs(i) / c1;
+        dir[k] = std::abs(i) < 0.02 * c1 ? "rest" : i < 0 ? "discharge" : "charge";
+        crate[k] = dir[k] == "rest" ? "rest" : c < 0.5 ? "below C/2" : c < 1.5 ? "C/2-1.5C" : c < 2.5 ? "1.5C-2.5C" : c < 3.5 ? "2.5C-3.5C" : "above 3.5C";
+        const double s = tr.soc[k];
+        socb[k] = s < 0.1 ? "SOC 0-10 %" : s < 0.3 ? "SOC 10-30 %" : s < 0.7 ? "SOC 30-70 %" : s < 0.9 ? "SOC 70-90 %" : "SOC 90-100 %";
+        if (std::isfinite(t0) && std::isfinite(rec.surface_c[k])) {
+            const double r = rec.surface_c[k] - t0;
+            rise[k] = r < 1 ? "temperature rise below 1 K" : r < 3 ? "temperature rise 1-3 K" : r < 6 ? "temperature rise 3-6 K" : "temperature rise above 6 K";
+        } else {
+            rise[k] = "temperature not measured";
+        }
+        const double age = rec.time_s[k] - t_last_step;
+        since[k] = age < 1 ? "within 1 s of a current step" : age < 10 ? "1-10 s after a step" : age < 100 ? "10-100 s after a step" : "over 100 s after a step";
+        const double f = total_ah > 0 ? ah / total_ah : 0;
+        thr[k] = f < 0.25 ? "first quarter of the throughput" : f < 0.5 ? "second quarter of the throughput" : f < 0.75 ? "third quarter of the throughput" : "last quarter of the throughput";
+    }
+    double total_w = 0, total_e2 = 0;
+    for (std::size_t k = 0; k < n; ++k) {
+        const double e = tr.voltage_v[k] - rec.voltage_v[k];
+        total_w += w[k];
+        total_e2 += w[k] * e * e;
+    }
+    std::vector<ConditionError> out;
+    auto group = [&](const std::string& dimension, auto label_of) {
+        struct Acc { double w = 0, e2 = 0, e = 0, tw = 0, te2 = 0, te = 0; };
+        std::map<std::string, Acc> acc;
+        for (std::size_t k = 0; k < n; ++k) {
+            auto& a = acc[label_of(k)];
+            const double e = tr.voltage_v[k] - rec.voltage_v[k];
+            a.w += w[k];
+            a.e2 += w[k] * e * e;
+            a.e += w[k] * e;
+            if (rec.has_surface() && std::isfinite(rec.surface_c[k])) {
+                const double et = tr.temperature_c[k] - rec.surface_c[k];
+                a.tw += w[k];
+                a.te2 += w[k] * et * et;
+                a.te += w[k] * et;
+            }
+        }
+        for (const auto& [label, a] : acc) {
+            if (a.w <= 0) continue;
+            ConditionError c;
+            c.dimension = dimension;
+            c.condition = label;
+            c.time_share = total_w > 0 ? a.w / total_w : 0;
+            c.share_of_voltage_error = total_e2 > 0 ? a.e2 / total_e2 : 0;
+            c.voltage_rms_v = std::sqrt(a.e2 / a.w);
+            c.voltage_bias_v = a.e / a.w;
+            if (a.tw > 0) {
+                c.temperature_rms_c = std::sqrt(a.te2 / a.tw);
+                c.temperature_bias_c = a.te / a.tw;
+            }
+            out.push_back(c);
+        }
+    };
+    group("direction", [&](std::size_t k) { return dir[k]; });
+    group("c_rate", [&](std::size_t k) { return crate[k]; });
+    group("soc", [&](std::size_t k) { return socb[k]; });
+    group("temperature_rise", [&](std::size_t k) { return rise[k]; });
+    group("since_step", [&](std::size_t k) { return since[k]; });
+    group("throughput", [&](std::size_t k) { return thr[k]; });
+    group("combined", [&](std::size_t k) {
+        return dir[k] == "rest" ? "rest, " + socb[k] : dir[k] + " " + crate[k] + ", " + socb[k];
+    });
+    return out;
+}
+
+Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options,
+                   const DiagnoseProgress& progress) {
+    if (rec_full.size() < 2) throw InputError(rec_full.source + ": recording has fewer than two rows");
+    const double duration = rec_full.time_s.back() - rec_full.time_s.front();
+    const std::size_t folds = std::max<std::size_t>(options.folds, 2);
+    if (duration < 60.0 * static_cast<double>(folds))
+        throw InputError(rec_full.source + ": recording too short to cross-validate (" + std::to_string(duration) +
+                         " s; needs at least " + std::to_string(60 * folds) + " s)");
+    Diagnosis d;
+    d.baseline = rms_of(params, rec_full, &d.baseline_trace);
+    d.breakdown = locate_errors(params, rec_full, d.baseline_trace);
+    {
+        std::vector<ConditionError> combined;
+        for (const auto& c : d.breakdown)
+            if (c.dimension == "combined") combined.push_back(c);
+        std::sort(combined.begin(), combined.end(),
+                  [](const auto& a, const auto& b) { return a.share_of_voltage_error > b.share_of_voltage_error; });
+        for (std::size_t k = 0; k < std::min<std::size_t>(5, combined.size()); ++k) d.where.push_back(combined[k]);
+    }
+
+    const Recording rec = merge_intervals(rec_full, options.search_step_s);
+    Problem pb;
+    pb.rec = &rec;
+    pb.area_m2 = params.thermal.area_m2;
+    {
+        const Errors e = errors_of(params, rec);
+        auto ms = [](const std::vector<double>& v) {
+            double s = 0;
+            std::size_t n = 0;
+            for (double x : v)
+                if (std::isfinite(x)) s += x * x, ++n;
+            return n ? s / n : kNaN;
+        };
+        pb.ms_v = ms(e.v);
+        pb.ms_t = ms(e.t);
+        pb.ms_q = ms(e.q);
+    }
+    const std::size_t n = rec.size();
+    std::vector<char> all(n, 1);
+    std::vector<std::vector<char>> train(folds, std::vector<char>(n, 1)), test(folds, std::vector<char>(n, 0));
+    for (std::size_t k = 0; k < n; ++k) {
+        const double f = (rec.time_s[k] - rec.time_s.front()) / duration;
+        const std::size_t b = std::min(folds - 1, static_cast<std::size_t>(f * static_cast<double>(folds)));
+        train[b][k] = 0;
+        test[b][k] = 1;
+    }
+    const double n_eff = std::max(duration / 10.0, 10.0);
+
+    std::vector<std::string> candidates = options.effects.empty() ? effect_catalogue() : options.effects;
+    for (const auto& id : candidates)
+        if (std::find(effect_catalogue().begin(), effect_catalogue().end(), id) == effect_catalogue().end())
+            throw InputError("diagnose: unknown effect id \"" + id + "\"");
+
+    ParameterSet current = params;
+    QuantityRms current_rms = d.baseline;
+    std::map<std::string, Finding> last_round;
+    std::size_t round = 0;
+    while (round < options.max_accepted) {
+        ++round;
+        const Errors base_e = errors_of(current, rec);
+        const double j_base_all = objective(pb, base_e, all);
+        std::vector<double> j_base_test(folds);
+        for (std::size_t f = 0; f < folds; ++f) j_base_test[f] = objective(pb, base_e, test[f]);
+
+        std::vector<Finding> round_findings;
+        std::vector<std::vector<double>> round_x;
+        std::size_t done = 0;
+        for (const auto& id : candidates) {
+            if (std::find(d.accepted.begin(), d.accepted.end(), id) != d.accepted.end()) continue;
+            const auto& spec = *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
+            const Fit full = fit_effect(pb, current, spec, all, spec.starts, 25);
+            Finding fd;
+            fd.effect = id;
+            fd.parameters_count = spec.params.size();
+            if (!std::isfinite(full.j)) {
+                fd.explanation = "the fit of this effect did not converge";
+                round_findings.push_back(fd);
+                round_x.push_back({});
+                continue;
+            }
+            double sum_red = 0;
+            for (std::size_t f = 0; f < folds; ++f) {
+                const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 15);
+                ParameterSet p = current;
+                spec.apply(p, std::isfinite(ff.j) ? ff.x : full.x);
+                const double jt = objective(pb, errors_of(p, rec), test[f]);
+                const double red = j_base_test[f] > 0 ? 1.0 - jt / j_base_test[f] : 0.0;
+                sum_red += red;
+                fd.folds_improved += red > 0.0;
+            }
+            fd.score = sum_red / static_cast<double>(folds);
+            fd.delta_bic = n_eff * std::log(std::max(full.j, 1e-300) / j_base_all) +
+                           static_cast<double>(spec.params.size()) * std::log(n_eff);
+            fd.significant = fd.score >= options.min_cv_improvement && fd.folds_improved + 1 >= folds &&
+                             fd.delta_bic < options.bic_threshold;
+            for (std::size_t j = 0; j < spec.params.size(); ++j) fd.parameters[spec.params[j].name] = full.x[j];
+            ParameterSet p = current;
+            spec.apply(p, full.x);
+            fd.improved = rms_of(p, rec_full);
+            fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
+            round_findings.push_back(fd);
+            round_x.push_back(full.x);
+            if (progress) progress("round " + std::to_string(round) + " candidates", ++done, candidates.size());
+        }
+        // Accept the strongest significant one and look again on top of it.
+        std::size_t best = round_findings.size();
+        for (std::size_t k = 0; k < round_findings.size(); ++k)
+            if (round_findings[k].significant && (best == round_findings.size() || round_findings[k].score > round_findings[best].score))
+                best = k;
+        for (auto& f : round_findings) last_round[f.effect] = f;
+        if (best == round_findings.size()) break;
+        const auto& spec =
+            *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == round_findings[best].effect; });
+        spec.apply(current, round_x[best]);
+        current_rms = round_findings[best].improved;
+        d.accepted.push_back(round_findings[best].effect);
+        d.findings.push_back(round_findings[best]);
+        last_round.erase(round_findings[best].effect);
+    }
+    // Every candidate once: the accepted ones as fitted when accepted, the others from the last round (on top
+    // of everything accepted), ordered by score.
+    for (auto& [id, f] : last_round) {
+        f.significant = false;
+        d.findings.push_back(f);
+    }
+    std::stable_sort(d.findings.begin(), d.findings.end(), [](const auto& a, const auto& b) { return a.score > b.score; });
+    d.improved_params = current;
+    d.improved = rms_of(current, rec_full, &d.improved_trace);
+    if (d.accepted.empty()) {
+        d.summary = "No candidate physics passes the significance test (held-out error reduction >= " +
+                    pct(options.min_cv_improvement) + " on average and in " + std::to_string(folds - 1) + " of " +
+                    std::to_string(folds) + " blocks, BIC improvement > " + num("%.0f", -options.bic_threshold) +
+                    "): the model is adequate for this recording.";
+    } else {
+        d.summary = "Left out of the model, in order of evidence:";
+        for (const auto& f : d.findings)
+            if (f.significant) d.summary += " " + f.effect + " (" + pct(f.score) + " of the held-out error);";
+    }
+    return d;
+}
+
+nlohmann::json diagnosis_to_json(const Diagnosis& d) {
+    nlohmann::json j;
+    j["schema"] = "cellbench.diagnosis/1";
+    j["baseline"] = rms_json(d.baseline);
+    j["where"] = nlohmann::json::array();
+    for (const auto& w : d.where)
+        j["where"].push_back({{"condition", w.condition},
+                              {"share_of_voltage_error", w.share_of_voltage_error},
+                              {"time_share", w.time_share},
+                              {"voltage_rms_v", w.voltage_rms_v},
+                              {"voltage_bias_v", w.voltage_bias_v}});
+    j["findings"] = nlohmann::json::array();
+    for (const auto& f : d.findings)
+        j["findings"].push_back({{"effect", f.effect},
+                                 {"significant", f.significant},
+                                 {"score", f.score},
+                                 {"folds_improved", f.folds_improved},
+                                 {"delta_bic", f.delta_bic},
+                                 {"explanation", f.explanation},
+                                 {"parameters", f.parameters},
+                                 {"improved", rms_json(f.improved)}});
+    j["accepted"] = d.accepted;
+    j["improved"] = rms_json(d.improved);
+    j["summary"] = d.summary;
+    return j;
+}
+
+}  // namespace cellbench::estimator

@@ -12,7 +12,7 @@ DEBS := cmake g++ make pkg-config \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
         python3 python3-numpy python3-scipy
 
-.PHONY: all deps configure build run test test-unit test-data bench clean
+.PHONY: all deps configure build run test test-unit test-data bench prove clean
 
 all: build
 
@@ -58,6 +58,11 @@ test-data: build
 bench: build
 	@for b in $(BIN)/*_bench; do echo "== $$b"; $$b --benchmark_counters_tabular=true || exit 1; done
 	/usr/bin/python3 bench/scipy_baseline.py $(DATA)/hppc_1c_30degC.bdf.csv
+
+# The proof table of `cellbench diagnose` on generated recordings with hidden effects (SEEDS="1 2 3").
+SEEDS ?= 1 2 3
+prove: build
+	scripts/prove.sh $(BIN) "$(SEEDS)" $(BUILD)/prove
 
 clean:
 	rm -rf $(BUILD) $(BUILD).configure.log

@@ -1,6 +1,9 @@
 #include "cellbench/estimator/diagnose.hpp"
 
 #include <algorithm>
+#include <atomic>
+#include <mutex>
+#include <thread>
 #include <cmath>
 #include <map>
 #include <numeric>
@@ -458,9 +461,10 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                 if (std::isfinite(x)) s += x * x, ++n;
             return n ? s / n : kNaN;
         };
-        pb.ms_v = ms(e.v);
-        pb.ms_t = ms(e.t);
-        pb.ms_q = ms(e.q);
+        auto floor2 = [](double x) { return x * x; };
+        pb.ms_v = std::max(ms(e.v), floor2(options.voltage_floor_v));
+        pb.ms_t = std::max(ms(e.t), floor2(options.temperature_floor_c));
+        pb.ms_q = std::max(ms(e.q), floor2(options.heat_flux_floor_w));
     }
     const std::size_t n = rec.size();
     std::vector<char> all(n, 1);
@@ -489,45 +493,60 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         std::vector<double> j_base_test(folds);
         for (std::size_t f = 0; f < folds; ++f) j_base_test[f] = objective(pb, base_e, test[f]);
 
-        std::vector<Finding> round_findings;
-        std::vector<std::vector<double>> round_x;
-        std::size_t done = 0;
-        for (const auto& id : candidates) {
-            if (std::find(d.accepted.begin(), d.accepted.end(), id) != d.accepted.end()) continue;
-            const auto& spec = *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
-            const Fit full = fit_effect(pb, current, spec, all, spec.starts, 25);
-            Finding fd;
-            fd.effect = id;
-            fd.parameters_count = spec.params.size();
-            if (!std::isfinite(full.j)) {
-                fd.explanation = "the fit of this effect did not converge";
-                round_findings.push_back(fd);
-                round_x.push_back({});
-                continue;
+        std::vector<std::string> todo;
+        for (const auto& id : candidates)
+            if (std::find(d.accepted.begin(), d.accepted.end(), id) == d.accepted.end()) todo.push_back(id);
+        std::vector<Finding> round_findings(todo.size());
+        std::vector<std::vector<double>> round_x(todo.size());
+        std::atomic<std::size_t> next{0}, done{0};
+        std::mutex progress_mutex;
+        // Candidates are independent: one per worker thread.
+        auto worker = [&] {
+            for (std::size_t c; (c = next.fetch_add(1)) < todo.size();) {
+                const auto& id = todo[c];
+                const auto& spec = *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
+                Finding& fd = round_findings[c];
+                fd.effect = id;
+                fd.parameters_count = spec.params.size();
+                const Fit full = fit_effect(pb, current, spec, all, spec.starts, 25);
+                if (!std::isfinite(full.j)) {
+                    fd.explanation = "the fit of this effect did not converge";
+                } else {
+                    double sum_red = 0;
+                    for (std::size_t f = 0; f < folds; ++f) {
+                        const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 15);
+                        ParameterSet p = current;
+                        spec.apply(p, std::isfinite(ff.j) ? ff.x : full.x);
+                        const double jt = objective(pb, errors_of(p, rec), test[f]);
+                        const double red = j_base_test[f] > 0 ? 1.0 - jt / j_base_test[f] : 0.0;
+                        sum_red += red;
+                        fd.folds_improved += red > 0.0;
+                    }
+                    fd.score = sum_red / static_cast<double>(folds);
+                    fd.delta_bic = n_eff * std::log(std::max(full.j, 1e-300) / j_base_all) +
+                                   static_cast<double>(spec.params.size()) * std::log(n_eff);
+                    fd.significant = fd.score >= options.min_cv_improvement && fd.folds_improved + 1 >= folds &&
+                                     fd.delta_bic < options.bic_threshold;
+                    for (std::size_t j = 0; j < spec.params.size(); ++j) fd.parameters[spec.params[j].name] = full.x[j];
+                    ParameterSet p = current;
+                    spec.apply(p, full.x);
+                    fd.improved = rms_of(p, rec_full);
+                    fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
+                    round_x[c] = full.x;
+                }
+                if (progress) {
+                    std::lock_guard<std::mutex> lock(progress_mutex);
+                    progress("round " + std::to_string(round) + " candidates", ++done, todo.size());
+                }
             }
-            double sum_red = 0;
-            for (std::size_t f = 0; f < folds; ++f) {
-                const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 15);
-                ParameterSet p = current;
-                spec.apply(p, std::isfinite(ff.j) ? ff.x : full.x);
-                const double jt = objective(pb, errors_of(p, rec), test[f]);
-                const double red = j_base_test[f] > 0 ? 1.0 - jt / j_base_test[f] : 0.0;
-                sum_red += red;
-                fd.folds_improved += red > 0.0;
-            }
-            fd.score = sum_red / static_cast<double>(folds);
-            fd.delta_bic = n_eff * std::log(std::max(full.j, 1e-300) / j_base_all) +
-                           static_cast<double>(spec.params.size()) * std::log(n_eff);
-            fd.significant = fd.score >= options.min_cv_improvement && fd.folds_improved + 1 >= folds &&
-                             fd.delta_bic < options.bic_threshold;
-            for (std::size_t j = 0; j < spec.params.size(); ++j) fd.parameters[spec.params[j].name] = full.x[j];
-            ParameterSet p = current;
-            spec.apply(p, full.x);
-            fd.improved = rms_of(p, rec_full);
-            fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
-            round_findings.push_back(fd);
-            round_x.push_back(full.x);
-            if (progress) progress("round " + std::to_string(round) + " candidates", ++done, candidates.size());
+        };
+        {
+            const std::size_t n_threads = std::clamp<std::size_t>(
+                options.threads ? options.threads : std::thread::hardware_concurrency(), 1, todo.size());
+            std::vector<std::thread> pool;
+            for (std::size_t t = 1; t < n_threads; ++t) pool.emplace_back(worker);
+            worker();
+            for (auto& t : pool) t.join();
         }
         // Accept the strongest significant one and look again on top of it.
         std::size_t best = round_findings.size();

@@ -54,6 +54,11 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
         const double ohmic = ohmic_drop_v(p.rc_at(soc_guess, -1), p.rc_at(soc_guess, +1), rec.current_a[0]);
         s.soc = p.soc_from_ocv(rec.voltage_v[0] - ohmic);
     }
+    if (const auto& h = p.extensions.ocv_hysteresis) {
+        // Unknown history: a cell above half charge at the start was most likely last charged (a test starts
+        // after a full CCCV charge), one below, last discharged.
+        s.hysteresis_v = (s.soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v;
+    }
     tr.initial_soc = s.soc;
     tr.ambient_c = ambient_const;
 

@@ -67,6 +67,15 @@ int run_cli(int argc, char** argv) {
 
     const auto client = add_client_commands(app);  // status, runs, start, stop, pause, resume, export
 
+    GenerateOptions gen;
+    auto* gen_cmd = app.add_subcommand(
+        "generate", "Make a characterization and a validation recording of a simulated cell with one hidden effect");
+    gen_cmd->add_option("--effect", gen.effect, "Hidden effect id, or none for a control cell")->capture_default_str();
+    gen_cmd->add_option("--seed", gen.seed, "Seed (varies magnitudes, noise and base parameters)")->capture_default_str();
+    gen_cmd->add_option("--magnitude", gen.magnitude, "Scale of the effect around its nominal strength")->capture_default_str();
+    gen_cmd->add_option("--base", gen.base, "Nominal cell parameter set")->capture_default_str()->check(CLI::ExistingFile);
+    gen_cmd->add_option("-o,--output", gen.output_dir, "Output folder")->required();
+
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
@@ -87,6 +96,7 @@ int run_cli(int argc, char** argv) {
         if (*sim_cmd) return run_simulate(sim);
         if (const auto status = run_client_command(*client)) return *status;
         if (*diag_cmd) return run_diagnose(diag);
+        if (*gen_cmd) return run_generate(gen);
     } catch (const InputError& e) {
         spdlog::error("{}", e.what());
         return 1;

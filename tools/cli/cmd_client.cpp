@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <ctime>
+#include <limits>
 #include <optional>
 #include <string>
 #include <thread>
@@ -141,7 +142,7 @@ public:
         Exchange x(*this);
         x.send(http::verb::get, path, std::nullopt);
         http::response_parser<http::buffer_body> parser;
-        parser.body_limit(boost::none);
+        parser.body_limit(std::numeric_limits<std::uint64_t>::max());
         x.read(parser, http::verb::get, path, /*header_only=*/true);
         std::string error_body;
         const bool ok = parser.get().result_int() == 200;

@@ -44,6 +44,15 @@ struct DiagnoseCliOptions {
 };
 int run_diagnose(const DiagnoseCliOptions& o);
 
+struct GenerateOptions {
+    std::string base = "config/cells/p45b-thesis.json";
+    std::string effect = "none";
+    unsigned seed = 1;
+    double magnitude = 1.0;
+    std::string output_dir;
+};
+int run_generate(const GenerateOptions& o);
+
 // The metrics JSON of INTERFACES.md ("cellbench.metrics/1"); an unmeasured quantity is null.
 nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);
 

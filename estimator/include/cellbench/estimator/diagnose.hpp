@@ -32,11 +32,18 @@ namespace cellbench::estimator {
 
 struct DiagnoseOptions {
     std::size_t folds = 4;
-    double min_cv_improvement = 0.10;  // fraction of the held-out error removed, averaged over the folds
+    double min_cv_improvement = 0.25;  // fraction of the held-out error removed, averaged over the folds
     double bic_threshold = -10.0;      // required BIC change (negative = better)
     std::size_t max_accepted = 3;
     double search_step_s = 1.0;        // interval of the merged copy used by the searches
     std::vector<std::string> effects;  // candidates to try; empty = the whole catalogue
+    std::size_t threads = 0;           // worker threads for the candidates (0 = one per core)
+    // Errors below these RMS levels are not worth modelling (instrument accuracy): each quantity's error is
+    // normalised by max(its baseline RMS, this floor), so a 30 % gain on a 0.1 degC error does not count as
+    // much as a 30 % gain on a 2 degC one.
+    double voltage_floor_v = 0.005;       // cycler voltage accuracy class (0.05 % of a 10 V range)
+    double temperature_floor_c = 0.3;     // thermocouple-grade agreement
+    double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface
 };
 
 struct QuantityRms {

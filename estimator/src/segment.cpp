@@ -35,10 +35,10 @@ double span_s(const std::vector<double>& t, std::size_t begin, std::size_t end) 
 
 bool step_changes(const Recording& rec, std::size_t k) {
     if (k == 0) return false;
-    if (rec.step_count.size() == rec.size()) {
-        const double a = rec.step_count[k - 1], b = rec.step_count[k];
-        if (std::isfinite(a) && std::isfinite(b) && a != b) return true;
-    }
+    // The step count, when present, is the authority: a tester reports a CCCV step's CV phase under another
+    // step type word ("cv") within the same step, which is not a new step.
+    if (rec.step_count.size() == rec.size() && std::isfinite(rec.step_count[k - 1]) && std::isfinite(rec.step_count[k]))
+        return rec.step_count[k - 1] != rec.step_count[k];
     if (rec.step_type.size() == rec.size()) {
         const auto& a = rec.step_type[k - 1];
         const auto& b = rec.step_type[k];

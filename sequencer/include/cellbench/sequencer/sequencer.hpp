@@ -1,0 +1,132 @@
+#pragma once
+// Runs one program (config: cycler segments, chamber set points, waits for thermal equilibrium) against the
+// instruments' interfaces, supervises the cell on every reading, and fits each HPPC pulse set as it ends.
+//
+// Threading: every on_* / tick / command call may come from any thread; they are serialised by one mutex.
+// Fits run on worker threads and report through the sink.
+//
+// Safety (checked on every reading, and on tick for silence): any temperature over the cell's maximum,
+// voltage outside the window, current over the limit, chamber air off its set point once settled, or an
+// instrument silent beyond its grace period -> the current is stopped, the chamber goes to its safe set
+// point, the reason is recorded and the run ends `aborted`. A run never continues blind.
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/fit.hpp"
+#include "cellbench/estimator/pulse_fit.hpp"
+#include "cellbench/protocol/neware_stepfile.hpp"
+#include "cellbench/sequencer/instruments.hpp"
+
+namespace cellbench::sequencer {
+
+struct Segment {
+    enum class Kind { Cycler, ChamberSetpoint, WaitEquilibrium } kind = Kind::Cycler;
+    protocol::StepProgram program;  // Cycler
+    double setpoint_c = 0.0;        // ChamberSetpoint
+    double tolerance_c = 0.5, hold_s = 600.0, timeout_s = 4 * 3600.0;  // WaitEquilibrium
+    std::string name;
+};
+
+struct Program {
+    std::string name;
+    std::vector<Segment> segments;
+};
+
+struct SafetyLimits {
+    double max_temperature_c = 60.0;
+    double min_voltage_v = 2.8, max_voltage_v = 4.2;  // the window, with a margin beyond the program's cut-offs
+    double max_current_a = 60.0;
+    double chamber_deviation_c = 5.0;
+    double instrument_loss_grace_s = 10.0;
+    double chamber_safe_setpoint_c = 25.0;
+};
+
+enum class RunState { Idle, Running, Paused, Completed, Aborted, Stopped };
+const char* to_string(RunState s);
+
+// Where the sequencer reports (the daemon stores it; tests record it). Called with the sequencer's lock
+// held (except on_pulse_fit / on_parameter_set, called from fit workers): keep them short, never call back.
+class RunSink {
+public:
+    virtual ~RunSink() = default;
+    virtual void on_state(RunState state, const std::string& reason) = 0;
+    virtual void on_step(double t_mono_s, int segment, int step_id, int cycle_id, const std::string& step_type) = 0;
+    virtual void on_event(double t_mono_s, const std::string& severity, const std::string& kind,
+                          const std::string& message) = 0;
+    virtual void on_pulse_fit(const estimator::PulseSetFit& fit) = 0;
+    virtual void on_parameter_set(const estimator::ParameterSet& params, const nlohmann::json& summary) = 0;
+};
+
+struct SequencerOptions {
+    SafetyLimits limits;
+    double capacity_ah = 4.5;  // for the SOC of online fits (counted from the full charge before the pulses)
+    double area_m2 = 5.311e-3;
+    bool fit_online = true;
+    bool fit_at_end = true;
+};
+
+class Sequencer {
+public:
+    Sequencer(Cycler& cycler, Chamber& chamber, RunSink& sink, SequencerOptions options);
+    ~Sequencer();
+
+    void start(const Program& program, double t_mono_s);
+    void stop(const std::string& reason, double t_mono_s);  // operator stop: current off, chamber safe
+    void pause(double t_mono_s);
+    void resume(double t_mono_s);
+
+    void on_cycler(const CyclerSample& s);
+    void on_daq(const DaqSample& s);
+    void on_chamber(const ChamberSample& s);
+    // An instrument fault; safety_data_lost = the cell can no longer be watched (no voltage or temperature).
+    void on_fault(const std::string& instrument, const std::string& message, bool safety_data_lost, double t_mono_s);
+    void tick(double t_mono_s);  // timeouts: instrument silence, equilibrium wait
+
+    [[nodiscard]] RunState state() const;
+    [[nodiscard]] nlohmann::json status() const;  // segment, step, SOC, live values
+    [[nodiscard]] Recording recording() const;    // the run so far (cycler time base, thermal values attached)
+    void wait_for_fits();                         // joins outstanding fit workers
+
+private:
+    void abort_locked(const std::string& reason, double t);
+    void finish_locked(RunState end_state, const std::string& reason, double t);
+    void advance_locked(double t);
+    void start_segment_locked(double t);
+    void check_safety_locked(double t);
+    void check_pulse_sets_locked();
+    void spawn(std::function<void()> job);
+
+    Cycler& cycler_;
+    Chamber& chamber_;
+    RunSink& sink_;
+    SequencerOptions opt_;
+    mutable std::mutex mutex_;
+    Program program_;
+    RunState state_ = RunState::Idle;
+    std::size_t segment_ = 0;
+    bool cycler_seen_working_ = false;
+    int last_step_id_ = -1, last_cycle_id_ = -1;
+    double equilibrium_since_s_ = -1, segment_start_s_ = 0, run_start_s_ = 0;
+    double last_cycler_s_ = -1, last_daq_s_ = -1, last_chamber_s_ = -1;
+    std::optional<CyclerSample> last_cycler_;
+    std::optional<DaqSample> last_daq_;
+    std::optional<ChamberSample> last_chamber_;
+    double chamber_target_c_ = kNaN;
+    bool chamber_settled_ = false;
+    Recording rec_;
+    double full_charge_row_ = 0;  // row where SOC = 1 (end of the last CCCV charge before the pulses)
+    std::size_t fitted_pulse_sets_ = 0;
+    std::size_t window_begin_ = 0;
+    std::mutex workers_mutex_;
+    std::vector<std::thread> workers_;
+};
+
+}  // namespace cellbench::sequencer

@@ -1,0 +1,349 @@
+#include "cellbench/sequencer/sequencer.hpp"
+
+#include <cmath>
+
+#include "cellbench/estimator/segment.hpp"
+
+namespace cellbench::sequencer {
+
+const char* to_string(RunState s) {
+    switch (s) {
+        case RunState::Idle: return "idle";
+        case RunState::Running: return "running";
+        case RunState::Paused: return "paused";
+        case RunState::Completed: return "completed";
+        case RunState::Aborted: return "aborted";
+        case RunState::Stopped: return "stopped";
+    }
+    return "?";
+}
+
+namespace {
+bool terminal(RunState s) { return s == RunState::Completed || s == RunState::Aborted || s == RunState::Stopped; }
+bool active(RunState s) { return s == RunState::Running || s == RunState::Paused; }
+std::string fmt(const char* f, double x) {
+    char b[96];
+    std::snprintf(b, sizeof b, f, x);
+    return b;
+}
+}  // namespace
+
+Sequencer::Sequencer(Cycler& cycler, Chamber& chamber, RunSink& sink, SequencerOptions options)
+    : cycler_(cycler), chamber_(chamber), sink_(sink), opt_(std::move(options)) {}
+
+Sequencer::~Sequencer() { wait_for_fits(); }
+
+void Sequencer::spawn(std::function<void()> job) {
+    std::lock_guard<std::mutex> lock(workers_mutex_);
+    workers_.emplace_back(std::move(job));
+}
+
+void Sequencer::wait_for_fits() {
+    std::vector<std::thread> w;
+    {
+        std::lock_guard<std::mutex> lock(workers_mutex_);
+        w.swap(workers_);
+    }
+    for (auto& t : w)
+        if (t.joinable()) t.join();
+}
+
+void Sequencer::start(const Program& program, double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (active(state_)) throw InputError("a run is already active");
+    if (program.segments.empty()) throw InputError("program " + program.name + " has no segments");
+    program_ = program;
+    state_ = RunState::Running;
+    segment_ = 0;
+    rec_ = Recording{};
+    rec_.source = program.name;
+    rec_.surface_c.clear();
+    fitted_pulse_sets_ = 0;
+    window_begin_ = 0;
+    full_charge_row_ = 0;
+    run_start_s_ = t;
+    last_cycler_s_ = last_daq_s_ = last_chamber_s_ = -1;
+    last_step_id_ = last_cycle_id_ = -1;
+    chamber_settled_ = false;
+    chamber_target_c_ = kNaN;
+    sink_.on_state(RunState::Running, "started program " + program.name);
+    start_segment_locked(t);
+}
+
+void Sequencer::start_segment_locked(double t) {
+    while (state_ == RunState::Running) {
+        if (segment_ >= program_.segments.size()) {
+            finish_locked(RunState::Completed, "program finished", t);
+            return;
+        }
+        const Segment& s = program_.segments[segment_];
+        segment_start_s_ = t;
+        if (s.kind == Segment::Kind::ChamberSetpoint) {
+            chamber_.set_running(true);
+            chamber_.set_setpoint(s.setpoint_c);
+            chamber_target_c_ = s.setpoint_c;
+            chamber_settled_ = false;
+            sink_.on_event(t, "info", "chamber", "chamber set point " + fmt("%.1f degC", s.setpoint_c));
+            ++segment_;
+            continue;
+        }
+        if (s.kind == Segment::Kind::WaitEquilibrium) {
+            equilibrium_since_s_ = -1;
+            sink_.on_event(t, "info", "equilibrium",
+                           "waiting for cell and chamber within " + fmt("%.2f K", s.tolerance_c) + " for " +
+                               fmt("%.0f s", s.hold_s));
+            return;
+        }
+        cycler_seen_working_ = false;
+        last_step_id_ = -1;
+        cycler_.start(s.program, program_.name + "-" + std::to_string(segment_));
+        sink_.on_event(t, "info", "cycler", "started step program " + s.program.name);
+        return;
+    }
+}
+
+void Sequencer::advance_locked(double t) {
+    ++segment_;
+    start_segment_locked(t);
+}
+
+void Sequencer::finish_locked(RunState end_state, const std::string& reason, double t) {
+    if (terminal(state_)) return;
+    state_ = end_state;
+    sink_.on_state(end_state, reason);
+    if (end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10) {
+        Recording rec = rec_;
+        const estimator::CharacterizationOptions co{};
+        spawn([this, rec = std::move(rec), t] {
+            try {
+                const auto c = estimator::characterize({rec});
+                sink_.on_parameter_set(c.params, c.summary_json());
+            } catch (const std::exception& e) {
+                sink_.on_event(t, "warning", "fit", std::string("no parameter set for this run: ") + e.what());
+            }
+        });
+    }
+}
+
+void Sequencer::abort_locked(const std::string& reason, double t) {
+    if (!active(state_)) return;
+    cycler_.stop();
+    chamber_.set_setpoint(opt_.limits.chamber_safe_setpoint_c);
+    sink_.on_event(t, "alarm", "abort", reason + "; current stopped, chamber to its safe set point " +
+                                             fmt("%.1f degC", opt_.limits.chamber_safe_setpoint_c));
+    finish_locked(RunState::Aborted, reason, t);
+}
+
+void Sequencer::stop(const std::string& reason, double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!active(state_)) return;
+    cycler_.stop();
+    chamber_.set_setpoint(opt_.limits.chamber_safe_setpoint_c);
+    sink_.on_event(t, "info", "operator", "stop: " + reason);
+    finish_locked(RunState::Stopped, reason, t);
+}
+
+void Sequencer::pause(double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ != RunState::Running) throw InputError(std::string("cannot pause a run that is ") + to_string(state_));
+    cycler_.pause();
+    state_ = RunState::Paused;
+    sink_.on_event(t, "info", "operator", "pause");
+    sink_.on_state(state_, "paused by the operator");
+}
+
+void Sequencer::resume(double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ != RunState::Paused) throw InputError(std::string("cannot resume a run that is ") + to_string(state_));
+    cycler_.resume();
+    state_ = RunState::Running;
+    sink_.on_event(t, "info", "operator", "resume");
+    sink_.on_state(state_, "resumed by the operator");
+}
+
+void Sequencer::on_cycler(const CyclerSample& s) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    last_cycler_ = s;
+    last_cycler_s_ = s.t_mono_s;
+    if (!active(state_)) return;
+    const auto& lim = opt_.limits;
+    if (s.voltage_v < lim.min_voltage_v || s.voltage_v > lim.max_voltage_v) {
+        abort_locked("voltage " + fmt("%.3f V", s.voltage_v) + " outside the safety window " +
+                         fmt("%.2f", lim.min_voltage_v) + fmt("-%.2f V", lim.max_voltage_v),
+                     s.t_mono_s);
+        return;
+    }
+    if (std::abs(s.current_a) > lim.max_current_a) {
+        abort_locked("current " + fmt("%.2f A", s.current_a) + " over the limit " + fmt("%.1f A", lim.max_current_a),
+                     s.t_mono_s);
+        return;
+    }
+    if (s.status == "protect") {
+        abort_locked("the cycler went to protect", s.t_mono_s);
+        return;
+    }
+    // The run's recording, on the cycler's time base with the latest thermal values.
+    const double t_rel = s.t_mono_s - run_start_s_;
+    if (rec_.time_s.empty() || t_rel > rec_.time_s.back()) {
+        rec_.time_s.push_back(t_rel);
+        rec_.voltage_v.push_back(s.voltage_v);
+        rec_.current_a.push_back(s.current_a);
+        rec_.step_count.push_back(1000.0 * static_cast<double>(segment_) + s.step_id);
+        rec_.step_type.push_back(s.step_type);
+        const bool fresh = last_daq_ && s.t_mono_s - last_daq_s_ < 5.0;
+        rec_.surface_c.push_back(fresh ? last_daq_->surface_c : kNaN);
+        rec_.heat_flux_w_per_m2.push_back(fresh ? last_daq_->heat_flux_w_per_m2 : kNaN);
+        rec_.ambient_c.push_back(last_chamber_ ? last_chamber_->air_c : kNaN);
+    }
+    if (program_.segments[std::min(segment_, program_.segments.size() - 1)].kind != Segment::Kind::Cycler) return;
+    if (s.status == "working") cycler_seen_working_ = true;
+    if (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_) {
+        sink_.on_step(s.t_mono_s, static_cast<int>(segment_), s.step_id, s.cycle_id, s.step_type);
+        last_step_id_ = s.step_id;
+        last_cycle_id_ = s.cycle_id;
+        if (opt_.fit_online) check_pulse_sets_locked();
+    }
+    if (cycler_seen_working_ && state_ == RunState::Running && (s.status == "finish" || s.status == "stop")) {
+        if (opt_.fit_online) check_pulse_sets_locked();
+        sink_.on_event(s.t_mono_s, "info", "cycler", "step program finished (" + s.status + ")");
+        advance_locked(s.t_mono_s);
+    }
+}
+
+void Sequencer::check_pulse_sets_locked() {
+    if (rec_.size() < 100) return;
+    const Recording window = rec_.slice(window_begin_, rec_.size());
+    const auto ps = estimator::last_complete_pulse_set(window);
+    if (!ps) return;
+    const std::size_t begin = window_begin_;
+    window_begin_ += ps->end;  // later windows start after this pulse set's relaxation
+    ++fitted_pulse_sets_;
+    // SOC by Coulomb counting from the start of the run, which a characterization starts fully charged (or
+    // from the last CV phase of a charge, when the program charged first).
+    double q_full = 0, q = 0;
+    std::size_t full_row = 0;
+    for (std::size_t k = 1; k < begin + ps->pulse_begin && k < rec_.size(); ++k) {
+        q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;
+        if (rec_.step_type[k - 1] == "cv" && rec_.step_type[k] != "cv") q_full = q, full_row = k;
+    }
+    const double soc = 1.0 + (q - q_full) / opt_.capacity_ah;
+    (void)full_row;
+    auto job = [this, window, pset = *ps, soc] {
+        estimator::PulseFitOptions po;
+        auto fit = estimator::fit_pulse_set(window, pset, po);
+        fit.soc = soc;
+        sink_.on_pulse_fit(fit);
+    };
+    spawn(std::move(job));
+}
+
+void Sequencer::on_daq(const DaqSample& s) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    last_daq_ = s;
+    last_daq_s_ = s.t_mono_s;
+    if (!active(state_)) return;
+    for (double temp : {s.surface_c, s.t1_c, s.t2_c}) {
+        if (std::isfinite(temp) && temp > opt_.limits.max_temperature_c) {
+            abort_locked("cell temperature " + fmt("%.2f degC", temp) + " over the maximum " +
+                             fmt("%.1f degC", opt_.limits.max_temperature_c),
+                         s.t_mono_s);
+            return;
+        }
+    }
+    // Thermal equilibrium: cell surface and chamber air both at the target within tolerance, for the hold time.
+    if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
+        state_ == RunState::Running && last_chamber_ && std::isfinite(chamber_target_c_)) {
+        const auto& seg = program_.segments[segment_];
+        const bool stable = std::abs(last_chamber_->air_c - chamber_target_c_) < seg.tolerance_c &&
+                            std::abs(s.surface_c - chamber_target_c_) < seg.tolerance_c;
+        if (!stable) {
+            equilibrium_since_s_ = -1;
+        } else if (equilibrium_since_s_ < 0) {
+            equilibrium_since_s_ = s.t_mono_s;
+        } else if (s.t_mono_s - equilibrium_since_s_ >= seg.hold_s) {
+            sink_.on_event(s.t_mono_s, "info", "equilibrium", "cell and chamber at " + fmt("%.2f degC", chamber_target_c_));
+            advance_locked(s.t_mono_s);
+        }
+    }
+}
+
+void Sequencer::on_chamber(const ChamberSample& s) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    last_chamber_ = s;
+    last_chamber_s_ = s.t_mono_s;
+    if (!active(state_)) return;
+    if (s.alarm_bits != 0) {
+        abort_locked("chamber alarm (bits " + std::to_string(s.alarm_bits) + ")", s.t_mono_s);
+        return;
+    }
+    if (!std::isfinite(chamber_target_c_)) return;
+    const double dev = std::abs(s.air_c - chamber_target_c_);
+    if (!chamber_settled_ && dev < 0.5) chamber_settled_ = true;
+    if (chamber_settled_ && dev > opt_.limits.chamber_deviation_c)
+        abort_locked("chamber air " + fmt("%.2f degC", s.air_c) + " off its set point " +
+                         fmt("%.1f degC", chamber_target_c_) + " by more than " + fmt("%.1f K", opt_.limits.chamber_deviation_c),
+                     s.t_mono_s);
+}
+
+void Sequencer::on_fault(const std::string& instrument, const std::string& message, bool safety_data_lost, double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    sink_.on_event(t, safety_data_lost ? "alarm" : "warning", "fault", instrument + ": " + message);
+    if (safety_data_lost) abort_locked(instrument + " lost (" + message + "): the cell cannot be watched", t);
+}
+
+void Sequencer::tick(double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!active(state_)) return;
+    const double grace = opt_.limits.instrument_loss_grace_s;
+    const double since_start = t - run_start_s_;
+    auto silent = [&](double last) { return (last < 0 && since_start > grace) || (last >= 0 && t - last > grace); };
+    if (silent(last_cycler_s_)) return abort_locked("cycler silent for more than " + fmt("%.0f s", grace), t);
+    if (silent(last_daq_s_)) return abort_locked("no cell temperature for more than " + fmt("%.0f s", grace), t);
+    if (silent(last_chamber_s_)) return abort_locked("chamber silent for more than " + fmt("%.0f s", grace), t);
+    if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
+        state_ == RunState::Running && t - segment_start_s_ > program_.segments[segment_].timeout_s)
+        abort_locked("thermal equilibrium not reached within " + fmt("%.0f s", program_.segments[segment_].timeout_s), t);
+}
+
+RunState Sequencer::state() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return state_;
+}
+
+nlohmann::json Sequencer::status() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    nlohmann::json j = {{"state", to_string(state_)}, {"program", program_.name}};
+    if (segment_ < program_.segments.size()) {
+        const auto& s = program_.segments[segment_];
+        j["segment"] = {{"index", segment_},
+                        {"kind", s.kind == Segment::Kind::Cycler ? "cycler"
+                                 : s.kind == Segment::Kind::ChamberSetpoint ? "chamber_setpoint"
+                                                                             : "wait_equilibrium"},
+                        {"name", s.name}};
+    }
+    if (last_cycler_)
+        j["cycler"] = {{"voltage_v", last_cycler_->voltage_v}, {"current_a", last_cycler_->current_a},
+                       {"step_id", last_cycler_->step_id},     {"cycle_id", last_cycler_->cycle_id},
+                       {"step_type", last_cycler_->step_type}, {"status", last_cycler_->status}};
+    if (last_daq_)
+        j["daq"] = {{"surface_c", last_daq_->surface_c}, {"t1_c", last_daq_->t1_c}, {"t2_c", last_daq_->t2_c},
+                    {"heat_flux_w_per_m2", last_daq_->heat_flux_w_per_m2}};
+    if (last_chamber_)
+        j["chamber"] = {{"air_c", last_chamber_->air_c}, {"setpoint_c", last_chamber_->setpoint_c},
+                        {"running", last_chamber_->running}, {"alarm_bits", last_chamber_->alarm_bits}};
+    if (!rec_.empty()) {
+        double q = 0;
+        for (std::size_t k = 1; k < rec_.size(); ++k) q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;
+        j["soc_estimate"] = std::clamp(1.0 + q / opt_.capacity_ah, 0.0, 1.0);
+        j["elapsed_s"] = rec_.time_s.back();
+    }
+    j["pulse_sets_fitted"] = fitted_pulse_sets_;
+    return j;
+}
+
+Recording Sequencer::recording() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return rec_;
+}
+
+}  // namespace cellbench::sequencer

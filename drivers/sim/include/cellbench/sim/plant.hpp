@@ -5,6 +5,8 @@
 //
 // Time is bench time in seconds (the simulated instruments map wall time to bench time with their time
 // scale). The plant is thread-safe: instruments on different threads/strands call it concurrently.
+#include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <mutex>
@@ -26,6 +28,9 @@ struct PlantOptions {
     double chamber_ramp_down_c_per_min = 4.0;
     double chamber_ripple_c = 0.5;
     double chamber_ripple_period_s = 600.0;
+    // A stopped chamber (or one whose heater failed) drifts towards the lab air through its insulation.
+    double lab_temperature_c = 22.0;
+    double chamber_stopped_time_constant_s = 1800.0;
     // Sensors.
     double heat_flux_sensitivity_v_per_w_per_m2 = 17.39e-6;  // S at 20 degC
     double heat_flux_sensor_gain = 1.0;    // true/configured sensitivity (hidden effect heat_flux_sensor_gain)
@@ -52,8 +57,10 @@ struct PlantReading {
     double thermopile_v = 0.0;         // what the DAQ measures: q * S * (1 + 0.002 (T - 20)) * gain, with noise
     double chamber_air_c = 0.0;        // process value
     double chamber_setpoint_c = 0.0;
+    bool chamber_running = true;
 };
 
+// Copies of a BenchPlant share one plant (the handle is a shared pointer), so every instrument can hold one.
 class BenchPlant {
 public:
     explicit BenchPlant(PlantOptions options);
@@ -65,6 +72,9 @@ public:
     void set_current(double current_a);          // cycler output (held until changed)
     void set_chamber_setpoint(double setpoint_c);
     void set_chamber_running(bool running);      // a stopped chamber drifts towards the lab at 22 degC
+    // Fault of the simulated chamber: the heater no longer heats, so the air cannot rise above the lab
+    // temperature (cooling still works) and a set point above it is never reached.
+    void set_chamber_heater_failed(bool failed);
 
     // Terminal voltage the cell would show now at a given current (no state change): for CV control.
     double voltage_at(double current_a) const;
@@ -76,6 +86,35 @@ private:
     // implementation detail, see plant.cpp
     struct Impl;
     std::shared_ptr<Impl> impl_;
+};
+
+// Bench time of the simulated instruments: bench = start + time_scale * (wall - wall at construction).
+// One clock is shared by all simulated instruments of a bench so they agree on "now" (each one calls
+// BenchPlant::advance_to(clock.now_s()) before reading). Immutable, hence thread-safe.
+class BenchClock {
+public:
+    using WallClock = std::chrono::steady_clock;
+
+    explicit BenchClock(double time_scale = 1.0, double bench_start_s = 0.0)
+        : time_scale_(time_scale > 0 && std::isfinite(time_scale) ? time_scale : 1.0),
+          bench_start_s_(bench_start_s),
+          wall_start_(WallClock::now()) {}
+
+    [[nodiscard]] double time_scale() const { return time_scale_; }  // bench seconds per wall second
+    [[nodiscard]] double now_s() const { return at(WallClock::now()); }
+    [[nodiscard]] double at(WallClock::time_point wall) const {
+        return bench_start_s_ + time_scale_ * std::chrono::duration<double>(wall - wall_start_).count();
+    }
+    // Wall instant at which the bench reaches bench_time_s (for scheduling).
+    [[nodiscard]] WallClock::time_point wall_at(double bench_time_s) const {
+        return wall_start_ + std::chrono::duration_cast<WallClock::duration>(
+                                 std::chrono::duration<double>((bench_time_s - bench_start_s_) / time_scale_));
+    }
+
+private:
+    double time_scale_;
+    double bench_start_s_;
+    WallClock::time_point wall_start_;
 };
 
 }  // namespace cellbench::sim

@@ -76,6 +76,11 @@ int run_cli(int argc, char** argv) {
     gen_cmd->add_option("--base", gen.base, "Nominal cell parameter set")->capture_default_str()->check(CLI::ExistingFile);
     gen_cmd->add_option("-o,--output", gen.output_dir, "Output folder")->required();
 
+    SimOptions simb;
+    auto* simb_cmd = app.add_subcommand("sim", "Run the simulated bench (Neware BTS server, Modbus chamber, DEWE CAN stream)");
+    simb_cmd->add_option("--config", simb.config, "Bench configuration")->capture_default_str()->check(CLI::ExistingFile);
+    simb_cmd->add_option("--time-scale", simb.time_scale, "Bench seconds per wall second (default: from the config)");
+
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
@@ -97,6 +102,7 @@ int run_cli(int argc, char** argv) {
         if (const auto status = run_client_command(*client)) return *status;
         if (*diag_cmd) return run_diagnose(diag);
         if (*gen_cmd) return run_generate(gen);
+        if (*simb_cmd) return run_sim(simb);
     } catch (const InputError& e) {
         spdlog::error("{}", e.what());
         return 1;

@@ -53,6 +53,12 @@ struct GenerateOptions {
 };
 int run_generate(const GenerateOptions& o);
 
+struct SimOptions {
+    std::string config = "config/bench.sim.json";
+    std::optional<double> time_scale;
+};
+int run_sim(const SimOptions& o);
+
 // The metrics JSON of INTERFACES.md ("cellbench.metrics/1"); an unmeasured quantity is null.
 nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);
 

@@ -1,0 +1,188 @@
+#pragma once
+// What the HTTP layer (http_server.hpp) needs from the daemon: the REST/JSON API of INTERFACES.md as an
+// abstract backend. The server owns transport, routing, limits and authentication; the backend owns the
+// bench. Keeping this seam abstract lets the server be tested over real sockets with a fake backend.
+//
+// Threading: the server calls the backend from several io_context threads at once (one call per
+// connection at a time), so every method must be thread-safe. Calls should return quickly (milliseconds):
+// they run on the daemon's I/O threads. Long work (a run) is started, not awaited.
+//
+// Errors: throw one of the ApiError types below; the server maps them to the HTTP status and a JSON body
+// {"error": what()}. Any other exception becomes 500 with a generic message (details only in the log).
+//
+// JSON shapes (consumed by `cellbench status|runs|start|stop|export` and the future dashboard). Times are
+// seconds: `*_unix_s` wall clock (UTC, fractional), `test_time_s` since the run started. Unknown or not
+// measured values are null. Fields may be added; none of those documented here may be dropped or renamed.
+//
+//   Run  (one element of GET /runs, the body of GET /runs/{id}, POST /runs and POST /runs/{id}/...):
+//     {"id": 3, "program": "hppc", "cell": "p45b",
+//      "state": "running",            // "starting" | "running" | "paused" | "completed" | "stopped" | "failed"
+//      "created_unix_s": 1.7e9, "started_unix_s": 1.7e9 | null, "ended_unix_s": null,
+//      "samples": 12345,              // rows recorded so far
+//      "step": Step | null,           // the current step while active, else null
+//      "error": null | "why the run failed"}
+//   Step:
+//     {"index": 12, "count": 140,     // 1-based index into the program's steps, and how many there are
+//      "type": "CC discharge",        // step kind as the program names it (Rest, CC charge, CV charge, ...)
+//      "elapsed_s": 3.5}              // time spent in this step
+//   Live values (latest sample of the bench; null when the instrument does not measure it / is offline):
+//     {"time_unix_s": 1.7e9, "test_time_s": 812.4 | null, "voltage_v": 3.712, "current_a": -3.82,
+//      "soc": 0.621,                  // fraction 0..1 (Coulomb-counted estimate of the active run)
+//      "surface_c": 30.4, "ambient_c": 30.0, "t1_c": 30.9, "t2_c": 30.7, "heat_flux_w_per_m2": 41.2}
+//
+// Terminal run states are "completed", "stopped" (by the operator) and "failed" (see "error").
+#include <algorithm>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <stdexcept>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+namespace cellbench::daemon {
+
+// Base of the errors the server maps to a status; what() is the message shown to the client.
+class ApiError : public std::runtime_error {
+public:
+    ApiError(int status, const std::string& message) : std::runtime_error(message), status_(status) {}
+    [[nodiscard]] int status() const { return status_; }
+
+private:
+    int status_;
+};
+// 404: unknown run id (or other missing resource).
+struct NotFound : ApiError {
+    explicit NotFound(const std::string& m) : ApiError(404, m) {}
+};
+// 400: a request the backend cannot accept as given (unknown program or cell name, bad range, ...).
+struct BadRequest : ApiError {
+    explicit BadRequest(const std::string& m) : ApiError(400, m) {}
+};
+// 409: the request conflicts with the bench's state (a run is already active, the run is not paused, ...).
+struct Conflict : ApiError {
+    explicit Conflict(const std::string& m) : ApiError(409, m) {}
+};
+// 503: the daemon cannot serve this now (instruments offline, database unavailable, shutting down).
+struct Unavailable : ApiError {
+    explicit Unavailable(const std::string& m) : ApiError(503, m) {}
+};
+
+using RunId = std::int64_t;
+
+// GET /runs/{id}/samples?from=&to=&max_points= ; the server validates the numbers (400 when malformed).
+struct SampleQuery {
+    std::optional<double> from_s;  // test time, inclusive; absent = from the start
+    std::optional<double> to_s;    // test time, inclusive; absent = to the latest sample
+    std::size_t max_points = 2000;  // 1..kMaxSamplePoints; above it the backend decimates
+};
+inline constexpr std::size_t kDefaultSamplePoints = 2000;
+inline constexpr std::size_t kMaxSamplePoints = 100000;
+
+// POST /runs body: {"program": "hppc", "cell": "p45b"} (names of files under config/). The server checks
+// that both are non-empty strings; `body` is the whole request object, for options added later.
+struct StartRequest {
+    std::string program;
+    std::string cell;
+    nlohmann::json body;
+};
+
+// A BDF CSV export being streamed. Pull-based so the server can write each chunk asynchronously with
+// backpressure (a slow client never makes the backend buffer a whole run in memory).
+class ExportCursor {
+public:
+    virtual ~ExportCursor() = default;
+    // The next piece of the CSV (the header row first), or std::nullopt at the end. Aim for 16-256 KiB per
+    // call. Called sequentially (never concurrently), possibly from different threads. An exception after
+    // the first chunk aborts the transfer (the client sees a truncated chunked response, not a short file).
+    virtual std::optional<std::string> next() = 0;
+};
+
+// An ExportCursor over text already in memory (small runs, tests); hands it out in 64 KiB pieces.
+class StringExportCursor final : public ExportCursor {
+public:
+    explicit StringExportCursor(std::string text) : text_(std::move(text)) {}
+    std::optional<std::string> next() override {
+        if (pos_ >= text_.size()) return std::nullopt;
+        const std::size_t n = std::min<std::size_t>(64 * 1024, text_.size() - pos_);
+        std::string piece = text_.substr(pos_, n);
+        pos_ += n;
+        return piece;
+    }
+
+private:
+    std::string text_;
+    std::size_t pos_ = 0;
+};
+
+class ApiBackend {
+public:
+    virtual ~ApiBackend() = default;
+
+    // GET /api/v1/health -> {"status": "ok" | "degraded", "version": "0.1.0", "uptime_s": 12.5}
+    // Cheap; must not touch instruments. "degraded" when an instrument is offline (still 200).
+    virtual nlohmann::json health() = 0;
+
+    // GET /api/v1/status ->
+    //   {"version": "0.1.0", "uptime_s": 12.5,
+    //    "instruments": [{"name": "neware", "kind": "cycler" | "chamber" | "daq",
+    //                     "state": "connected" | "connecting" | "offline" | "error",
+    //                     "address": "127.0.0.1:15020", "detail": "" }],
+    //    "run": Run | null,             // the active (running or paused) run, else null
+    //    "live": Live values}
+    virtual nlohmann::json status() = 0;
+
+    // GET /api/v1/runs -> {"runs": [Run, ...]}  newest first.
+    virtual nlohmann::json list_runs() = 0;
+
+    // GET /api/v1/runs/{id} -> Run. NotFound for an unknown id.
+    virtual nlohmann::json get_run(RunId id) = 0;
+
+    // GET /api/v1/runs/{id}/samples ->
+    //   {"run_id": 3, "from_s": 0.0, "to_s": 3600.0, "max_points": 2000,
+    //    "decimated": false,
+    //    "time_s": [...],                                      // test time of each row
+    //    "series": {"voltage_v": [...], "current_a": [...], "soc": [...], "surface_c": [...],
+    //               "ambient_c": [...], "t1_c": [...], "t2_c": [...], "heat_flux_w_per_m2": [...]}}
+    // When the range holds more than max_points rows, "decimated": true and the range is cut into at most
+    // max_points / 2 equal buckets: "bucket_s" is their width, "time_s" their start, and each series is
+    // {"min": [...], "max": [...]} per bucket (so a plot keeps every peak). Empty buckets are omitted.
+    // A series the bench does not measure is absent. NotFound for an unknown id.
+    virtual nlohmann::json samples(RunId id, const SampleQuery& query) = 0;
+
+    // GET /api/v1/runs/{id}/events ->
+    //   {"run_id": 3, "events": [{"time_unix_s": 1.7e9, "test_time_s": 12.0,
+    //                             "level": "info" | "warning" | "error",
+    //                             "kind": "step_started" | "limit" | "instrument" | ...,
+    //                             "step": 12 | null, "message": "plain words"}]}
+    virtual nlohmann::json events(RunId id) = 0;
+
+    // GET /api/v1/runs/{id}/fits -> one entry per completed HPPC pulse set (INTERFACES.md):
+    //   {"run_id": 3, "fits": [{"pulse_set": 1, "test_time_s": 4200.0, "soc": 0.9, "ocv_v": 4.05,
+    //     "discharge": {"r0_ohm": 0.0, "r1_ohm": 0.0, "c1_f": 0.0, "r2_ohm": 0.0, "c2_f": 0.0} | null,
+    //     "charge":    {"r0_ohm": 0.0, "r1_ohm": 0.0, "c1_f": 0.0, "r2_ohm": 0.0, "c2_f": 0.0} | null}]}
+    virtual nlohmann::json fits(RunId id) = 0;
+
+    // GET /api/v1/runs/{id}/export.bdf.csv -> the run as BDF CSV (INTERFACES.md), streamed.
+    // Throw NotFound here (before any data) for an unknown id, so the client gets a proper 404.
+    virtual std::unique_ptr<ExportCursor> export_bdf_csv(RunId id) = 0;
+
+    // POST /api/v1/runs -> 201 with the new Run (state "starting" or "running").
+    // Conflict when a run is already active; BadRequest for an unknown program or cell (say where the
+    // files are looked for); Unavailable when the instruments are not ready.
+    virtual nlohmann::json start_run(const StartRequest& request) = 0;
+
+    // POST /api/v1/runs/{id}/stop|pause|resume -> Run after the change (stop: "stopped" or still
+    // "running" while the safe shutdown step runs). NotFound for an unknown id; Conflict when the run is
+    // not in a state that allows it (stop of a finished run, resume of a run that is not paused).
+    virtual nlohmann::json stop_run(RunId id) = 0;
+    virtual nlohmann::json pause_run(RunId id) = 0;
+    virtual nlohmann::json resume_run(RunId id) = 0;
+
+    // GET /metrics: the backend's Prometheus text exposition (format 0.0.4), one "# HELP"/"# TYPE" pair
+    // per family, e.g. `cellbench_cell_voltage_volts 3.712`. The server appends its own HTTP counters.
+    virtual std::string metrics_text() { return {}; }
+};
+
+}  // namespace cellbench::daemon

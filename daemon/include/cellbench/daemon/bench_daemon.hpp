@@ -1,0 +1,86 @@
+#pragma once
+// cellbenchd's bench: from a BenchConfig it hosts the simulated instruments (when the config says
+// "simulated"), connects the real drivers to them (or to real instruments), adapts the drivers to the
+// sequencer's interfaces, feeds every reading into the sequencer and the run store on one clock, and serves
+// the REST API (ApiBackend) through the HTTP server.
+//
+// Clock: every reading is stamped in bench seconds of one BenchClock (the simulated instruments' clock, so a
+// time-scaled simulation and the daemon agree on "now"; scale 1 for real instruments), converted from the
+// driver's steady_clock receive instant. Store rows carry t_s = bench time - run start, plus wall time.
+//
+// Threading: one io_context run by a few threads (drivers, HTTP, tick timer). The sequencer serialises its own
+// calls; the daemon's own locks are leaves (never held while calling the sequencer from a sink callback).
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "cellbench/daemon/api.hpp"
+#include "cellbench/daemon/config.hpp"
+#include "cellbench/daemon/run_store.hpp"
+
+namespace cellbench::sim {
+class BenchPlant;
+}
+
+namespace cellbench::daemon {
+
+struct BenchDaemonOptions {
+    std::optional<Endpoint> listen;               // overrides BenchConfig::listen (port 0 = any free port)
+    std::optional<std::filesystem::path> db_path; // overrides BenchConfig::database.path
+    std::string token;                            // API bearer token; empty = mutating endpoints refused
+    std::optional<double> time_scale;             // overrides simulation.time_scale
+    std::optional<std::string> daq_socket_path;   // overrides the can-dgram socket path (tests: a temp path)
+    std::optional<double> daq_sample_rate_hz;     // simulated DEWE rate in bench Hz (default 10)
+    int io_threads = 2;
+};
+
+class BenchDaemon final : public ApiBackend {
+public:
+    BenchDaemon(BenchConfig config, BenchDaemonOptions options = {});
+    ~BenchDaemon() override;  // shutdown()
+    BenchDaemon(const BenchDaemon&) = delete;
+    BenchDaemon& operator=(const BenchDaemon&) = delete;
+
+    // Opens the store, hosts the simulated instruments, connects the drivers, recovers interrupted runs
+    // (instruments commanded safe, one recovery event per run), starts the tick timer and the HTTP server.
+    // Throws (InputError / std::runtime_error) when any of that cannot be done.
+    void start();
+    // Stops the active run (current off, chamber to its safe set point), flushes and closes the store, stops
+    // drivers, servers and the HTTP listener. Idempotent.
+    void shutdown();
+
+    [[nodiscard]] std::string api_url() const;              // "http://127.0.0.1:8750/api/v1"
+    [[nodiscard]] std::uint16_t http_port() const;          // bound port (after start)
+    [[nodiscard]] std::filesystem::path database_path() const;
+    [[nodiscard]] double bench_now_s() const;               // the daemon's clock
+    [[nodiscard]] double time_scale() const;
+    [[nodiscard]] RunStore& store();
+    // The simulated plant (nullptr when no instrument is simulated): tests inject faults through it.
+    [[nodiscard]] sim::BenchPlant* plant();
+    // The active (running or paused) run, if any.
+    [[nodiscard]] std::optional<RunId> active_run() const;
+
+    // ApiBackend (thread-safe).
+    nlohmann::json health() override;
+    nlohmann::json status() override;
+    nlohmann::json list_runs() override;
+    nlohmann::json get_run(RunId id) override;
+    nlohmann::json samples(RunId id, const SampleQuery& query) override;
+    nlohmann::json events(RunId id) override;
+    nlohmann::json fits(RunId id) override;
+    std::unique_ptr<ExportCursor> export_bdf_csv(RunId id) override;
+    nlohmann::json start_run(const StartRequest& request) override;
+    nlohmann::json stop_run(RunId id) override;
+    nlohmann::json pause_run(RunId id) override;
+    nlohmann::json resume_run(RunId id) override;
+    std::string metrics_text() override;
+
+    struct Impl;
+
+private:
+    std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace cellbench::daemon

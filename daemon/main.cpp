@@ -1,0 +1,92 @@
+// cellbenchd: runs the battery-cell test bench unattended (INTERFACES.md, "Daemon").
+//   cellbenchd --config FILE [--listen HOST:PORT] [--db PATH] [--token TOKEN] [--time-scale X]
+// Exit status: 0 after a clean shutdown (SIGTERM/SIGINT), 1 bad configuration or failure to start, 2 usage.
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <optional>
+#include <string>
+
+#include <CLI/CLI.hpp>
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/signal_set.hpp>
+#include <spdlog/spdlog.h>
+
+#include "cellbench/daemon/bench_daemon.hpp"
+#include "cellbench/daemon/config.hpp"
+#include "cellbench/daemon/http_server.hpp"
+
+using namespace cellbench;
+
+int main(int argc, char** argv) {
+    CLI::App app{"cellbenchd: the battery-cell test bench daemon (REST/JSON API under /api/v1)"};
+    std::string config = "config/bench.sim.json";
+    std::string listen, db, token;
+    std::optional<double> time_scale;
+    bool verbose = false, quiet = false;
+    app.add_option("--config", config, "Bench configuration (cellbench.bench/1)")->capture_default_str();
+    app.add_option("--listen", listen, "API address HOST:PORT (default: the config's listen, 127.0.0.1:8750)");
+    app.add_option("--db", db, "SQLite database of the runs (default: the config's database.path)");
+    app.add_option("--token", token, "API bearer token for POST endpoints (default: $CELLBENCH_TOKEN)");
+    app.add_option("--time-scale", time_scale, "Bench seconds per wall second of the simulated instruments")
+        ->check(CLI::PositiveNumber);
+    app.add_flag("-v,--verbose", verbose, "Debug logging");
+    app.add_flag("-q,--quiet", quiet, "Warnings and errors only");
+    try {
+        app.parse(argc, argv);
+    } catch (const CLI::ParseError& e) {
+        const int code = app.exit(e);
+        return code == 0 ? 0 : 2;
+    }
+    spdlog::set_level(quiet ? spdlog::level::warn : verbose ? spdlog::level::debug : spdlog::level::info);
+
+    daemon::BenchConfig cfg;
+    daemon::BenchDaemonOptions opt;
+    try {
+        cfg = daemon::load_bench_config(config);
+        if (!listen.empty()) {
+            const auto ep = daemon::parse_endpoint(listen);
+            if (!ep) {
+                std::fprintf(stderr, "cellbenchd: --listen: expected HOST:PORT, got \"%s\"\n", listen.c_str());
+                return 2;
+            }
+            opt.listen = *ep;
+        }
+    } catch (const InputError& e) {  // ConfigError lists every problem, one per line
+        std::fprintf(stderr, "cellbenchd: bad configuration:\n%s\n", e.what());
+        return 1;
+    }
+    if (!db.empty()) opt.db_path = db;
+    opt.time_scale = time_scale;
+    opt.token = token;
+    if (opt.token.empty()) {
+        const char* env = std::getenv(cfg.token_env.empty() ? "CELLBENCH_TOKEN" : cfg.token_env.c_str());
+        if (env) opt.token = env;
+    }
+    if (opt.token.empty())
+        spdlog::warn("no API token (--token or ${}): POST endpoints are refused", cfg.token_env);
+
+    try {
+        daemon::BenchDaemon bench(cfg, opt);
+        bench.start();
+        std::printf("cellbenchd: API %s\ncellbenchd: database %s\n", bench.api_url().c_str(),
+                    bench.database_path().string().c_str());
+        std::fflush(stdout);
+
+        // Signals on their own io_context in the main thread: the daemon's threads never block on them.
+        boost::asio::io_context signals_io;
+        boost::asio::signal_set signals(signals_io, SIGINT, SIGTERM);
+        signals.async_wait([&](const boost::system::error_code& ec, int sig) {
+            if (!ec) spdlog::info("signal {}: shutting down", sig);
+        });
+        signals_io.run();
+        bench.shutdown();
+    } catch (const InputError& e) {
+        std::fprintf(stderr, "cellbenchd: %s\n", e.what());
+        return 1;
+    } catch (const std::exception& e) {
+        std::fprintf(stderr, "cellbenchd: cannot start: %s\n", e.what());
+        return 1;
+    }
+    return 0;
+}

@@ -1,0 +1,1257 @@
+#include "cellbench/daemon/bench_daemon.hpp"
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <deque>
+#include <functional>
+#include <fstream>
+#include <mutex>
+#include <sstream>
+#include <thread>
+#include <vector>
+
+#include <boost/asio/executor_work_guard.hpp>
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/post.hpp>
+#include <boost/asio/steady_timer.hpp>
+#include <spdlog/spdlog.h>
+
+#include "cellbench/daemon/http_server.hpp"
+#include "cellbench/drivers/can_transport.hpp"
+#include "cellbench/drivers/chamber_client.hpp"
+#include "cellbench/drivers/dewe_driver.hpp"
+#include "cellbench/drivers/neware_client.hpp"
+#include "cellbench/estimator/params.hpp"
+#include "cellbench/protocol/bdf_csv.hpp"
+#include "cellbench/protocol/neware_stepfile.hpp"
+#include "cellbench/sequencer/sequencer.hpp"
+#include "cellbench/sim/chamber_server.hpp"
+#include "cellbench/sim/dewe_publisher.hpp"
+#include "cellbench/sim/neware_server.hpp"
+#include "cellbench/sim/plant.hpp"
+
+namespace cellbench::daemon {
+
+namespace asio = boost::asio;
+using nlohmann::json;
+using SteadyClock = std::chrono::steady_clock;
+
+namespace {
+
+constexpr const char* kVersion = "0.1.0";
+
+double unix_now_s() {
+    return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+}
+// Wall (UTC) time of a steady_clock instant in the recent past.
+double unix_at(SteadyClock::time_point t) {
+    return unix_now_s() - std::chrono::duration<double>(SteadyClock::now() - t).count();
+}
+json nullable(double x) { return std::isfinite(x) ? json(x) : json(nullptr); }
+
+// A bench-time period as a wall timer period (the simulation runs time_scale bench s per wall s), >= 1 ms.
+std::chrono::milliseconds wall_period(double bench_ms, double scale, double min_ms = 1.0) {
+    return std::chrono::milliseconds(static_cast<std::int64_t>(std::max(min_ms, std::round(bench_ms / scale))));
+}
+
+estimator::ParameterSet load_param_file(const std::filesystem::path& path) {
+    std::ifstream in(path);
+    if (!in) throw InputError(path.string() + ": cannot read the parameter set");
+    json j;
+    try {
+        j = json::parse(in);
+    } catch (const json::parse_error& e) {
+        throw InputError(path.string() + ": invalid JSON: " + e.what());
+    }
+    return estimator::ParameterSet::from_json(j, path.string());
+}
+
+sequencer::Program to_sequencer_program(const Program& p) {
+    sequencer::Program out;
+    out.name = p.name;
+    for (const auto& seg : p.segments) {
+        sequencer::Segment s;
+        if (const auto* c = std::get_if<CyclerSegment>(&seg)) {
+            s.kind = sequencer::Segment::Kind::Cycler;
+            s.program = c->program;
+            s.name = c->program.name;
+        } else if (const auto* sp = std::get_if<ChamberSetpointSegment>(&seg)) {
+            s.kind = sequencer::Segment::Kind::ChamberSetpoint;
+            s.setpoint_c = sp->setpoint_c;
+            s.name = "chamber set point";
+        } else if (const auto* w = std::get_if<WaitEquilibriumSegment>(&seg)) {
+            // abort_on_timeout = false is not supported by the sequencer: a timeout always aborts (safe side).
+            s.kind = sequencer::Segment::Kind::WaitEquilibrium;
+            s.tolerance_c = w->tolerance_c;
+            s.hold_s = w->hold_s;
+            s.timeout_s = w->timeout_s;
+            s.name = "wait for thermal equilibrium";
+        }
+        out.segments.push_back(std::move(s));
+    }
+    return out;
+}
+
+RunState store_state(sequencer::RunState s) {
+    switch (s) {
+        case sequencer::RunState::Running: return RunState::running;
+        case sequencer::RunState::Paused: return RunState::paused;
+        case sequencer::RunState::Completed: return RunState::completed;
+        case sequencer::RunState::Aborted: return RunState::aborted;
+        case sequencer::RunState::Stopped: return RunState::stopped;
+        case sequencer::RunState::Idle: break;
+    }
+    return RunState::starting;
+}
+
+EventLevel event_level(const std::string& severity) {
+    if (severity == "info") return EventLevel::info;
+    if (severity == "warning") return EventLevel::warning;
+    return EventLevel::error;  // "alarm", "error"
+}
+
+// The API's run states: the store's aborted/interrupted are "failed" (with the reason as "error").
+std::string api_state(RunState s) {
+    switch (s) {
+        case RunState::aborted:
+        case RunState::interrupted: return "failed";
+        default: return std::string(to_string(s));
+    }
+}
+
+bool live_state(RunState s) { return s == RunState::starting || s == RunState::running || s == RunState::paused; }
+
+std::string safe_name(std::string s) {
+    for (char& c : s)
+        if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_') c = '_';
+    return s;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------------
+// One run: the sequencer, the sink that writes what it reports to the store, and the step bookkeeping.
+
+struct RunContext final : sequencer::RunSink {
+    RunStore& store;
+    RunId id;
+    double start_bench_s;            // bench time at which the run started (t_s = bench - this)
+    std::string cell_name;
+    std::vector<int> steps_per_segment;
+    std::unique_ptr<sequencer::Sequencer> seq;
+
+    std::atomic<bool> live{true};
+    std::atomic<int> seq_state{static_cast<int>(sequencer::RunState::Running)};
+
+    // Leaf lock: sink callbacks (under the sequencer's lock) and sample handlers.
+    mutable std::mutex m;
+    int step_index = 0;
+    std::optional<StepRecord> open_step;
+    struct StepStart {
+        double t_s;
+        std::string type;
+        double q_ah;  // Coulomb count at the step's start
+        bool used = false;
+    };
+    std::vector<StepStart> step_starts;
+    int pulse_sets = 0;
+    double soc_q_ah = 0.0, last_cycler_t_s = kNaN;  // Coulomb count from the run start (full cell = 1)
+    double capacity_ah = 4.5;
+    double last_capacity_ah = kNaN, last_energy_wh = kNaN;
+
+    RunContext(RunStore& s, RunId run, double start, std::string cell)
+        : store(s), id(run), start_bench_s(start), cell_name(std::move(cell)) {}
+
+    double rel(double t_bench) const { return t_bench - start_bench_s; }
+
+    void on_state(sequencer::RunState state, const std::string& reason) override {
+        seq_state = static_cast<int>(state);
+        const RunState st = store_state(state);
+        if (is_terminal(st)) {
+            live = false;
+            std::lock_guard lock(m);
+            close_step_locked(unix_now_s(), last_cycler_t_s, state == sequencer::RunState::Completed ? "end" : "stopped");
+        }
+        store.set_run_state(id, st, reason);
+        spdlog::info("run {}: {} ({})", id, sequencer::to_string(state), reason);
+    }
+
+    void close_step_locked(double unix_s, double t_s, const std::string& why) {
+        if (!open_step) return;
+        open_step->ended_t_s = std::isfinite(t_s) ? t_s : open_step->started_t_s;
+        open_step->ended_unix_s = unix_s;
+        if (std::isfinite(last_capacity_ah)) open_step->capacity_ah = std::abs(last_capacity_ah);
+        if (std::isfinite(last_energy_wh)) open_step->energy_wh = std::abs(last_energy_wh);
+        open_step->end_reason = why;
+        store.record_step(id, *open_step);
+        open_step.reset();
+    }
+
+    void on_step(double t_mono_s, int segment, int step_id, int cycle_id, const std::string& step_type) override {
+        std::lock_guard lock(m);
+        const double t = rel(t_mono_s), u = unix_now_s();
+        close_step_locked(u, t, "next step");
+        StepRecord r;
+        r.index = ++step_index;
+        r.segment = segment;
+        r.step_id = step_id;
+        r.cycle = cycle_id;
+        r.type = step_type;
+        r.started_t_s = t;
+        r.started_unix_s = u;
+        store.record_step(id, r);
+        open_step = r;
+        step_starts.push_back({t, step_type, soc_q_ah});
+    }
+
+    void on_event(double t_mono_s, const std::string& severity, const std::string& kind,
+                  const std::string& message) override {
+        EventRecord e;
+        e.run_id = id;
+        e.unix_s = unix_now_s();
+        e.t_s = rel(t_mono_s);
+        e.level = event_level(severity);
+        e.kind = kind;
+        {
+            std::lock_guard lock(m);
+            if (open_step) e.step = open_step->index;
+        }
+        e.message = message;
+        store.record_event(e);
+        if (e.level == EventLevel::error) spdlog::warn("run {}: {}: {}", id, kind, message);
+    }
+
+    void on_pulse_fit(const estimator::PulseSetFit& fit) override {
+        // The fit carries row indices of the sequencer's window, not times: the pulse set starts with the
+        // first unused non-rest step whose duration matches the discharge pulse.
+        double t_s = kNaN, soc = fit.soc;
+        int n = 0;
+        {
+            std::lock_guard lock(m);
+            n = ++pulse_sets;
+            const double want = fit.pulse_set.discharge_duration_s;
+            double q_full = 0.0;  // no full charge seen yet: the run started full (as the sequencer assumes)
+            for (std::size_t k = 0; k + 1 < step_starts.size(); ++k) {
+                auto& s = step_starts[k];
+                const auto& next = step_starts[k + 1];
+                const double dur = next.t_s - s.t_s;
+                // A full charge: a step charging (mean current over 0.1 A) for longer than any pulse; its end
+                // is SOC 1. (The sequencer's own SOC restarts at the end of any CV phase, which the charge
+                // pulses at high SOC also have, so its SOC of later pulse sets is 0.1 too high.)
+                if (dur > 300.0 && (next.q_ah - s.q_ah) * 3600.0 / dur > 0.1) q_full = next.q_ah;
+                if (s.used || s.type == "rest" || !(std::abs(dur - want) <= std::max(2.0, 0.05 * want))) continue;
+                s.used = true;
+                t_s = s.t_s;
+                soc = std::clamp(1.0 + (s.q_ah - q_full) / capacity_ah, 0.0, 1.0);
+                break;
+            }
+        }
+        estimator::PulseSetFit f = fit;
+        f.soc = soc;
+        auto rec = pulse_fit_record(id, n, t_s, kNaN, f);
+        if (rec.detail.is_object() || rec.detail.is_null()) rec.detail["sequencer_soc"] = fit.soc;
+        store.record_pulse_fit(rec);
+        const auto d = fit.chosen_discharge();
+        spdlog::info("run {}: pulse set {} fitted: SOC {:.3f}, R0 discharge {:.3f} mOhm", id, n, soc,
+                     d.r0_ohm * 1e3);
+    }
+
+    void on_parameter_set(const estimator::ParameterSet& params, const json& summary) override {
+        ParameterSetRecord r;
+        r.run_id = id;
+        r.created_unix_s = unix_now_s();
+        r.cell = cell_name;
+        r.params = params.to_json();
+        store.record_parameter_set(r);
+        EventRecord e;
+        e.run_id = id;
+        e.unix_s = r.created_unix_s;
+        e.kind = "fit";
+        e.message = "parameter set fitted from the run";
+        e.detail = summary;
+        store.record_event(e);
+    }
+
+    // Coulomb count of the run (the API's live SOC).
+    double count_soc(double t_s, double current_a) {
+        std::lock_guard lock(m);
+        if (std::isfinite(last_cycler_t_s) && t_s > last_cycler_t_s && std::isfinite(current_a))
+            soc_q_ah += current_a * (t_s - last_cycler_t_s) / 3600.0;
+        last_cycler_t_s = t_s;
+        return std::clamp(1.0 + soc_q_ah / capacity_ah, 0.0, 1.0);
+    }
+
+    json step_json(double t_s) const {
+        std::lock_guard lock(m);
+        if (!open_step) return nullptr;
+        const auto seg = static_cast<std::size_t>(open_step->segment);
+        return {{"index", open_step->step_id},
+                {"count", seg < steps_per_segment.size() ? steps_per_segment[seg] : 0},
+                {"type", open_step->type},
+                {"run_step", open_step->index},
+                {"elapsed_s", std::isfinite(t_s) ? std::max(0.0, t_s - open_step->started_t_s) : 0.0}};
+    }
+};
+
+// ---------------------------------------------------------------------------------------------------------
+
+struct BenchDaemon::Impl {
+    BenchConfig cfg;
+    BenchDaemonOptions opt;
+    std::shared_ptr<const sim::BenchClock> clock;
+    double scale = 1.0;
+    SteadyClock::time_point started_at = SteadyClock::now();
+
+    asio::io_context io;
+    std::optional<asio::executor_work_guard<asio::io_context::executor_type>> guard;
+    std::vector<std::thread> threads;
+    std::unique_ptr<asio::steady_timer> tick_timer;
+
+    // The sequencer is fed on its own thread, in arrival order. Its work at a step change (segmenting the run so
+    // far, copying the window for a fit) takes tens of ms; on the drivers' strands that would delay the next
+    // cycler poll, and at a high time scale the first reading after a current step would come late (R0 high).
+    std::mutex feed_m;
+    std::condition_variable feed_cv;
+    std::deque<std::function<void()>> feed_q;
+    bool feed_stop = false;
+    std::thread feed_thread;
+
+    void feed(std::function<void()> job) {
+        {
+            std::lock_guard l(feed_m);
+            feed_q.push_back(std::move(job));
+        }
+        feed_cv.notify_one();
+    }
+    void feed_loop() {
+        std::unique_lock l(feed_m);
+        while (true) {
+            feed_cv.wait(l, [&] { return feed_stop || !feed_q.empty(); });
+            if (feed_q.empty()) return;  // stopping and drained
+            auto job = std::move(feed_q.front());
+            feed_q.pop_front();
+            l.unlock();
+            try {
+                job();
+            } catch (const std::exception& e) {
+                spdlog::error("sequencer: {}", e.what());
+            }
+            l.lock();
+        }
+    }
+
+    std::unique_ptr<RunStore> store;
+    std::filesystem::path db_path;
+
+    // Simulated instruments.
+    std::optional<sim::BenchPlant> plant;
+    std::unique_ptr<sim::NewareServer> neware_server;
+    std::unique_ptr<sim::ChamberServer> chamber_server;
+    std::unique_ptr<sim::DewePublisher> dewe_publisher;
+    std::string daq_path;
+
+    // Drivers.
+    std::unique_ptr<drivers::NewareClient> neware;
+    std::unique_ptr<drivers::ChamberClient> chamber;
+    std::unique_ptr<drivers::DeweDriver> dewe;
+    std::string neware_address, chamber_address, daq_address;
+    std::filesystem::path step_file_dir;  // real tester: where compiled step files are written
+
+    std::unique_ptr<HttpServer> http;
+    std::uint16_t bound_port = 0;
+
+    // Instruments' state and live values (leaf lock).
+    mutable std::mutex live_m;
+    std::string neware_state = "connecting", chamber_state = "connecting", daq_state = "connecting";
+    std::string neware_detail, chamber_detail, daq_detail;
+    std::optional<CyclerSample> live_cycler;
+    std::optional<DaqSample> live_daq;
+    std::optional<ChamberSample> live_chamber;
+    double live_soc = kNaN;
+
+    // Runs: run_m serialises the control operations (start/stop/pause/resume/shutdown); ctx_m guards the
+    // pointer only (a leaf: sample handlers and sinks take it briefly).
+    std::mutex run_m;
+    mutable std::mutex ctx_m;
+    std::shared_ptr<RunContext> ctx;  // the latest run (active or finished, until the next one starts)
+    std::atomic<bool> stopping{false};
+    bool shut = false;
+
+    // Adapters from the sequencer's interfaces to the drivers.
+    struct CyclerAdapter final : sequencer::Cycler {
+        Impl& d;
+        explicit CyclerAdapter(Impl& impl) : d(impl) {}
+        void start(const protocol::StepProgram& program, const std::string& barcode) override { d.cycler_start(program, barcode); }
+        void stop() override { d.cycler_stop("stop"); }
+        void pause() override {
+            d.neware->pause_program([&d = d](const drivers::NewareCommandResult& r) { d.command_result("pause", r); });
+        }
+        void resume() override {
+            d.neware->continue_program([&d = d](const drivers::NewareCommandResult& r) { d.command_result("continue", r); });
+        }
+    } cycler_adapter{*this};
+
+    struct ChamberAdapter final : sequencer::Chamber {
+        Impl& d;
+        explicit ChamberAdapter(Impl& impl) : d(impl) {}
+        void set_setpoint(double c) override {
+            d.chamber->set_temperature(c, [&d = d, c](const std::optional<drivers::ChamberFault>& f) {
+                if (f) d.instrument_fault("chamber", "set point " + std::to_string(c) + " degC: " + f->message, false);
+            });
+        }
+        void set_running(bool running) override {
+            d.chamber->set_running(running, [&d = d](const std::optional<drivers::ChamberFault>& f) {
+                if (f) d.instrument_fault("chamber", "run/stop: " + f->message, false);
+            });
+        }
+    } chamber_adapter{*this};
+
+    Impl(BenchConfig c, BenchDaemonOptions o) : cfg(std::move(c)), opt(std::move(o)) {
+        if (cfg.simulation) scale = opt.time_scale.value_or(cfg.simulation->time_scale);
+        if (!(scale > 0) || !std::isfinite(scale)) throw InputError("time scale: expected a positive number");
+        clock = std::make_shared<const sim::BenchClock>(scale, 0.0);
+        db_path = opt.db_path.value_or(cfg.database.path);
+        if (opt.listen) cfg.listen = *opt.listen;
+    }
+
+    double now_s() const { return clock->now_s(); }
+    double bench_at(SteadyClock::time_point t) const { return clock->at(t); }
+
+    std::shared_ptr<RunContext> current() const {
+        std::lock_guard lock(ctx_m);
+        return ctx;
+    }
+    std::shared_ptr<RunContext> active() const {
+        auto c = current();
+        return c && c->live ? c : nullptr;
+    }
+
+    // -- bench-level events (no run) and instrument faults ---------------------------------------------------
+    void bench_event(EventLevel level, const std::string& kind, const std::string& message, json detail = nullptr,
+                     std::optional<RunId> run = std::nullopt) {
+        if (!store) return;
+        EventRecord e;
+        e.run_id = run;
+        e.unix_s = unix_now_s();
+        e.level = level;
+        e.kind = kind;
+        e.message = message;
+        e.detail = std::move(detail);
+        try {
+            store->record_event(e);
+        } catch (const std::exception& ex) {
+            spdlog::warn("cannot record event: {}", ex.what());
+        }
+    }
+
+    void instrument_fault(const std::string& instrument, const std::string& message, bool safety_data_lost) {
+        if (auto c = active()) c->seq->on_fault(instrument, message, safety_data_lost, now_s());
+        else bench_event(EventLevel::warning, "instrument", instrument + ": " + message);
+    }
+
+    void command_result(const std::string& what, const drivers::NewareCommandResult& r) {
+        if (r.ok) {
+            spdlog::debug("neware {}: ok", what);
+            return;
+        }
+        spdlog::warn("neware {} failed: {}", what, r.error);
+        // A cycler that did not take a command: the run cannot be trusted to follow its program.
+        instrument_fault("neware", what + " not acknowledged: " + r.error, what == "start" || what == "stop");
+    }
+
+    // -- cycler ---------------------------------------------------------------------------------------------
+    void cycler_start(const protocol::StepProgram& program, const std::string& barcode) {
+        const std::string xml = protocol::compile_step_file(program);
+        std::string path;
+        if (neware_server) {
+            path = "C:\\cellbench\\" + safe_name(barcode) + ".xml";
+            neware_server->add_step_file(path, xml);
+        } else {
+            // A real BTS PC reads the step file by path: write it where that PC can see it.
+            std::filesystem::create_directories(step_file_dir);
+            const auto p = step_file_dir / (safe_name(barcode) + ".xml");
+            std::ofstream(p) << xml;
+            path = p.string();
+        }
+        spdlog::info("neware: starting step program '{}' ({} steps) from {}", program.name, program.steps.size(), path);
+        neware->start_program(path, barcode, [this](const drivers::NewareCommandResult& r) { command_result("start", r); });
+    }
+
+    void cycler_stop(const std::string& why) {
+        const double t_cmd = now_s();
+        neware->stop_program([this, t_cmd, why](const drivers::NewareCommandResult& r) {
+            if (!r.ok) return command_result("stop", r);
+            // When the tester confirmed: recorded so the reaction time of a safety stop is visible.
+            const double t_ack = now_s();
+            if (auto c = current()) {
+                EventRecord e;
+                e.run_id = c->id;
+                e.unix_s = unix_now_s();
+                e.t_s = c->rel(t_ack);
+                e.kind = "cycler";
+                e.message = "current off: the tester acknowledged the stop";
+                e.detail = {{"commanded_t_s", c->rel(t_cmd)}, {"acknowledged_t_s", c->rel(t_ack)}, {"why", why}};
+                store->record_event(e);
+            }
+        });
+    }
+
+    void on_neware_sample(const drivers::NewareSample& s) {
+        const double t = bench_at(s.time);
+        const auto& g = s.group;
+        sequencer::CyclerSample cs;
+        cs.t_mono_s = t;
+        cs.t_wall_s = unix_at(s.time);
+        cs.voltage_v = g.voltage_v;
+        cs.current_a = g.current_a;
+        cs.capacity_ah = g.capacity_ah;
+        cs.energy_wh = g.energy_wh;
+        cs.step_id = g.step_id;
+        cs.cycle_id = g.cycle_id;
+        cs.step_type = g.step_type;
+        cs.status = std::string(protocol::neware::to_string(g.status));
+
+        CyclerSample row;
+        row.unix_s = cs.t_wall_s;
+        row.voltage_v = g.voltage_v;
+        row.current_a = g.current_a;
+        row.capacity_ah = g.capacity_ah;
+        row.energy_wh = g.energy_wh;
+        row.step_id = g.step_id;
+        row.cycle = g.cycle_id;
+        row.step_type = g.step_type;
+        row.status = cs.status;
+
+        auto c = active();
+        if (c) {
+            row.t_s = c->rel(t);
+            row.soc = c->count_soc(row.t_s, g.current_a);
+            {
+                std::lock_guard lock(c->m);
+                c->last_capacity_ah = g.capacity_ah;
+                c->last_energy_wh = g.energy_wh;
+            }
+            feed([c, cs] { c->seq->on_cycler(cs); });
+            store->push(c->id, row);
+        }
+        std::lock_guard lock(live_m);
+        row.t_s = t;  // live: bench time
+        live_cycler = row;
+        live_soc = c ? row.soc : live_soc;
+    }
+
+    void on_neware_event(const drivers::NewareEvent& e) {
+        {
+            std::lock_guard lock(live_m);
+            switch (e.kind) {
+                case drivers::NewareEventKind::connected: neware_state = "connected"; neware_detail.clear(); break;
+                case drivers::NewareEventKind::disconnected:
+                case drivers::NewareEventKind::connect_failed: neware_state = "offline"; neware_detail = e.message; break;
+                case drivers::NewareEventKind::group_fault: neware_state = "error"; neware_detail = e.message; break;
+                default: neware_detail = e.message; break;
+            }
+        }
+        spdlog::log(e.kind == drivers::NewareEventKind::connect_failed ? spdlog::level::debug : spdlog::level::info,
+                    "neware: {}: {}", drivers::to_string(e.kind), e.message);
+        // A misbehaving parallel group (the client has stopped every member): the run must end, not advance.
+        if (e.kind == drivers::NewareEventKind::group_fault) instrument_fault("neware", e.message, true);
+        else if (e.kind == drivers::NewareEventKind::disconnected || e.kind == drivers::NewareEventKind::protocol_error)
+            instrument_fault("neware", std::string(drivers::to_string(e.kind)) + ": " + e.message, false);
+    }
+
+    // -- DAQ --------------------------------------------------------------------------------------------------
+    void on_dewe_sample(const drivers::DeweReading& r) {
+        const double t = bench_at(r.time);
+        sequencer::DaqSample ds{t, unix_at(r.time), r.thermopile_v, r.type_t_c, r.t1_c, r.t2_c, r.heat_flux_w_per_m2};
+        DaqSample row;
+        row.unix_s = ds.t_wall_s;
+        row.thermopile_v = r.thermopile_v;
+        row.surface_c = r.type_t_c;
+        row.t1_c = r.t1_c;
+        row.t2_c = r.t2_c;
+        row.heat_flux_w_per_m2 = r.heat_flux_w_per_m2;
+        row.sequence = static_cast<std::int64_t>(r.sequence);
+        if (auto c = active()) {
+            row.t_s = c->rel(t);
+            feed([c, ds] { c->seq->on_daq(ds); });
+            store->push(c->id, row);
+        }
+        std::lock_guard lock(live_m);
+        row.t_s = t;
+        live_daq = row;
+    }
+
+    void on_dewe_health(const drivers::DeweHealth& h) {
+        std::string state;
+        switch (h.state) {
+            case drivers::DeweStreamState::streaming: state = "connected"; break;
+            case drivers::DeweStreamState::waiting: state = "connecting"; break;
+            case drivers::DeweStreamState::silent: state = "offline"; break;
+            case drivers::DeweStreamState::stopped: state = "offline"; break;
+        }
+        bool changed = false;
+        {
+            std::lock_guard lock(live_m);
+            changed = state != daq_state;
+            daq_state = state;
+            daq_detail = h.message;
+        }
+        if (changed) spdlog::info("dewe: {} ({})", drivers::to_string(h.state), h.message);
+        // Silence is judged by the sequencer's grace period (tick); losses are worth a warning.
+        if (changed && h.state == drivers::DeweStreamState::silent) instrument_fault("dewe", h.message, false);
+    }
+
+    // -- chamber ----------------------------------------------------------------------------------------------
+    void on_chamber_status(const drivers::ChamberStatus& s) {
+        const double t = bench_at(s.time);
+        sequencer::ChamberSample cs{t, unix_at(s.time), s.process_value_c, s.setpoint_c, s.running.value_or(true),
+                                    s.alarm_word};
+        ChamberSample row;
+        row.unix_s = cs.t_wall_s;
+        row.ambient_c = s.process_value_c;
+        row.setpoint_c = s.setpoint_c;
+        row.running = s.running;
+        row.alarm_bits = s.alarm_word;
+        if (auto c = active()) {
+            row.t_s = c->rel(t);
+            feed([c, cs] { c->seq->on_chamber(cs); });
+            store->push(c->id, row);
+        }
+        std::lock_guard lock(live_m);
+        row.t_s = t;
+        live_chamber = row;
+        chamber_state = "connected";
+        chamber_detail.clear();
+    }
+
+    void on_chamber_fault(const drivers::ChamberFault& f) {
+        {
+            std::lock_guard lock(live_m);
+            chamber_state = f.kind == drivers::ChamberFaultKind::unreachable ? "offline" : "error";
+            chamber_detail = f.operation + ": " + f.message;
+        }
+        spdlog::warn("chamber: {} ({}): {}", drivers::to_string(f.kind), f.operation, f.message);
+        instrument_fault("chamber", std::string(drivers::to_string(f.kind)) + ": " + f.message, false);
+    }
+
+    // -- start ------------------------------------------------------------------------------------------------
+    void start() {
+        // Store first: nothing runs without somewhere to record it.
+        RunStoreOptions so;
+        so.flush_period = std::chrono::milliseconds(cfg.database.flush_period_ms);
+        so.queue_capacity_samples = cfg.database.queue_capacity_samples;
+        so.on_fault = [this](const StoreFault& f) {
+            spdlog::error("database: {}: {}", to_string(f.kind), f.message);
+            if (f.kind == StoreFaultKind::overflow) return;
+            // Never on the writer thread: aborting records events, which the writer must commit.
+            asio::post(io, [this, msg = f.message] { instrument_fault("database", msg, true); });
+        };
+        if (!db_path.parent_path().empty()) std::filesystem::create_directories(db_path.parent_path());
+        store = RunStore::open(db_path, so);
+        step_file_dir = std::filesystem::absolute(db_path).parent_path() / "stepfiles";
+
+        feed_thread = std::thread([this] { feed_loop(); });
+        guard.emplace(io.get_executor());
+        for (int k = 0; k < std::max(1, opt.io_threads); ++k) threads.emplace_back([this] { io.run(); });
+
+        host_simulation();
+        connect_drivers();
+        recover();
+
+        // Tick: silence and equilibrium timeouts; once per bench second, at most every 200 ms wall.
+        tick_timer = std::make_unique<asio::steady_timer>(io);
+        schedule_tick();
+
+        HttpServerOptions ho;
+        ho.host = cfg.listen.host;
+        ho.port = static_cast<std::uint16_t>(cfg.listen.port);
+        ho.token = opt.token;
+        http = std::make_unique<HttpServer>(io, outer_backend(), ho);
+        http->start();
+        bound_port = http->local_endpoint().port();
+        spdlog::info("cellbenchd: API {} (bench time x{})", api_url(), scale);
+    }
+
+    ApiBackend* backend = nullptr;  // the BenchDaemon (set by it)
+    ApiBackend& outer_backend() { return *backend; }
+
+    std::string api_url() const {
+        return "http://" + cfg.listen.host + ":" + std::to_string(bound_port ? bound_port : cfg.listen.port) + "/api/v1";
+    }
+
+    void host_simulation() {
+        if (!cfg.any_simulated()) return;
+        if (!cfg.simulation) throw InputError(cfg.source.string() + ": $.simulation: missing (simulated instruments need a cell)");
+        const auto& simc = *cfg.simulation;
+        auto params = load_param_file(simc.params_path);
+        if (!simc.hidden.empty()) {
+            // Hidden physics the simulated cell has and the model may not (same ids as `diagnose`).
+            auto ext = params.extensions.to_json();
+            for (const auto& [k, v] : simc.hidden.items()) ext[k] = v;
+            params.extensions = estimator::ModelExtensions::from_json(ext, cfg.source.string() + " $.simulation.hidden");
+        }
+        sim::PlantOptions po;
+        po.cell = params;
+        po.initial_soc = simc.initial_soc;
+        po.initial_temperature_c = simc.initial_temperature_c;
+        po.chamber_setpoint_c = simc.initial_temperature_c;
+        po.seed = simc.seed;
+        po.heat_flux_sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
+        // The plant's default air ripple is the chamber's worst-case constancy (+-0.5 K, a sine). The
+        // sequencer judges equilibrium on the instantaneous air, and the programs' tolerance is 0.5 K: a
+        // +-0.5 K sine never stays inside it for the 30 min hold. Simulate a chamber well within its spec.
+        po.chamber_ripple_c = std::min(po.chamber_ripple_c, 0.3);
+        plant.emplace(po);
+
+        if (cfg.cycler.mode == CyclerConfig::Mode::simulated) {
+            sim::NewareServerOptions no;
+            no.host = cfg.cycler.endpoint.host;
+            no.port = cfg.cycler.endpoint.port;
+            no.max_channel_current_a = cfg.cycler.channel_max_current_a;
+            no.cell_channels.clear();
+            for (const auto& ch : cfg.cycler.channels) no.cell_channels.push_back(ch.chlid);
+            if (!cfg.cycler.channels.empty()) {
+                const auto& a = cfg.cycler.channels.front();
+                no.ip = a.ip;
+                no.devtype = a.devtype;
+                no.devid = a.devid;
+                no.subdevid = a.subdevid;
+            }
+            // The tester's execution bursts (time_scale x timer period of bench time) bound how close to a
+            // current step the first reading after it can be: keep them near the poll period.
+            no.timer_period_ms = static_cast<int>(std::clamp<std::int64_t>(
+                wall_period(cfg.cycler.poll_period_ms, scale).count(), 1, 5));
+            neware_server = std::make_unique<sim::NewareServer>(*plant, clock, no);
+            neware_server->start();
+            spdlog::info("simulated neware {}", neware_server->description());
+        }
+        if (cfg.chamber.mode == ChamberConfig::Mode::simulated) {
+            sim::ChamberServerOptions co;
+            co.host = cfg.chamber.endpoint.host;
+            co.port = cfg.chamber.endpoint.port;
+            if (!cfg.chamber.register_map.is_null() && !cfg.chamber.register_map.empty())
+                co.map = protocol::ChamberRegisterMap::from_json(cfg.chamber.register_map,
+                                                                 cfg.source.string() + " $.instruments.chamber.register_map");
+            chamber_server = std::make_unique<sim::ChamberServer>(*plant, clock, co);
+            chamber_server->start();
+            spdlog::info("simulated chamber {}", chamber_server->description());
+        }
+        if (cfg.daq.mode == DaqConfig::Mode::simulated) {
+            drivers::CanEndpoint ep = daq_endpoint();
+            sim::DewePublisherOptions dopt;
+            if (!cfg.daq.layout.is_null() && !cfg.daq.layout.empty())
+                dopt.layout = protocol::DeweCanLayout::from_json(cfg.daq.layout, cfg.source.string() + " $.instruments.daq.layout");
+            if (opt.daq_sample_rate_hz) dopt.sample_rate_hz = *opt.daq_sample_rate_hz;
+            dewe_publisher = std::make_unique<sim::DewePublisher>(io, *plant, clock, drivers::open_can_publisher(io, ep), dopt);
+            dewe_publisher->start();
+            spdlog::info("simulated dewe {}", dewe_publisher->description());
+        }
+    }
+
+    drivers::CanEndpoint daq_endpoint() const {
+        drivers::CanEndpoint ep;
+        ep.kind = cfg.daq.transport == DaqConfig::Transport::socketcan ? drivers::CanEndpoint::Kind::socketcan
+                                                                       : drivers::CanEndpoint::Kind::can_dgram;
+        ep.name = ep.kind == drivers::CanEndpoint::Kind::socketcan ? cfg.daq.interface
+                                                                   : opt.daq_socket_path.value_or(cfg.daq.socket_path);
+        return ep;
+    }
+
+    void connect_drivers() {
+        // Cycler.
+        drivers::NewareClientOptions no;
+        no.host = cfg.cycler.endpoint.host;
+        no.port = neware_server ? neware_server->port() : cfg.cycler.endpoint.port;
+        no.members = cfg.cycler.channels;
+        no.poll_period = wall_period(cfg.cycler.poll_period_ms, scale);  // poll periods are bench time
+        no.request_timeout = std::chrono::milliseconds(cfg.cycler.response_timeout_ms);
+        no.group = cfg.cycler.group;
+        neware_address = no.host + ":" + std::to_string(no.port);
+        neware = std::make_unique<drivers::NewareClient>(io, no);
+        neware->on_sample([this](const drivers::NewareSample& s) { on_neware_sample(s); });
+        neware->on_event([this](const drivers::NewareEvent& e) { on_neware_event(e); });
+        neware->start();
+
+        // Chamber.
+        drivers::ChamberClientOptions co;
+        co.host = cfg.chamber.endpoint.host;
+        co.port = chamber_server ? chamber_server->port() : cfg.chamber.endpoint.port;
+        co.unit_id = cfg.chamber.unit_id;
+        if (!cfg.chamber.register_map.is_null() && !cfg.chamber.register_map.empty())
+            co.map = protocol::ChamberRegisterMap::from_json(cfg.chamber.register_map,
+                                                             cfg.source.string() + " $.instruments.chamber.register_map");
+        co.poll_interval = wall_period(cfg.chamber.poll_period_ms, scale);
+        co.setpoint_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(30.0 * 60e3 / scale));
+        chamber_address = co.host + ":" + std::to_string(co.port);
+        chamber = std::make_unique<drivers::ChamberClient>(io, co);
+        chamber->on_status([this](const drivers::ChamberStatus& s) { on_chamber_status(s); });
+        chamber->on_fault([this](const drivers::ChamberFault& f) { on_chamber_fault(f); });
+        chamber->start();
+
+        // DAQ.
+        const auto ep = daq_endpoint();
+        daq_address = (ep.kind == drivers::CanEndpoint::Kind::socketcan ? "can " : "can-dgram ") + ep.name;
+        drivers::DeweDriverOptions dopt;
+        if (!cfg.daq.layout.is_null() && !cfg.daq.layout.empty())
+            dopt.layout = protocol::DeweCanLayout::from_json(cfg.daq.layout, cfg.source.string() + " $.instruments.daq.layout");
+        dopt.sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
+        dopt.area_m2 = cfg.daq.cell_area_m2;
+        dopt.silence_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(
+            std::max(200.0, 1000.0 * cfg.daq.stale_after_s / scale)));
+        std::shared_ptr<drivers::CanTransport> transport =
+            ep.kind == drivers::CanEndpoint::Kind::can_dgram
+                ? drivers::open_can_dgram_listener(io, ep.name, std::chrono::milliseconds(200))
+                : drivers::open_can_listener(io, ep);
+        dewe = std::make_unique<drivers::DeweDriver>(io, transport, dopt);
+        dewe->on_sample([this](const drivers::DeweReading& r) { on_dewe_sample(r); });
+        dewe->on_health([this](const drivers::DeweHealth& h) { on_dewe_health(h); });
+        dewe->start();
+    }
+
+    // Runs the daemon left live when it died: the bench is made safe first, then each gets a recovery event.
+    void recover() {
+        const auto ids = store->mark_interrupted_runs();
+        if (ids.empty()) return;
+        spdlog::warn("{} run(s) were live when the daemon stopped: current off, chamber to {:.1f} degC",
+                     ids.size(), cfg.chamber.safe_setpoint_c);
+        neware->stop_program([](const drivers::NewareCommandResult& r) {
+            if (!r.ok) spdlog::warn("recovery: cycler stop not acknowledged: {}", r.error);
+        });
+        chamber->set_temperature(cfg.chamber.safe_setpoint_c);
+        for (RunId id : ids)
+            bench_event(EventLevel::warning, "recovery",
+                        "the daemon restarted while this run was live; it is marked interrupted. The cycler was "
+                        "commanded to stop and the chamber to its safe set point.",
+                        {{"safe_setpoint_c", cfg.chamber.safe_setpoint_c}}, id);
+        store->flush();
+    }
+
+    void schedule_tick() {
+        const auto period = std::chrono::milliseconds(std::clamp<std::int64_t>(
+            static_cast<std::int64_t>(1000.0 / scale), 1, 200));
+        tick_timer->expires_after(period);
+        tick_timer->async_wait([this](const boost::system::error_code& ec) {
+            if (ec || stopping) return;
+            if (auto c = active()) feed([this, c] { c->seq->tick(now_s()); });
+            schedule_tick();
+        });
+    }
+
+    // -- runs -------------------------------------------------------------------------------------------------
+    sequencer::SafetyLimits limits_for(const CellConfig& cell) const {
+        sequencer::SafetyLimits l;
+        const auto& s = cfg.safety;
+        l.max_temperature_c = std::min(s.max_temperature_c, cell.max_temperature_c > 0 ? cell.max_temperature_c : s.max_temperature_c);
+        l.min_voltage_v = s.min_voltage_v;
+        l.max_voltage_v = s.max_voltage_v;
+        l.max_current_a = s.max_current_a;
+        l.chamber_deviation_c = s.chamber_deviation_c;
+        // Grace in bench time, but never below what the host can promise in wall time (1 s): at 1000x a 5 s
+        // grace would be 5 ms of wall time, which a loaded machine cannot guarantee.
+        l.instrument_loss_grace_s = std::max(s.instrument_loss_grace_s, scale * 1.0);
+        l.chamber_safe_setpoint_c = cfg.chamber.safe_setpoint_c;
+        return l;
+    }
+
+    json start_run(const StartRequest& req) {
+        std::lock_guard lock(run_m);
+        if (stopping) throw Unavailable("the daemon is shutting down");
+        if (active()) throw Conflict("run " + std::to_string(current()->id) + " is active; stop it first");
+        CellConfig cell;
+        Program program;
+        try {
+            cell = load_cell_config(cell_file(cfg.config_dir, req.cell));
+            program = load_program(program_file(cfg.config_dir, req.program), cell, {}, &cfg);
+        } catch (const InputError& e) {
+            throw BadRequest(std::string(e.what()) + " (programs and cells are looked up in " +
+                             (cfg.config_dir / "programs").string() + " and " + (cfg.config_dir / "cells").string() + ")");
+        }
+        {
+            std::lock_guard l(live_m);
+            if (neware_state != "connected") throw Unavailable("the cycler is not connected (" + neware_detail + ")");
+        }
+        sequencer::SequencerOptions so;
+        so.limits = limits_for(cell);
+        so.capacity_ah = cell.nominal_capacity_ah;
+        if (cell.params_path) {
+            try {
+                so.capacity_ah = load_param_file(*cell.params_path).capacity_ah;  // the characterised capacity
+            } catch (const std::exception& e) {
+                spdlog::warn("cell {}: {}; SOC uses the nominal capacity", cell.id, e.what());
+            }
+        }
+        so.area_m2 = cell.surface_area_m2 > 0 ? cell.surface_area_m2 : cfg.daq.cell_area_m2;
+
+        NewRun nr;
+        nr.program = req.program;
+        nr.cell = req.cell;
+        nr.config = {{"program", program.to_json()}, {"cell", cell.to_json()}, {"bench", cfg.document},
+                     {"time_scale", scale}};
+        nr.state = RunState::running;
+        const RunId id = store->create_run(nr);
+
+        // The previous run's fits must have reported before its context goes.
+        if (auto old = current()) old->seq->wait_for_fits();
+        const double t0 = now_s();
+        auto c = std::make_shared<RunContext>(*store, id, t0, cell.id);
+        c->capacity_ah = so.capacity_ah;
+        const auto sp = to_sequencer_program(program);
+        for (const auto& s : sp.segments) c->steps_per_segment.push_back(static_cast<int>(s.program.steps.size()));
+        c->seq = std::make_unique<sequencer::Sequencer>(cycler_adapter, chamber_adapter, *c, so);
+        {
+            std::lock_guard l(ctx_m);
+            ctx = c;
+        }
+        bench_event(EventLevel::info, "operator", "run started: program " + req.program + ", cell " + req.cell,
+                    {{"max_temperature_c", so.limits.max_temperature_c}, {"capacity_ah", so.capacity_ah}}, id);
+        try {
+            c->seq->start(sp, t0);
+        } catch (const std::exception& e) {
+            c->live = false;
+            store->set_run_state(id, RunState::aborted, e.what());
+            throw BadRequest(e.what());
+        }
+        spdlog::info("run {} started: program {} on cell {}", id, req.program, req.cell);
+        return run_json(id);
+    }
+
+    std::shared_ptr<RunContext> run_for_command(RunId id) {
+        if (!store->get_run(id)) throw NotFound("no run " + std::to_string(id));
+        auto c = active();
+        if (!c || c->id != id) throw Conflict("run " + std::to_string(id) + " is not active");
+        return c;
+    }
+
+    json stop_run(RunId id) {
+        std::lock_guard lock(run_m);
+        auto c = run_for_command(id);
+        c->seq->stop("stopped by the operator", now_s());
+        return run_json(id);
+    }
+    json pause_run(RunId id) {
+        std::lock_guard lock(run_m);
+        auto c = run_for_command(id);
+        try {
+            c->seq->pause(now_s());
+        } catch (const InputError& e) {
+            throw Conflict(e.what());
+        }
+        return run_json(id);
+    }
+    json resume_run(RunId id) {
+        std::lock_guard lock(run_m);
+        auto c = run_for_command(id);
+        try {
+            c->seq->resume(now_s());
+        } catch (const InputError& e) {
+            throw Conflict(e.what());
+        }
+        return run_json(id);
+    }
+
+    json run_json(const RunInfo& r) const {
+        json j = to_json(r);
+        j.erase("config");
+        // Commands land in the store's queue: a run we know is live is reported by its live state.
+        auto c = current();
+        RunState st = r.state;
+        if (c && c->id == r.id) {
+            const auto s = static_cast<sequencer::RunState>(c->seq_state.load());
+            if (s != sequencer::RunState::Idle) st = store_state(s);
+        }
+        j["state"] = api_state(st);
+        j["error"] = (st == RunState::aborted || st == RunState::interrupted) && !r.reason.empty() ? json(r.reason) : json(nullptr);
+        j["step"] = nullptr;
+        if (c && c->id == r.id && live_state(st)) {
+            std::optional<CyclerSample> lc;
+            {
+                std::lock_guard l(live_m);
+                lc = live_cycler;
+            }
+            j["step"] = c->step_json(lc ? c->rel(lc->t_s) : kNaN);
+        }
+        return j;
+    }
+    json run_json(RunId id) const {
+        const auto r = store->get_run(id);
+        if (!r) throw NotFound("no run " + std::to_string(id));
+        return run_json(*r);
+    }
+
+    // -- shutdown ---------------------------------------------------------------------------------------------
+    void shutdown() {
+        std::lock_guard lock(run_m);
+        if (shut) return;
+        shut = true;
+        stopping = true;
+        if (http) http->stop();
+        if (auto c = active()) {
+            spdlog::info("shutdown: stopping run {} (current off, chamber to {:.1f} degC)", c->id, cfg.chamber.safe_setpoint_c);
+            c->seq->stop("the daemon is shutting down", now_s());
+            // Give the tester and the chamber time to take the commands before the connections close.
+            wait_commands();
+        }
+        if (auto c = current()) c->seq->wait_for_fits();
+        if (tick_timer) tick_timer->cancel();
+        if (neware) neware->stop();
+        if (chamber) chamber->stop();
+        if (dewe) dewe->stop();
+        if (dewe_publisher) dewe_publisher->stop();
+        if (chamber_server) chamber_server->stop();
+        if (neware_server) neware_server->stop();
+        guard.reset();
+        io.stop();
+        for (auto& t : threads)
+            if (t.joinable()) t.join();
+        threads.clear();
+        {
+            std::lock_guard l(feed_m);
+            feed_stop = true;
+        }
+        feed_cv.notify_all();
+        if (feed_thread.joinable()) feed_thread.join();
+        if (store) {
+            store->flush();
+            store->close();
+        }
+        spdlog::info("cellbenchd stopped");
+    }
+
+    // Waits (bounded) until a stop request and a set point write have been answered.
+    void wait_commands() {
+        std::mutex m;
+        std::condition_variable cv;
+        int pending = 2;
+        auto done = [&] {
+            std::lock_guard l(m);
+            --pending;
+            cv.notify_all();
+        };
+        neware->request(protocol::neware::ChannelListRequest{protocol::neware::Command::getchlstatus, cfg.cycler.channels},
+                        [&](const auto&, const std::string&) { done(); });
+        chamber->read_status([&](const auto&, const auto&) { done(); });
+        std::unique_lock l(m);
+        cv.wait_for(l, std::chrono::seconds(3), [&] { return pending <= 0; });
+    }
+};
+
+// ---------------------------------------------------------------------------------------------------------
+
+BenchDaemon::BenchDaemon(BenchConfig config, BenchDaemonOptions options)
+    : impl_(std::make_unique<Impl>(std::move(config), std::move(options))) {
+    impl_->backend = this;
+}
+
+BenchDaemon::~BenchDaemon() {
+    try {
+        shutdown();
+    } catch (const std::exception& e) {
+        spdlog::error("shutdown: {}", e.what());
+    }
+}
+
+void BenchDaemon::start() {
+    try {
+        impl_->start();
+    } catch (...) {
+        impl_->shutdown();
+        throw;
+    }
+}
+void BenchDaemon::shutdown() { impl_->shutdown(); }
+std::string BenchDaemon::api_url() const { return impl_->api_url(); }
+std::uint16_t BenchDaemon::http_port() const { return impl_->bound_port; }
+std::filesystem::path BenchDaemon::database_path() const { return std::filesystem::absolute(impl_->db_path); }
+double BenchDaemon::bench_now_s() const { return impl_->now_s(); }
+double BenchDaemon::time_scale() const { return impl_->scale; }
+RunStore& BenchDaemon::store() { return *impl_->store; }
+sim::BenchPlant* BenchDaemon::plant() { return impl_->plant ? &*impl_->plant : nullptr; }
+std::optional<RunId> BenchDaemon::active_run() const {
+    if (auto c = impl_->active()) return c->id;
+    return std::nullopt;
+}
+
+json BenchDaemon::health() {
+    std::lock_guard l(impl_->live_m);
+    const bool ok = impl_->neware_state == "connected" && impl_->chamber_state == "connected" && impl_->daq_state == "connected";
+    return {{"status", ok ? "ok" : "degraded"},
+            {"version", kVersion},
+            {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - impl_->started_at).count()}};
+}
+
+json BenchDaemon::status() {
+    auto& d = *impl_;
+    json j = {{"version", kVersion},
+              {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - d.started_at).count()},
+              {"bench_time_s", d.now_s()},
+              {"time_scale", d.scale}};
+    auto c = d.active();
+    double t_rel = kNaN;
+    {
+        std::lock_guard l(d.live_m);
+        auto mode = [](bool simulated) { return simulated ? "simulated" : "real"; };
+        j["instruments"] = json::array({
+            {{"name", "neware"}, {"kind", "cycler"}, {"state", d.neware_state}, {"address", d.neware_address},
+             {"detail", d.neware_detail}, {"mode", mode(d.neware_server != nullptr)}},
+            {{"name", "chamber"}, {"kind", "chamber"}, {"state", d.chamber_state}, {"address", d.chamber_address},
+             {"detail", d.chamber_detail}, {"mode", mode(d.chamber_server != nullptr)}},
+            {{"name", "dewe"}, {"kind", "daq"}, {"state", d.daq_state}, {"address", d.daq_address},
+             {"detail", d.daq_detail}, {"mode", mode(d.dewe_publisher != nullptr)}},
+        });
+        json live = {{"time_unix_s", unix_now_s()}, {"test_time_s", nullptr}, {"voltage_v", nullptr},
+                     {"current_a", nullptr}, {"soc", nullptr}, {"surface_c", nullptr}, {"ambient_c", nullptr},
+                     {"t1_c", nullptr}, {"t2_c", nullptr}, {"heat_flux_w_per_m2", nullptr}};
+        if (d.live_cycler) {
+            live["voltage_v"] = nullable(d.live_cycler->voltage_v);
+            live["current_a"] = nullable(d.live_cycler->current_a);
+            live["time_unix_s"] = d.live_cycler->unix_s;
+            if (c) {
+                t_rel = c->rel(d.live_cycler->t_s);
+                live["test_time_s"] = t_rel;
+                live["soc"] = nullable(d.live_soc);
+            }
+        }
+        if (d.live_daq) {
+            live["surface_c"] = nullable(d.live_daq->surface_c);
+            live["t1_c"] = nullable(d.live_daq->t1_c);
+            live["t2_c"] = nullable(d.live_daq->t2_c);
+            live["heat_flux_w_per_m2"] = nullable(d.live_daq->heat_flux_w_per_m2);
+        }
+        if (d.live_chamber) {
+            live["ambient_c"] = nullable(d.live_chamber->ambient_c);
+            live["setpoint_c"] = nullable(d.live_chamber->setpoint_c);
+        }
+        j["live"] = std::move(live);
+    }
+    j["run"] = c ? d.run_json(c->id) : json(nullptr);
+    if (c) j["sequencer"] = c->seq->status();
+    return j;
+}
+
+json BenchDaemon::list_runs() {
+    json runs = json::array();
+    for (const auto& r : impl_->store->list_runs()) runs.push_back(impl_->run_json(r));
+    return {{"runs", std::move(runs)}};
+}
+
+json BenchDaemon::get_run(RunId id) { return impl_->run_json(id); }
+
+json BenchDaemon::samples(RunId id, const SampleQuery& q) {
+    if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));
+    if (q.from_s && q.to_s && *q.from_s > *q.to_s) throw BadRequest("from must not be after to");
+    const std::size_t max_points = std::clamp<std::size_t>(q.max_points, 2, kMaxSamplePoints);
+    const auto w = impl_->store->samples(id, q.from_s, q.to_s, max_points);
+    // The API's shape: one time base (the cycler's, or the bucket grid) with every series on it; DAQ and
+    // chamber values are the latest at or before each point (raw), or the bucket's min/max (decimated).
+    json j = {{"run_id", id}, {"from_s", nullable(w.from_s)}, {"to_s", nullable(w.to_s)},
+              {"max_points", max_points}, {"decimated", w.decimated}};
+    const SourceWindow* base = w.source("cycler");
+    if (!base && !w.sources.empty()) base = &w.sources.front();
+    json series = json::object();
+    std::vector<double> time_s = base ? base->time_s : std::vector<double>{};
+    struct Map {
+        const char* source;
+        const char* channel;
+        const char* api;
+    };
+    static const Map maps[] = {{"cycler", "voltage_v", "voltage_v"}, {"cycler", "current_a", "current_a"},
+                               {"cycler", "soc", "soc"},             {"daq", "surface_c", "surface_c"},
+                               {"chamber", "ambient_c", "ambient_c"}, {"daq", "t1_c", "t1_c"},
+                               {"daq", "t2_c", "t2_c"},              {"daq", "heat_flux_w_per_m2", "heat_flux_w_per_m2"}};
+    if (w.decimated) {
+        j["bucket_s"] = w.bucket_s;
+        // Buckets of the base source; other sources looked up by bucket index.
+        for (const auto& m : maps) {
+            const SourceWindow* s = w.source(m.source);
+            if (!s || !base) continue;
+            const std::size_t ch = s->channel(m.channel);
+            if (ch == std::string::npos) continue;
+            std::map<std::int64_t, std::size_t> at;
+            for (std::size_t k = 0; k < s->bucket.size(); ++k) at[s->bucket[k]] = k;
+            json mn = json::array(), mx = json::array();
+            for (std::size_t k = 0; k < base->bucket.size(); ++k) {
+                const auto it = at.find(base->bucket[k]);
+                mn.push_back(it == at.end() ? json(nullptr) : nullable(s->min[ch][it->second]));
+                mx.push_back(it == at.end() ? json(nullptr) : nullable(s->max[ch][it->second]));
+            }
+            series[m.api] = {{"min", std::move(mn)}, {"max", std::move(mx)}};
+        }
+    } else {
+        for (const auto& m : maps) {
+            const SourceWindow* s = w.source(m.source);
+            if (!s || !base) continue;
+            const std::size_t ch = s->channel(m.channel);
+            if (ch == std::string::npos) continue;
+            json v = json::array();
+            std::size_t k = 0;
+            for (double t : time_s) {
+                while (k + 1 < s->time_s.size() && s->time_s[k + 1] <= t) ++k;
+                const bool has = !s->time_s.empty() && s->time_s[k] <= t + 1e-9;
+                v.push_back(has ? nullable(s->min[ch][k]) : json(nullptr));
+            }
+            series[m.api] = std::move(v);
+        }
+    }
+    j["time_s"] = time_s;
+    j["series"] = std::move(series);
+    return j;
+}
+
+json BenchDaemon::events(RunId id) {
+    if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));
+    json ev = json::array();
+    for (const auto& e : impl_->store->events(id)) {
+        json x = to_json(e);
+        // The API's levels are info/warning/error.
+        ev.push_back(std::move(x));
+    }
+    return {{"run_id", id}, {"events", std::move(ev)}};
+}
+
+json BenchDaemon::fits(RunId id) {
+    if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));
+    json f = json::array();
+    for (const auto& r : impl_->store->pulse_fits(id)) f.push_back(to_json(r));
+    return {{"run_id", id}, {"fits", std::move(f)}};
+}
+
+std::unique_ptr<ExportCursor> BenchDaemon::export_bdf_csv(RunId id) {
+    if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));
+    const Recording rec = impl_->store->export_recording(id);
+    std::ostringstream out;
+    protocol::write_bdf_csv(out, rec);
+    return std::make_unique<StringExportCursor>(out.str());
+}
+
+json BenchDaemon::start_run(const StartRequest& request) { return impl_->start_run(request); }
+json BenchDaemon::stop_run(RunId id) { return impl_->stop_run(id); }
+json BenchDaemon::pause_run(RunId id) { return impl_->pause_run(id); }
+json BenchDaemon::resume_run(RunId id) { return impl_->resume_run(id); }
+
+std::string BenchDaemon::metrics_text() {
+    auto& d = *impl_;
+    std::ostringstream o;
+    auto gauge = [&](const char* name, const char* help, double v) {
+        if (!std::isfinite(v)) return;
+        o << "# HELP " << name << ' ' << help << "\n# TYPE " << name << " gauge\n" << name << ' ' << v << '\n';
+    };
+    {
+        std::lock_guard l(d.live_m);
+        if (d.live_cycler) {
+            gauge("cellbench_cell_voltage_volts", "Cell terminal voltage.", d.live_cycler->voltage_v);
+            gauge("cellbench_cell_current_amperes", "Cell current, positive when charging.", d.live_cycler->current_a);
+        }
+        if (d.live_daq) gauge("cellbench_cell_surface_celsius", "Cell surface temperature.", d.live_daq->surface_c);
+        if (d.live_chamber) gauge("cellbench_chamber_air_celsius", "Chamber air temperature.", d.live_chamber->ambient_c);
+    }
+    const auto st = d.store->stats();
+    gauge("cellbench_store_samples_written", "Samples committed to the database.", static_cast<double>(st.samples_written));
+    gauge("cellbench_store_samples_dropped", "Samples refused by the writer queue.", static_cast<double>(st.samples_dropped));
+    gauge("cellbench_run_active", "1 while a run is active.", d.active() ? 1.0 : 0.0);
+    return o.str();
+}
+
+}  // namespace cellbench::daemon

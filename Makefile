@@ -45,6 +45,27 @@ run: build
 	@echo "== Random Walk, parameters fitted by cellbench"
 	$(BIN)/cellbench simulate --params $(OUT)/p45b.params.json $(OUT)/rw.bdf.csv --json $(OUT)/rw-fitted.metrics.json --out $(OUT)/rw-fitted.sim.bdf.csv
 	@echo "outputs in $(OUT)/"
+	@# The daemon on the simulated bench (every instrument hosted by cellbenchd on loopback, 100x bench time):
+	@# a short HPPC through the client, then the fitted table from GET /runs/{id}/fits, then SIGTERM.
+	@echo "== cellbenchd on the simulated bench: short HPPC (config/programs/hppc_short.json) at 100x"
+	@set -e; port=18750; url=http://127.0.0.1:$$port; db=$(abspath $(OUT))/bench.sqlite; tok=run-$$$$; \
+	rm -f $$db $$db-wal $$db-shm; \
+	$(BIN)/cellbenchd --config config/bench.sim.json --listen 127.0.0.1:$$port --db $$db --token $$tok \
+	  --time-scale 100 > $(OUT)/cellbenchd.log 2>&1 & pid=$$!; \
+	trap 'kill -TERM $$pid 2>/dev/null || true; wait $$pid 2>/dev/null || true' EXIT; \
+	for i in $$(seq 100); do $(BIN)/cellbench status --server $$url > /dev/null 2>&1 && break; \
+	  kill -0 $$pid 2>/dev/null || { cat $(OUT)/cellbenchd.log; exit 1; }; sleep 0.1; done; \
+	$(BIN)/cellbench start --program hppc_short --cell p45b --server $$url --token $$tok --follow; \
+	/usr/bin/python3 -c 'import json, sys, urllib.request as u; api = sys.argv[1] + "/api/v1"; \
+	get = lambda p: json.load(u.urlopen(api + p)); run = get("/runs")["runs"][0]; \
+	print("== run %s (%s): fitted pulse sets, GET /api/v1/runs/%s/fits" % (run["id"], run["state"], run["id"])); \
+	print("%3s %6s %8s %9s %9s %9s %9s %9s %9s" % ("set", "SOC", "OCV V", "R0d mOhm", "R1d mOhm", "C1d F", "R2d mOhm", "C2d F", "R0c mOhm")); \
+	f = lambda d, k, s=1.0: ("%9.3f" % (d[k] * s)) if d and d.get(k) is not None else "%9s" % "-"; \
+	[print("%3d %6.3f %8.4f %s %s %s %s %s %s" % (x["pulse_set"], x["soc"], x["ocv_v"], f(x["discharge"], "r0_ohm", 1e3), \
+	  f(x["discharge"], "r1_ohm", 1e3), f(x["discharge"], "c1_f"), f(x["discharge"], "r2_ohm", 1e3), f(x["discharge"], "c2_f"), \
+	  f(x["charge"], "r0_ohm", 1e3))) for x in get("/runs/%s/fits" % run["id"])["fits"]]' $$url; \
+	echo "API $$url/api/v1 (token $$tok), database $$db, daemon log $(OUT)/cellbenchd.log"; \
+	kill -TERM $$pid; wait $$pid; trap - EXIT; echo "cellbenchd stopped (SIGTERM)"
 
 test: build
 	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) --timeout 600

@@ -686,24 +686,7 @@ struct BenchDaemon::Impl {
         if (!cfg.any_simulated()) return;
         if (!cfg.simulation) throw InputError(cfg.source.string() + ": $.simulation: missing (simulated instruments need a cell)");
         const auto& simc = *cfg.simulation;
-        auto params = load_param_file(simc.params_path);
-        if (!simc.hidden.empty()) {
-            // Hidden physics the simulated cell has and the model may not (same ids as `diagnose`).
-            auto ext = params.extensions.to_json();
-            for (const auto& [k, v] : simc.hidden.items()) ext[k] = v;
-            params.extensions = estimator::ModelExtensions::from_json(ext, cfg.source.string() + " $.simulation.hidden");
-        }
-        sim::PlantOptions po;
-        po.cell = params;
-        po.initial_soc = simc.initial_soc;
-        po.initial_temperature_c = simc.initial_temperature_c;
-        po.chamber_setpoint_c = simc.initial_temperature_c;
-        po.seed = simc.seed;
-        po.heat_flux_sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
-        // The plant's default air ripple is the chamber's worst-case constancy (+-0.5 K, a sine). The
-        // sequencer judges equilibrium on the instantaneous air, and the programs' tolerance is 0.5 K: a
-        // +-0.5 K sine never stays inside it for the 30 min hold. Simulate a chamber well within its spec.
-        po.chamber_ripple_c = std::min(po.chamber_ripple_c, 0.3);
+        const sim::PlantOptions po = simulated_plant_options(cfg, load_param_file(simc.params_path));
         plant.emplace(po);
 
         if (cfg.cycler.mode == CyclerConfig::Mode::simulated) {
@@ -1252,6 +1235,30 @@ std::string BenchDaemon::metrics_text() {
     gauge("cellbench_store_samples_dropped", "Samples refused by the writer queue.", static_cast<double>(st.samples_dropped));
     gauge("cellbench_run_active", "1 while a run is active.", d.active() ? 1.0 : 0.0);
     return o.str();
+}
+
+
+sim::PlantOptions simulated_plant_options(const BenchConfig& cfg, estimator::ParameterSet params) {
+    if (!cfg.simulation) throw InputError(cfg.source.string() + ": $.simulation: missing (simulated instruments need a cell)");
+    const auto& simc = *cfg.simulation;
+    if (!simc.hidden.empty()) {
+        // Hidden physics the simulated cell has and the model may not (same ids as `diagnose`).
+        auto ext = params.extensions.to_json();
+        for (const auto& [k, v] : simc.hidden.items()) ext[k] = v;
+        params.extensions = estimator::ModelExtensions::from_json(ext, cfg.source.string() + " $.simulation.hidden");
+    }
+    sim::PlantOptions po;
+    po.cell = std::move(params);
+    po.initial_soc = simc.initial_soc;
+    po.initial_temperature_c = simc.initial_temperature_c;
+    po.chamber_setpoint_c = simc.initial_temperature_c;
+    po.seed = simc.seed;
+    po.heat_flux_sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
+    // The plant's default air ripple is the chamber's worst-case constancy (+-0.5 K, a sine). The
+    // sequencer judges equilibrium on the instantaneous air, and the programs' tolerance is 0.5 K: a
+    // +-0.5 K sine never stays inside it for the 30 min hold. Simulate a chamber well within its spec.
+    po.chamber_ripple_c = std::min(po.chamber_ripple_c, 0.3);
+    return po;
 }
 
 }  // namespace cellbench::daemon

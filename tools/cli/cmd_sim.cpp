@@ -8,6 +8,7 @@
 #include <boost/asio.hpp>
 #include <spdlog/spdlog.h>
 
+#include "cellbench/daemon/bench_daemon.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/drivers/can_transport.hpp"
 #include "cellbench/sim/chamber_server.hpp"
@@ -23,24 +24,9 @@ int run_sim(const SimOptions& o) {
     const auto cfg = daemon::load_bench_config(o.config);
     if (!cfg.simulation) throw InputError(o.config + ": $.simulation: missing (the simulated bench needs a cell to simulate)");
     const auto& simc = *cfg.simulation;
-    auto params = load_params(simc.params_path);
-    if (!simc.hidden.empty()) {
-        // Hidden physics the simulated cell has and the model may not: same effect ids as `diagnose`.
-        auto ext = params.extensions.to_json();
-        for (const auto& [k, v] : simc.hidden.items()) ext[k] = v;
-        params.extensions = estimator::ModelExtensions::from_json(ext, o.config + " $.simulation.hidden");
-    }
     const double scale = o.time_scale.value_or(simc.time_scale);
     if (!(scale > 0)) throw InputError("--time-scale: expected a positive number of bench seconds per wall second");
-
-    sim::PlantOptions po;
-    po.cell = params;
-    po.initial_soc = simc.initial_soc;
-    po.initial_temperature_c = simc.initial_temperature_c;
-    po.chamber_setpoint_c = simc.initial_temperature_c;
-    po.seed = simc.seed;
-    po.heat_flux_sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
-    sim::BenchPlant plant(po);
+    sim::BenchPlant plant(daemon::simulated_plant_options(cfg, load_params(simc.params_path)));
     auto clock = std::make_shared<sim::BenchClock>(scale);
 
     boost::asio::io_context io;

@@ -19,6 +19,7 @@
 #include "cellbench/daemon/api.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/daemon/run_store.hpp"
+#include "cellbench/sim/plant.hpp"
 
 namespace cellbench::sim {
 class BenchPlant;
@@ -82,5 +83,9 @@ public:
 private:
     std::unique_ptr<Impl> impl_;
 };
+
+// The simulated plant of a bench config: its cell (the parameter set plus the config's hidden physics),
+// initial state, seed and sensor. Shared by cellbenchd (hosting the simulation) and `cellbench sim`.
+sim::PlantOptions simulated_plant_options(const BenchConfig& cfg, estimator::ParameterSet params);
 
 }  // namespace cellbench::daemon

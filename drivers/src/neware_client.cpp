@@ -83,6 +83,14 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
     Clock::time_point next_poll;
     std::atomic<bool> is_connected{false};
 
+    // Recorded data (options.download_records).
+    bool recording = false;               // a test this client started: download its rows
+    std::int64_t test_id = 0;             // 0: not known yet (ask for the latest test)
+    std::vector<std::int64_t> next_seq;   // per member: the first seqid not downloaded yet
+    std::vector<std::deque<DownloadRecord>> unjoined;  // per member: rows not yet matched by every member
+    std::optional<NewareSample> held;     // the poll's sample, delivered once the downloads are done
+    std::size_t download_member = 0;
+
     // Callbacks: invoked under cb_mutex and only while not stopped (stop() takes the mutex).
     std::recursive_mutex cb_mutex;
     bool stopped = false;
@@ -206,6 +214,10 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
         link = Link::idle;
         is_connected = false;
         ++generation;  // stale read/write handlers of this connection return at once
+        if (held) {    // the poll's downloads end here; its rows are asked for again on the next connection
+            held.reset();
+            poll_pending = false;
+        }
         boost::system::error_code ignored;
         socket.shutdown(tcp::socket::shutdown_both, ignored);
         socket.close(ignored);
@@ -440,9 +452,128 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
                 send_channel_command(Command::stop, {});
             }
         }
+        if (options.download_records && recording && link == Link::up) {
+            held = std::move(sample);
+            poll_pending = true;  // the downloads belong to this poll
+            download_member = 0;
+            download_next();
+            return;
+        }
+        sample.recording = false;
         deliver([&] {
             if (sample_cb) sample_cb(sample);
         });
+    }
+
+    // Downloads member download_member's new rows (repeating while full answers come back), then the next
+    // member's; after the last, joins and delivers the held sample.
+    void download_next() {
+        if (download_member >= options.members.size()) {
+            deliver_held();
+            return;
+        }
+        DownloadRequest r;
+        r.channel = options.members[download_member];
+        r.testid = test_id;
+        r.startpos = next_seq[download_member];
+        r.count = kMaxDownloadCount;
+        enqueue(Command::download, encode_request(r),
+                [self = shared_from_this(), member = download_member, gen = generation](
+                    const std::optional<Response>& response, const std::string& error) {
+                    self->on_download(member, gen, response, error);
+                });
+    }
+
+    void on_download(std::size_t member, std::uint64_t gen, const std::optional<Response>& response,
+                     const std::string& error) {
+        if (!held || gen != generation || member != download_member) return;  // stale (reconnected, restarted)
+        const auto* d = response ? std::get_if<DownloadResponse>(&*response) : nullptr;
+        if (d == nullptr) {
+            if (response) emit(NewareEventKind::protocol_error, "download: unexpected answer");
+            else spdlog::debug("neware: download failed ({}); retried next poll", error);
+            deliver_held();
+            return;
+        }
+        if (d->testid != test_id) {
+            // test_id 0 asked for the latest test from its first row: these rows are it. Otherwise the tester
+            // now holds another test than the one we were reading: start over with its rows.
+            const bool fresh = test_id == 0;
+            test_id = d->testid;
+            if (!fresh) {
+                emit(NewareEventKind::protocol_error,
+                     "download: the tester holds test " + std::to_string(d->testid) + ", not the one started here");
+                std::fill(next_seq.begin(), next_seq.end(), 1);
+                for (auto& u : unjoined) u.clear();
+                download_member = 0;
+                download_next();
+                return;
+            }
+        }
+        for (const auto& rec : d->records) {
+            if (rec.seqid < next_seq[member]) continue;  // already have it
+            unjoined[member].push_back(rec);
+            next_seq[member] = rec.seqid + 1;
+        }
+        if (d->records.size() >= static_cast<std::size_t>(kMaxDownloadCount)) {
+            download_next();  // more waiting on this member
+            return;
+        }
+        ++download_member;
+        download_next();
+    }
+
+    // Group rows: every member's row of a seqid (rows a member lacks wait for the next poll).
+    std::vector<DownloadRecord> join() {
+        std::vector<DownloadRecord> out;
+        const std::size_t n = unjoined.size();
+        while (true) {
+            bool all = n > 0;
+            for (const auto& u : unjoined) all = all && !u.empty();
+            if (!all) break;
+            std::int64_t seq = unjoined[0].front().seqid;
+            for (const auto& u : unjoined) seq = std::max(seq, u.front().seqid);
+            bool aligned = true;
+            for (auto& u : unjoined) {
+                while (!u.empty() && u.front().seqid < seq) u.pop_front();  // a row a member never had
+                aligned = aligned && !u.empty();
+            }
+            if (!aligned) break;
+            DownloadRecord g = unjoined[0].front();
+            g.voltage_v = g.current_a = g.capacity_ah = g.energy_wh = 0.0;
+            for (auto& u : unjoined) {
+                const auto& r = u.front();
+                g.voltage_v += r.voltage_v / static_cast<double>(n);
+                g.current_a += r.current_a;
+                g.capacity_ah += r.capacity_ah;
+                g.energy_wh += r.energy_wh;
+                u.pop_front();
+            }
+            out.push_back(std::move(g));
+        }
+        return out;
+    }
+
+    void deliver_held() {
+        poll_pending = false;
+        if (!held) return;
+        NewareSample sample = std::move(*held);
+        held.reset();
+        sample.records = join();
+        sample.test_id = test_id;
+        // The tester records while its test runs; rows of a test that just ended arrive with this sample.
+        sample.recording = !sample.records.empty() || sample.group.status == ChannelStatus::working ||
+                           sample.group.status == ChannelStatus::pause;
+        deliver([&] {
+            if (sample_cb) sample_cb(sample);
+        });
+    }
+
+    // A start this client made: read the new test's records from its first row.
+    void begin_recording() {
+        recording = options.download_records;
+        test_id = 0;
+        next_seq.assign(options.members.size(), 1);
+        unjoined.assign(options.members.size(), {});
     }
 
     // ------------------------------------------------------------------------------------------------------
@@ -497,7 +628,10 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
                 [self = shared_from_this(), command, done = std::move(done)](const std::optional<Response>& response,
                                                                             const std::string& error) {
                     auto result = command_result(command, self->options.members, response, error);
-                    if (result.ok && command == Command::start) self->group.reset();  // a new run
+                    if (result.ok && command == Command::start) {
+                        self->group.reset();  // a new run
+                        self->begin_recording();
+                    }
                     if (!result.ok) self->emit(NewareEventKind::command_failed, result.error);
                     if (done) done(result);  // (already inside deliver())
                 });

@@ -246,6 +246,17 @@ double optional_double(const pt::ptree& node, std::string_view name, const std::
     return *value;
 }
 
+std::int64_t optional_int64(const pt::ptree& node, std::string_view name, const std::string& where,
+                            std::int64_t fallback) {
+    const auto text = find_attr(node, name);
+    if (!text || trim(*text).empty() || trim(*text) == "--") return fallback;
+    const auto value = to_int<std::int64_t>(*text);
+    if (!value || *value < 0)
+        throw ProtocolError(where + ": attribute '" + std::string(name) + "': expected a non-negative integer, got " +
+                            shown(*text));
+    return *value;
+}
+
 std::string optional_string(const pt::ptree& node, std::string_view name) {
     const auto text = find_attr(node, name);
     return text ? std::string(trim(*text)) : std::string();
@@ -442,13 +453,15 @@ std::string_view command_name(Command command) {
         case Command::stop: return "stop";
         case Command::pause: return "pause";
         case Command::continue_: return "continue";
+        case Command::download: return "download";
     }
     return "";
 }
 
 std::optional<Command> command_from_name(std::string_view name) {
     static constexpr std::array all{Command::connect, Command::getdevinfo, Command::getchlstatus, Command::inquire,
-                                    Command::start,   Command::stop,       Command::pause,        Command::continue_};
+                                    Command::start,   Command::stop,       Command::pause,        Command::continue_,
+                                    Command::download};
     for (const auto c : all)
         if (iequals(command_name(c), name)) return c;
     return std::nullopt;
@@ -491,6 +504,7 @@ Command request_command(const Request& request) {
             else if constexpr (std::is_same_v<T, GetDevInfoRequest>) return Command::getdevinfo;
             else if constexpr (std::is_same_v<T, ChannelListRequest>) return r.command;
             else if constexpr (std::is_same_v<T, InquireRequest>) return Command::inquire;
+            else if constexpr (std::is_same_v<T, DownloadRequest>) return Command::download;
             else return Command::start;
         },
         request);
@@ -504,6 +518,7 @@ Command response_command(const Response& response) {
             else if constexpr (std::is_same_v<T, GetDevInfoResponse>) return Command::getdevinfo;
             else if constexpr (std::is_same_v<T, ChannelStatusResponse>) return Command::getchlstatus;
             else if constexpr (std::is_same_v<T, InquireResponse>) return Command::inquire;
+            else if constexpr (std::is_same_v<T, DownloadResponse>) return Command::download;
             else return r.command;
         },
         response);
@@ -573,6 +588,16 @@ std::string encode_request(const Request& request) {
                     out += ">true</inquire>";
                 }
                 out += "</list>";
+            } else if constexpr (std::is_same_v<T, DownloadRequest>) {
+                if (r.count < 1 || r.count > kMaxDownloadCount)
+                    throw ProtocolError("download: count must be 1.." + std::to_string(kMaxDownloadCount));
+                out += "<download";
+                channel_attrs_out(out, r.channel);
+                attr(out, "auxid", r.auxid);
+                attr(out, "testid", std::to_string(r.testid));
+                attr(out, "startpos", std::to_string(r.startpos));
+                attr(out, "count", r.count);
+                out += "/>";
             } else {  // StartRequest
                 out += "<list count=\"" + std::to_string(r.entries.size()) + "\">";
                 for (const auto& e : r.entries) {
@@ -666,6 +691,27 @@ std::string encode_response(const Response& response) {
                     out += " />\r\n";
                 }
                 out += "  </list>\r\n";
+            } else if constexpr (std::is_same_v<T, DownloadResponse>) {
+                out += "  <download";
+                channel_attrs_out(out, r.channel);
+                attr(out, "testid", std::to_string(r.testid));
+                attr(out, "startpos", std::to_string(r.startpos));
+                out += " />\r\n  <list count=\"" + std::to_string(r.records.size()) + "\">\r\n";
+                for (const auto& d : r.records) {
+                    out += "    <data";
+                    attr(out, "seqid", std::to_string(d.seqid));
+                    attr(out, "stepid", d.step_id);
+                    attr(out, "cycleid", d.cycle_id);
+                    attr(out, "steptype", d.step_type.empty() ? std::string("--") : d.step_type);
+                    attr(out, "testtime", format_number(d.test_time_s * 1000.0, 0));
+                    if (!d.atime.empty()) attr(out, "atime", d.atime);
+                    attr(out, "volt", format_number(d.voltage_v, 4));
+                    attr(out, "curr", format_number(d.current_a, 4));
+                    attr(out, "cap", format_number(d.capacity_ah, 6));
+                    attr(out, "eng", format_number(d.energy_wh, 6));
+                    out += " />\r\n";
+                }
+                out += "  </list>\r\n";
             } else {  // ChannelCommandResponse
                 if (!is_channel_result_command(r.command))
                     throw ProtocolError("a channel-result response cannot carry command " +
@@ -716,6 +762,22 @@ Request parse_request(std::string_view frame) {
             return r;
         }
         case Command::getdevinfo: return GetDevInfoRequest{};
+        case Command::download: {
+            const auto* node = find_child(*doc.bts, "download");
+            if (node == nullptr) throw ProtocolError(doc.cmd + ": <download> missing");
+            const std::string where = doc.cmd + ": <download>";
+            DownloadRequest r;
+            r.channel = channel_attrs(*node, where);
+            r.auxid = optional_int(*node, "auxid", where);
+            r.testid = optional_int64(*node, "testid", where, 0);
+            r.startpos = optional_int64(*node, "startpos", where, 1);
+            r.count = find_attr(*node, "count") ? required_int(*node, "count", where) : kMaxDownloadCount;
+            if (r.startpos < 1) throw ProtocolError(where + ": attribute 'startpos': expected 1 or more");
+            if (r.count < 1 || r.count > kMaxDownloadCount)
+                throw ProtocolError(where + ": attribute 'count': expected 1.." + std::to_string(kMaxDownloadCount) +
+                                    ", got " + std::to_string(r.count));
+            return r;
+        }
         case Command::inquire: {
             InquireRequest r;
             const auto list = list_entries(doc, "inquire");
@@ -867,6 +929,39 @@ Response parse_response(std::string_view frame) {
                 e.open = optional_int(node, "open_or_close", where) != 0;
                 e.log_code = optional_int(node, "log_code", where);
                 r.channels.push_back(std::move(e));
+            }
+            return r;
+        }
+        case Command::download: {
+            const auto* node = find_child(*doc.bts, "download");
+            if (node == nullptr) throw ProtocolError(doc.cmd + ": <download> missing");
+            const std::string where = doc.cmd + ": <download>";
+            DownloadResponse r;
+            r.channel = channel_attrs(*node, where);
+            r.testid = optional_int64(*node, "testid", where, 0);
+            r.startpos = optional_int64(*node, "startpos", where, 1);
+            const auto list = list_entries(doc, "data", false);
+            for (std::size_t i = 0; i < list.entries.size(); ++i) {
+                const auto& d = *list.entries[i];
+                const auto at = entry_where(doc, "data", i);
+                DownloadRecord rec;
+                rec.seqid = optional_int64(d, "seqid", at, -1);
+                if (rec.seqid < 0) throw ProtocolError(at + ": attribute 'seqid' missing");
+                rec.step_id = optional_int(d, "stepid", at);
+                rec.cycle_id = optional_int(d, "cycleid", at);
+                rec.step_type = optional_string(d, "steptype");
+                const double ms = optional_double(d, "testtime", at);
+                if (!std::isfinite(ms)) throw ProtocolError(at + ": attribute 'testtime' missing");
+                rec.test_time_s = ms / 1000.0;
+                rec.atime = optional_string(d, "atime");
+                rec.voltage_v = optional_double(d, "volt", at);
+                rec.current_a = optional_double(d, "curr", at);
+                rec.capacity_ah = optional_double(d, "cap", at);
+                rec.energy_wh = optional_double(d, "eng", at);
+                if (!r.records.empty() && rec.seqid <= r.records.back().seqid)
+                    throw ProtocolError(at + ": seqid " + std::to_string(rec.seqid) + " does not follow " +
+                                        std::to_string(r.records.back().seqid));
+                r.records.push_back(std::move(rec));
             }
             return r;
         }

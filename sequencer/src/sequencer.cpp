@@ -161,27 +161,23 @@ void Sequencer::resume(double t) {
     sink_.on_state(state_, "resumed by the operator");
 }
 
-void Sequencer::on_cycler(const CyclerSample& s) {
-    std::lock_guard<std::mutex> lock(mutex_);
-    last_cycler_ = s;
-    last_cycler_s_ = s.t_mono_s;
-    if (!active(state_)) return;
+bool Sequencer::violates_cycler_limits_locked(const CyclerSample& s) {
     const auto& lim = opt_.limits;
     if (s.voltage_v < lim.min_voltage_v || s.voltage_v > lim.max_voltage_v) {
         abort_locked("voltage " + fmt("%.3f V", s.voltage_v) + " outside the safety window " +
                          fmt("%.2f", lim.min_voltage_v) + fmt("-%.2f V", lim.max_voltage_v),
                      s.t_mono_s);
-        return;
+        return true;
     }
     if (std::abs(s.current_a) > lim.max_current_a) {
         abort_locked("current " + fmt("%.2f A", s.current_a) + " over the limit " + fmt("%.1f A", lim.max_current_a),
                      s.t_mono_s);
-        return;
+        return true;
     }
-    if (s.status == "protect") {
-        abort_locked("the cycler went to protect", s.t_mono_s);
-        return;
-    }
+    return false;
+}
+
+void Sequencer::record_locked(const CyclerSample& s) {
     // The run's recording, on the cycler's time base with the latest thermal values.
     const double t_rel = s.t_mono_s - run_start_s_;
     if (rec_.time_s.empty() || t_rel > rec_.time_s.back()) {
@@ -190,19 +186,40 @@ void Sequencer::on_cycler(const CyclerSample& s) {
         rec_.current_a.push_back(s.current_a);
         rec_.step_count.push_back(1000.0 * static_cast<double>(segment_) + s.step_id);
         rec_.step_type.push_back(s.step_type);
-        const bool fresh = last_daq_ && s.t_mono_s - last_daq_s_ < 5.0;
+        const bool fresh = last_daq_ && std::abs(s.t_mono_s - last_daq_s_) < 5.0;
         rec_.surface_c.push_back(fresh ? last_daq_->surface_c : kNaN);
         rec_.heat_flux_w_per_m2.push_back(fresh ? last_daq_->heat_flux_w_per_m2 : kNaN);
         rec_.ambient_c.push_back(last_chamber_ ? last_chamber_->air_c : kNaN);
     }
     if (program_.segments[std::min(segment_, program_.segments.size() - 1)].kind != Segment::Kind::Cycler) return;
-    if (s.status == "working") cycler_seen_working_ = true;
     if (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_) {
         sink_.on_step(s.t_mono_s, static_cast<int>(segment_), s.step_id, s.cycle_id, s.step_type);
         last_step_id_ = s.step_id;
         last_cycle_id_ = s.cycle_id;
         if (opt_.fit_online) check_pulse_sets_locked();
     }
+}
+
+void Sequencer::on_cycler_record(const CyclerSample& s) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!active(state_)) return;
+    if (violates_cycler_limits_locked(s)) return;
+    record_locked(s);
+}
+
+void Sequencer::on_cycler(const CyclerSample& s) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    last_cycler_ = s;
+    last_cycler_s_ = s.t_mono_s;
+    if (!active(state_)) return;
+    if (violates_cycler_limits_locked(s)) return;
+    if (s.status == "protect") {
+        abort_locked("the cycler went to protect", s.t_mono_s);
+        return;
+    }
+    if (!s.covered_by_records) record_locked(s);
+    if (program_.segments[std::min(segment_, program_.segments.size() - 1)].kind != Segment::Kind::Cycler) return;
+    if (s.status == "working") cycler_seen_working_ = true;
     if (cycler_seen_working_ && state_ == RunState::Running && (s.status == "finish" || s.status == "stop")) {
         if (opt_.fit_online) check_pulse_sets_locked();
         sink_.on_event(s.t_mono_s, "info", "cycler", "step program finished (" + s.status + ")");

@@ -401,3 +401,31 @@ TEST(NewareSim, PauseAndContinueReachEveryMember) {
     EXPECT_GT(snap.history[0].end_s - snap.history[0].start_s, 40.0);
     EXPECT_EQ(bench.event_count(NewareEventKind::group_fault), 0u);
 }
+
+TEST(NewareSim, RecordedRowsAreCompleteAtTheTestersIntervalWhateverThePolling) {
+    // 1000 bench s per wall s: the client polls every 0.3 bench s at best, far slower than the 0.1 s rows.
+    Bench bench(1000.0, 0.3);
+    ASSERT_TRUE(bench.wait_samples(1));
+    const auto program = make_program("pulse", {rest(10.0), cc_discharge(4.5, 2.9, 30.0), rest(40.0)});
+    ASSERT_TRUE(bench.start(program).ok);
+    ASSERT_TRUE(bench.wait([&](const auto& s, const auto&) {
+        return !s.empty() && s.back().group.status == ChannelStatus::finish && s.back().test_id != 0;
+    }));
+    std::vector<protocol::neware::DownloadRecord> rows;
+    for (const auto& s : bench.samples())
+        rows.insert(rows.end(), s.records.begin(), s.records.end());
+    // 80 bench s in 0.1 s ticks: every row once, in order, the group's current (3 members summed).
+    ASSERT_EQ(rows.size(), 800u);
+    for (std::size_t k = 0; k < rows.size(); ++k) {
+        EXPECT_EQ(rows[k].seqid, static_cast<std::int64_t>(k + 1));
+        EXPECT_NEAR(rows[k].test_time_s, 0.1 * static_cast<double>(k + 1), 1e-3);
+    }
+    // Exact step edges: the last rest row before the pulse at 10.0 s, the first pulse row at 10.1 s.
+    EXPECT_EQ(rows[99].step_type, "rest");
+    EXPECT_NEAR(rows[99].current_a, 0.0, 0.01);  // 0 A plus the simulated sensor noise
+    EXPECT_EQ(rows[100].step_type, "dc");
+    EXPECT_NEAR(rows[100].current_a, -4.5, 0.02);
+    EXPECT_EQ(rows[399].step_type, "dc");
+    EXPECT_EQ(rows[400].step_type, "rest");
+    EXPECT_GT(rows[400].voltage_v, rows[399].voltage_v + 0.02);  // the IR jump back at the pulse's end
+}

@@ -442,3 +442,83 @@ TEST(NewareBtsFormat, NumbersTrimmedNeverNegativeZero) {
     EXPECT_EQ(format_number(std::nan(""), 4), "--");
     EXPECT_EQ(frame_command(kInquireResp), "inquire_resp");
 }
+
+// ---------------------------------------------------------------------------------------------------------
+// download: the tester's recorded data.
+
+TEST(NewareBtsDownload, RequestIsOneElementWithTestAndPosition) {
+    DownloadRequest r;
+    r.channel = ch(2);
+    r.testid = 7;
+    r.startpos = 1001;
+    r.count = 1000;
+    const std::string frame = encode_request(r);
+    EXPECT_EQ(frame,
+              "<?xml version=\"1.0\" encoding=\"UTF-8\" ?><bts version=\"1.0\"><cmd>download</cmd>"
+              "<download ip=\"127.0.0.1\" devtype=\"24\" devid=\"1\" subdevid=\"1\" chlid=\"2\" auxid=\"0\" testid=\"7\" "
+              "startpos=\"1001\" count=\"1000\"/></bts>" + kTerm);
+    const auto back = std::get<DownloadRequest>(parse_request(frame));
+    EXPECT_EQ(back.channel, ch(2));
+    EXPECT_EQ(back.testid, 7);
+    EXPECT_EQ(back.startpos, 1001);
+    EXPECT_EQ(back.count, 1000);
+    r.count = 1001;  // the API's limit per request
+    EXPECT_THROW(encode_request(r), ProtocolError);
+}
+
+TEST(NewareBtsDownload, ResponseRowsRoundTripWithTestTimeInMilliseconds) {
+    DownloadResponse r;
+    r.channel = ch(1);
+    r.testid = 3;
+    r.startpos = 41;
+    for (int i = 0; i < 3; ++i) {
+        DownloadRecord d;
+        d.seqid = 41 + i;
+        d.step_id = 8;
+        d.cycle_id = 2;
+        d.step_type = i == 0 ? "rest" : "dc";
+        d.test_time_s = 26005.3 + 0.1 * i;
+        d.voltage_v = 3.7312 - 0.01 * i;
+        d.current_a = i == 0 ? 0.0 : -1.5004;
+        d.capacity_ah = 0.000042 * i;
+        d.energy_wh = 0.000156 * i;
+        r.records.push_back(d);
+    }
+    const std::string frame = encode_response(r);
+    EXPECT_NE(frame.find("testtime=\"26005300\""), std::string::npos) << frame;
+    const auto back = std::get<DownloadResponse>(parse_response(frame));
+    EXPECT_EQ(back.channel, ch(1));
+    EXPECT_EQ(back.testid, 3);
+    ASSERT_EQ(back.records.size(), 3u);
+    for (std::size_t i = 0; i < 3; ++i) {
+        EXPECT_EQ(back.records[i].seqid, r.records[i].seqid);
+        EXPECT_EQ(back.records[i].step_type, r.records[i].step_type);
+        EXPECT_NEAR(back.records[i].test_time_s, r.records[i].test_time_s, 5e-4);
+        EXPECT_DOUBLE_EQ(back.records[i].voltage_v, r.records[i].voltage_v);
+        EXPECT_DOUBLE_EQ(back.records[i].current_a, r.records[i].current_a);
+    }
+    // An empty answer (nothing new recorded) is a valid answer.
+    r.records.clear();
+    EXPECT_TRUE(std::get<DownloadResponse>(parse_response(encode_response(r))).records.empty());
+}
+
+TEST(NewareBtsDownload, BrokenRowsAreProtocolErrors) {
+    auto frame = [](const std::string& rows) {
+        return vendor_frame("  <cmd>download_resp</cmd>\r\n  <download ip=\"127.0.0.1\" devtype=\"24\" devid=\"1\" "
+                            "subdevid=\"1\" chlid=\"1\" testid=\"1\" startpos=\"1\" />\r\n  <list count=\"9\">\r\n" +
+                            rows + "  </list>\r\n");
+    };
+    const std::string ok = "<data seqid=\"1\" stepid=\"1\" cycleid=\"1\" steptype=\"rest\" testtime=\"100\" volt=\"3.9\" "
+                           "curr=\"0\" cap=\"0\" eng=\"0\" />";
+    EXPECT_EQ(std::get<DownloadResponse>(parse_response(frame(ok))).records.size(), 1u);
+    // No seqid, no test time, a seqid going backwards, a number that is not one.
+    EXPECT_THROW(parse_response(frame("<data stepid=\"1\" testtime=\"100\" volt=\"3.9\" />")), ProtocolError);
+    EXPECT_THROW(parse_response(frame("<data seqid=\"1\" stepid=\"1\" volt=\"3.9\" />")), ProtocolError);
+    EXPECT_THROW(parse_response(frame(ok + ok)), ProtocolError);
+    EXPECT_THROW(parse_response(frame("<data seqid=\"1\" testtime=\"100\" volt=\"3,9\" />")), ProtocolError);
+    // A request without its element, or asking for more rows than the API allows.
+    EXPECT_THROW(parse_request("<?xml version=\"1.0\"?><bts version=\"1.0\"><cmd>download</cmd></bts>"), ProtocolError);
+    EXPECT_THROW(parse_request("<?xml version=\"1.0\"?><bts version=\"1.0\"><cmd>download</cmd><download ip=\"1\" "
+                               "devtype=\"24\" devid=\"1\" subdevid=\"1\" chlid=\"1\" startpos=\"1\" count=\"5000\"/></bts>"),
+                 ProtocolError);
+}

@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 #include <deque>
 #include <filesystem>
 #include <fstream>
@@ -42,6 +43,21 @@ struct Member {
     double capacity_ah = 0.0, energy_wh = 0.0;  // of the current step
 };
 
+// One recorded point of the group's test (what `download` serves). Member values are derived from it: a
+// conducting member carries current/conducting and the members' common step capacity and energy.
+struct GroupRecord {
+    double test_time_s = 0.0;
+    double voltage_v = 0.0, group_current_a = 0.0;
+    double member_capacity_ah = 0.0, member_energy_wh = 0.0;
+    std::uint32_t faulted_mask = 0;  // bit i: members[i] carried no current
+    std::uint16_t conducting = 0;
+    std::uint16_t step_id = 0, cycle_id = 0;
+    char step_type[8] = {};  // the tester's code: rest, cc, dc, cccv, ...
+};
+// The tester's data memory: the newest rows of the running (or last) test. At 10 rows per bench second this
+// is over 8 bench hours; a client that falls further behind gets an answer starting at the oldest row kept.
+constexpr std::size_t kMaxRecordedRows = 300000;
+
 }  // namespace
 
 struct NewareServer::Impl {
@@ -77,6 +93,10 @@ struct NewareServer::Impl {
     std::vector<Member> members;
     std::optional<ProgramRunner> runner;
     std::uint64_t member_serial = 0;  // runner step serial the member accumulators belong to
+    // Recorded data of the latest test: rows seqid first_seqid.. (one per program tick).
+    std::int64_t test_id = 0;
+    std::int64_t first_seqid = 1;
+    std::deque<GroupRecord> records;
     std::vector<std::weak_ptr<Session>> sessions;
 
     std::atomic<bool> stall{false}, malformed{false}, garbage{false};
@@ -120,9 +140,36 @@ struct NewareServer::Impl {
                     m.energy_wh += member_a * std::fabs(r.terminal_voltage_v) * dt / 3600.0;
                 }
             }
+            if (self.runner) self.record(until_s, r, conducting);
             return {r.current_a, r.terminal_voltage_v};
         }
     } cell;
+
+    void record(double t_s, const PlantReading& r, std::size_t n_conducting) {
+        GroupRecord g;
+        // Test time as the tester counts it (pauses excluded), at the end of the tick being driven.
+        g.test_time_s = runner->total_time_s() + (t_s - runner->now_s());
+        g.voltage_v = r.terminal_voltage_v;
+        g.group_current_a = n_conducting > 0 ? r.current_a : 0.0;
+        g.conducting = static_cast<std::uint16_t>(n_conducting);
+        for (std::size_t i = 0; i < members.size() && i < 32; ++i) {
+            if (members[i].faulted) {
+                g.faulted_mask |= 1u << i;
+            } else {
+                g.member_capacity_ah = members[i].capacity_ah;
+                g.member_energy_wh = members[i].energy_wh;
+            }
+        }
+        g.step_id = static_cast<std::uint16_t>(runner->step_id());
+        g.cycle_id = static_cast<std::uint16_t>(runner->cycle_id());
+        const auto code = runner->step_type_code();
+        std::copy_n(code.data(), std::min(code.size(), sizeof g.step_type - 1), g.step_type);
+        records.push_back(g);
+        if (records.size() > kMaxRecordedRows) {
+            records.pop_front();
+            ++first_seqid;
+        }
+    }
 
     std::size_t conducting() const {
         return static_cast<std::size_t>(std::count_if(members.begin(), members.end(), [](const Member& m) {
@@ -403,6 +450,38 @@ struct NewareServer::Impl {
         return r;
     }
 
+    Response handle_one(const DownloadRequest& req) {
+        DownloadResponse r;
+        r.channel = req.channel;
+        r.testid = test_id;
+        const auto index = static_cast<std::size_t>(
+            std::find_if(members.begin(), members.end(), [&](const Member& m) { return m.chlid == req.channel.chlid; }) -
+            members.begin());
+        if (member(req.channel) == nullptr || (req.testid != 0 && req.testid != test_id)) {
+            r.startpos = req.startpos;
+            return r;  // no cell on that channel, or a test this tester no longer holds: nothing recorded
+        }
+        const std::int64_t start = std::max(req.startpos, first_seqid);
+        r.startpos = start;
+        const auto end = first_seqid + static_cast<std::int64_t>(records.size());
+        for (std::int64_t seq = start; seq < end && r.records.size() < static_cast<std::size_t>(req.count); ++seq) {
+            const GroupRecord& g = records[static_cast<std::size_t>(seq - first_seqid)];
+            const bool carried = index < 32 && (g.faulted_mask & (1u << index)) == 0 && g.conducting > 0;
+            DownloadRecord d;
+            d.seqid = seq;
+            d.step_id = g.step_id;
+            d.cycle_id = g.cycle_id;
+            d.step_type = std::string(g.step_type, strnlen(g.step_type, sizeof g.step_type));
+            d.test_time_s = g.test_time_s;
+            d.voltage_v = g.voltage_v;
+            d.current_a = carried ? g.group_current_a / g.conducting : 0.0;
+            d.capacity_ah = carried ? g.member_capacity_ah : 0.0;
+            d.energy_wh = carried ? g.member_energy_wh : 0.0;
+            r.records.push_back(std::move(d));
+        }
+        return r;
+    }
+
     Response handle_one(const StartRequest& req) {
         ChannelCommandResponse r;
         r.command = Command::start;
@@ -450,6 +529,9 @@ struct NewareServer::Impl {
             // A start on any member starts the whole parallel group (BTS parallel mode).
             runner.emplace(std::move(*chosen), plant.now_s(), options.tick_s);
             cell.last_until_s = runner->now_s();
+            ++test_id;
+            first_seqid = 1;
+            records.clear();
             member_serial = 0;
             for (auto& m : members) {
                 m.faulted = false;

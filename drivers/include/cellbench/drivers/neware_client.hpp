@@ -10,6 +10,11 @@
 //    lost answer the stream can no longer be trusted). Reconnects back off exponentially.
 //  - `inquire` of all members is polled every poll_period; each answer becomes a NewareSample stamped with
 //    std::chrono::steady_clock (request and answer instants), aggregated into the group reading.
+//  - Recorded data: after a start this client accepted, every poll also downloads what the tester recorded
+//    since the last poll (`download`, up to 1000 rows per request, per member) and joins the members' rows by
+//    seqid into group rows, delivered with the poll's sample, before it. The tester records at its own
+//    interval whatever the polling and the network do, so the science (step edges, pulse fits) uses these
+//    rows; the live values are for supervision. A download that fails is retried from the same row next poll.
 //  - start/stop/pause/continue go to all members in one request; the result is ok only if every member said ok.
 //  - A group fault (a member in protect, current sharing off, voltages disagreeing, ...) is reported once as
 //    an event; with stop_on_group_fault the client then stops all members.
@@ -45,6 +50,8 @@ struct NewareClientOptions {
     std::optional<protocol::neware::ConnectRequest> login;
     protocol::ParallelGroupOptions group;
     bool stop_on_group_fault = true;
+    // Download the recorded data of tests this client started (see above).
+    bool download_records = true;
 };
 
 // One poll of the logical channel.
@@ -53,6 +60,11 @@ struct NewareSample {
     std::chrono::steady_clock::time_point time;          // answer received
     protocol::GroupReading group;                        // the logical channel (sum / mean)
     std::vector<protocol::neware::InquireEntry> members; // in the order of options.members
+    // Recorded rows of the group (members joined by seqid: currents, capacities and energies summed, voltage
+    // averaged) that arrived since the previous sample, oldest first; all of them precede the live values.
+    std::vector<protocol::neware::DownloadRecord> records;
+    std::int64_t test_id = 0;  // the tester's id of the test the records belong to (0: none yet)
+    bool recording = false;    // the tester records this period: records carry it (a test this client started)
 };
 
 enum class NewareEventKind {

@@ -72,7 +72,7 @@ private:
 // ---------------------------------------------------------------------------------------------------------
 // Vocabulary
 
-enum class Command { connect, getdevinfo, getchlstatus, inquire, start, stop, pause, continue_ };
+enum class Command { connect, getdevinfo, getchlstatus, inquire, start, stop, pause, continue_, download };
 std::string_view command_name(Command command);                       // "continue" for continue_
 std::optional<Command> command_from_name(std::string_view name);      // exact, case-insensitive
 
@@ -126,7 +126,20 @@ struct StartRequest {
     std::vector<StartEntry> entries;
     std::optional<BackupOptions> backup;
 };
-using Request = std::variant<ConnectRequest, GetDevInfoRequest, ChannelListRequest, InquireRequest, StartRequest>;
+// Recorded data of one channel's test (the tester records every point itself, at its own record interval,
+// whatever the client's polling): <download ip devtype devid subdevid chlid auxid testid startpos count/>.
+// Rows are numbered from seqid 1 per test; `startpos` is the first seqid wanted. testid 0 asks for the
+// channel's latest test (the answer names it).
+inline constexpr int kMaxDownloadCount = 1000;
+struct DownloadRequest {
+    ChannelAddress channel;
+    int auxid = 0;
+    std::int64_t testid = 0;
+    std::int64_t startpos = 1;
+    int count = kMaxDownloadCount;  // 1..kMaxDownloadCount
+};
+using Request =
+    std::variant<ConnectRequest, GetDevInfoRequest, ChannelListRequest, InquireRequest, StartRequest, DownloadRequest>;
 
 // ---------------------------------------------------------------------------------------------------------
 // Responses (tester -> client): <cmd>NAME_resp</cmd>
@@ -189,8 +202,27 @@ struct ChannelCommandResponse {
     Command command = Command::start;
     std::vector<ChannelResult> channels;
 };
+// One recorded point (download_resp/list/data). On the wire testtime is in milliseconds (the published
+// example); here it is seconds.
+struct DownloadRecord {
+    std::int64_t seqid = 0;
+    int step_id = 0, cycle_id = 0;
+    std::string step_type;     // "rest", "cc", "dc", "cv", ... as in inquire_resp
+    double test_time_s = 0.0;  // since the test started
+    std::string atime;         // absolute time as the tester writes it (may be empty)
+    double voltage_v = 0.0, current_a = 0.0;  // + = charge
+    double capacity_ah = 0.0, energy_wh = 0.0;  // of the step
+};
+// <download ip devtype devid subdevid chlid auxid testid startpos/> then <list count><data .../>...</list>.
+// Fewer rows than asked for means the client has everything recorded so far.
+struct DownloadResponse {
+    ChannelAddress channel;
+    std::int64_t testid = 0;
+    std::int64_t startpos = 1;
+    std::vector<DownloadRecord> records;
+};
 using Response = std::variant<ConnectResponse, GetDevInfoResponse, ChannelStatusResponse, InquireResponse,
-                              ChannelCommandResponse>;
+                              ChannelCommandResponse, DownloadResponse>;
 
 [[nodiscard]] Command request_command(const Request& request);
 [[nodiscard]] Command response_command(const Response& response);

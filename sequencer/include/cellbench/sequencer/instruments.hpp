@@ -16,6 +16,9 @@ struct CyclerSample {
     int step_id = 0, cycle_id = 0;
     std::string step_type;  // as the tester reports it (rest, cc, dc, cv, ...)
     std::string status;     // working, stop, finish, protect, pause
+    // A live reading of a period the tester records itself (its rows arrive through on_cycler_record): for
+    // supervision only, not part of the recording.
+    bool covered_by_records = false;
 };
 
 struct DaqSample {

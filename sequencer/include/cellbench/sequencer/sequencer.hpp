@@ -83,7 +83,13 @@ public:
     void pause(double t_mono_s);
     void resume(double t_mono_s);
 
+    // The cycler's live reading (a poll): supervision (safety limits, protect, program end). Unless the tester
+    // records the period itself (covered_by_records), the live readings are also the run's recording.
     void on_cycler(const CyclerSample& s);
+    // A row the tester recorded itself (at its record interval, exact step edges): the run's recording, step
+    // tracking and the pulse-set fits use these. All rows of a test arrive before the live reading that
+    // reports the test finished.
+    void on_cycler_record(const CyclerSample& s);
     void on_daq(const DaqSample& s);
     void on_chamber(const ChamberSample& s);
     // An instrument fault; safety_data_lost = the cell can no longer be watched (no voltage or temperature).
@@ -96,6 +102,8 @@ public:
     void wait_for_fits();                         // joins outstanding fit workers
 
 private:
+    bool violates_cycler_limits_locked(const CyclerSample& s);  // aborts and says true when a limit is crossed
+    void record_locked(const CyclerSample& s);
     void abort_locked(const std::string& reason, double t);
     void finish_locked(RunState end_state, const std::string& reason, double t);
     void advance_locked(double t);

@@ -1,0 +1,283 @@
+// cellbenchd end to end, in process: BenchDaemon on config/bench.sim.json hosts the simulated Neware tester,
+// Modbus chamber and DEWE CAN stream on loopback, connects the real drivers to them and runs programs through
+// the sequencer into the run store.
+//  - The FULL HPPC (config/programs/hppc.json: pilot discharge, pulse sets 100 % -> 10 % SOC, final discharge
+//    to 0 %): every step and samples stored, one fit per pulse set, fitted discharge R0 within 3 % of the
+//    simulated cell's.
+//    Time scale: CELLBENCH_HIL_TIME_SCALE (default kHppcTimeScale); the wall time is printed.
+//    CELLBENCH_HIL_VERBOSE=1 logs at debug level and lists the steps.
+//  - Safety: an over-temperature (a low max_temperature_c, heated by a 40 A discharge) stops the current
+//    within one DAQ sample period and aborts the run with the reason recorded as an event.
+#include <gtest/gtest.h>
+
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+#include <spdlog/spdlog.h>
+
+#include "cellbench/daemon/bench_daemon.hpp"
+#include "cellbench/daemon/config.hpp"
+#include "cellbench/estimator/params.hpp"
+#include "cellbench/sim/plant.hpp"
+
+using namespace cellbench;
+using namespace std::chrono_literals;
+using nlohmann::json;
+namespace fs = std::filesystem;
+
+namespace {
+
+// Bench seconds per wall second for the full HPPC (about 70 000 bench seconds). Measured: see the report.
+constexpr double kHppcTimeScale = 400.0;
+
+const fs::path kSource = CELLBENCH_SOURCE_DIR;
+
+struct TempDir {
+    fs::path path;
+    explicit TempDir(const std::string& tag) {
+        static int serial = 0;
+        path = fs::temp_directory_path() /
+               ("cellbench-" + tag + "-" + std::to_string(::getpid()) + "-" + std::to_string(serial++));
+        fs::remove_all(path);
+        fs::create_directories(path);
+    }
+    ~TempDir() {
+        std::error_code ec;
+        fs::remove_all(path, ec);
+    }
+};
+
+// Waits (polling) until pred holds; the limit only bounds a broken test's runtime, it is no timing claim.
+bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 100ms) {
+    const auto end = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < end) {
+        if (pred()) return true;
+        std::this_thread::sleep_for(poll);
+    }
+    return pred();
+}
+
+daemon::BenchDaemonOptions options_in(const TempDir& dir, double time_scale) {
+    daemon::BenchDaemonOptions o;
+    o.listen = daemon::Endpoint{"127.0.0.1", 0};
+    o.db_path = dir.path / "bench.sqlite";
+    o.token = "hil-token";
+    o.time_scale = time_scale;
+    o.daq_socket_path = (dir.path / "dewe.sock").string();
+    return o;
+}
+
+// Simulated instruments on any free port, so tests may run beside a cellbenchd on the default ports.
+daemon::BenchConfig sim_config(const fs::path& file) {
+    auto cfg = daemon::load_bench_config(file);
+    cfg.cycler.endpoint.port = 0;
+    cfg.chamber.endpoint.port = 0;
+    return cfg;
+}
+
+bool instruments_connected(daemon::BenchDaemon& d) {
+    const auto s = d.status();
+    for (const auto& i : s["instruments"])
+        if (i["state"] != "connected") return false;
+    return true;
+}
+
+bool terminal(const std::string& state) { return state == "completed" || state == "stopped" || state == "failed"; }
+
+estimator::ParameterSet thesis_cell() {
+    std::ifstream in(kSource / "config/cells/p45b-thesis.json");
+    return estimator::ParameterSet::from_json(json::parse(in), "p45b-thesis.json");
+}
+
+}  // namespace
+
+TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
+    double scale = kHppcTimeScale;
+    if (const char* env = std::getenv("CELLBENCH_HIL_TIME_SCALE")) scale = std::atof(env);
+    TempDir dir("daemon-hppc");
+    if (std::getenv("CELLBENCH_HIL_VERBOSE")) spdlog::set_level(spdlog::level::debug);
+    daemon::BenchDaemon d(sim_config(kSource / "config/bench.sim.json"), options_in(dir, scale));
+    d.start();
+    ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
+
+    const auto wall0 = std::chrono::steady_clock::now();
+    const json started = d.start_run({"hppc", "p45b", {{"program", "hppc"}, {"cell", "p45b"}}});
+    const daemon::RunId id = started["id"].get<daemon::RunId>();
+    std::string state;
+    ASSERT_TRUE(eventually([&] {
+        state = d.get_run(id)["state"].get<std::string>();
+        return terminal(state);
+    }, 1800s, 500ms));
+    const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
+    // The online fit of the last pulse set may still be running when the program ends.
+    eventually([&] { return d.fits(id)["fits"].size() >= 10; }, 60s);
+    d.store().flush();
+
+    const auto events = d.events(id);
+    std::string last_error;
+    for (const auto& e : events["events"])
+        if (e["level"] != "info") last_error = e["message"].get<std::string>();
+    ASSERT_EQ(state, "completed") << last_error;
+
+    const auto run = d.store().get_run(id);
+    ASSERT_TRUE(run);
+    EXPECT_GT(run->cycler_samples, 10000);
+    EXPECT_GT(run->daq_samples, 10000);
+    EXPECT_GT(run->chamber_samples, 100);
+    // Steps: rest, charge, rest, pilot discharge, rest, charge, rest, then per pulse set (pulse d, rest, pulse c,
+    // rest, SOC step, rest), final discharge and rest. hppc.json's `"count": "pulse_sets"` (10) is the number of
+    // passes the tester makes through steps 8-13 (Neware cycle semantics, the simulated tester's too): pulse
+    // sets at 100 % down to 10 % SOC, and the final discharge to the cut-off takes the cell to 0 %.
+    constexpr std::size_t kPulseSets = 10;
+    const auto steps = d.store().steps(id);
+    if (::testing::Test::HasFailure() || std::getenv("CELLBENCH_HIL_VERBOSE"))
+        for (const auto& s : steps)
+            std::printf("step %3d seg %d id %2d cycle %2d %-4s %9.1f s .. %9.1f s  %s\n", s.index, s.segment, s.step_id,
+                        s.cycle, s.type.c_str(), s.started_t_s, s.ended_t_s.value_or(NAN), s.end_reason.c_str());
+    EXPECT_GE(steps.size(), 7u + kPulseSets * 6u + 2u);
+    const auto pulses = std::count_if(steps.begin(), steps.end(), [](const auto& s) { return s.step_id == 8; });
+    EXPECT_EQ(static_cast<std::size_t>(pulses), kPulseSets);
+    for (const auto& s : steps) EXPECT_TRUE(s.ended_t_s.has_value()) << "step " << s.index << " never ended";
+
+    const auto fits = d.fits(id)["fits"];
+    const auto truth = thesis_cell();
+    std::printf("HPPC at time scale %.0f: %.1f s wall, %lld cycler samples, %zu steps, %zu fits\n", scale, wall_s,
+                static_cast<long long>(run->cycler_samples), steps.size(), fits.size());
+    std::printf("  set   SOC    R0 fit mOhm  R0 truth mOhm  error %%\n");
+    double worst = 0;
+    for (const auto& f : fits) {
+        const double soc = f["soc"].get<double>();
+        const double r0 = f["discharge"].is_null() || f["discharge"]["r0_ohm"].is_null() ? NAN
+                                                                                          : f["discharge"]["r0_ohm"].get<double>();
+        const double r0_true = truth.rc_at(soc, -1).r0_ohm;
+        const double err = 100.0 * (r0 - r0_true) / r0_true;
+        worst = std::max(worst, std::abs(err));
+        std::printf("  %3d  %5.3f  %10.3f  %13.3f  %+7.2f\n", f["pulse_set"].get<int>(), soc, r0 * 1e3, r0_true * 1e3, err);
+        EXPECT_NEAR(r0, r0_true, 0.03 * r0_true) << "pulse set " << f["pulse_set"] << " at SOC " << soc;
+    }
+    std::printf("  worst R0 error %.2f %%\n", worst);
+    RecordProperty("time_scale", std::to_string(scale));
+    RecordProperty("wall_s", std::to_string(wall_s));
+    RecordProperty("worst_r0_error_percent", std::to_string(worst));
+    ASSERT_EQ(fits.size(), kPulseSets);
+    // One per SOC level, from full down in steps of 10 %.
+    EXPECT_GT(fits[0]["soc"].get<double>(), 0.97);
+    EXPECT_NEAR(fits[kPulseSets - 1]["soc"].get<double>(), 0.1, 0.03);
+    for (std::size_t k = 1; k < fits.size(); ++k)
+        EXPECT_NEAR(fits[k - 1]["soc"].get<double>() - fits[k]["soc"].get<double>(), 0.1, 0.02) << "pulse set " << k + 1;
+
+    // The export streams the stored run as BDF CSV.
+    auto cursor = d.export_bdf_csv(id);
+    const auto head = cursor->next();
+    ASSERT_TRUE(head.has_value());
+    EXPECT_NE(head->find("Test Time / s"), std::string::npos);
+
+    d.shutdown();
+    // The wall time (goal: under 3 minutes) is printed, not asserted: timing lives in benchmarks. The fits do
+    // not depend on the time scale: they use the rows the tester recorded at 0.1 s (download), not the polls.
+    // R0 by eq. 3.2 reads the first row 0.1 s after the step, so it carries that much of the RC relaxation
+    // (about +1 to +2.6 % on this cell): the thesis' own definition, kept for comparability with Table 3.2.
+}
+
+TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
+    // A config folder of our own: the bench file, the cell, and a program that heats the cell with 40 A.
+    TempDir dir("daemon-safety");
+    fs::create_directories(dir.path / "cells");
+    fs::create_directories(dir.path / "programs");
+    fs::copy_file(kSource / "config/bench.sim.json", dir.path / "bench.sim.json");
+    fs::copy_file(kSource / "config/cells/p45b.json", dir.path / "cells/p45b.json");
+    fs::copy_file(kSource / "config/cells/p45b-thesis.json", dir.path / "cells/p45b-thesis.json");
+    std::ofstream(dir.path / "programs/heat.json") << R"({
+      "schema": "cellbench.bench-program/1", "name": "heat",
+      "segments": [
+        {"type": "chamber_setpoint", "setpoint_c": 30.0},
+        {"type": "cycler", "name": "heat", "steps": [
+          {"type": "rest", "time_s": 5},
+          {"type": "cc_discharge", "current_a": 40.0, "cutoff_voltage_v": 2.9, "time_s": 600},
+          {"type": "rest", "time_s": 60},
+          {"type": "end"}]}]})";
+
+    auto cfg = sim_config(dir.path / "bench.sim.json");
+    const double max_c = 33.0;  // 3 K above the start: the 40 A discharge gets there in about 10 bench s
+    cfg.safety.max_temperature_c = max_c;
+    const double daq_period_s = 0.1;  // the simulated DEWE samples at 10 Hz of bench time
+    daemon::BenchDaemon d(cfg, options_in(dir, 2.0));
+    d.start();
+    ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
+
+    const auto id = d.start_run({"heat", "p45b", {}})["id"].get<daemon::RunId>();
+    std::string state;
+    ASSERT_TRUE(eventually([&] {
+        state = d.get_run(id)["state"].get<std::string>();
+        return terminal(state);
+    }, 300s));
+    eventually([&] {
+        const auto ev = d.events(id);
+        for (const auto& e : ev["events"])
+            if (e["kind"] == "cycler" && !e["detail"].is_null() && e["detail"].contains("acknowledged_t_s")) return true;
+        return false;
+    }, 10s);
+    d.store().flush();
+
+    const auto run = d.get_run(id);
+    EXPECT_EQ(state, "failed");
+    ASSERT_TRUE(run["error"].is_string()) << run.dump();
+    EXPECT_NE(run["error"].get<std::string>().find("temperature"), std::string::npos) << run["error"];
+
+    double abort_t = NAN, ack_t = NAN;
+    const auto events = d.events(id);  // kept: a range-for over a temporary's member would dangle
+    for (const auto& e : events["events"]) {
+        if (e["kind"] == "abort") {
+            abort_t = e["test_time_s"].get<double>();
+            EXPECT_EQ(e["level"], "error");
+            EXPECT_NE(e["message"].get<std::string>().find("temperature"), std::string::npos) << e["message"];
+        }
+        if (e["kind"] == "cycler" && !e["detail"].is_null() && e["detail"].contains("acknowledged_t_s"))
+            ack_t = e["detail"]["acknowledged_t_s"].get<double>();
+    }
+    ASSERT_TRUE(std::isfinite(abort_t)) << "no abort event: " << events.dump(1);
+    ASSERT_TRUE(std::isfinite(ack_t)) << "the tester never acknowledged the stop";
+
+    // The abort came from the first DAQ sample over the limit (none before it was over).
+    const auto w = d.store().samples(id, std::nullopt, std::nullopt, 100000);
+    const auto* daq = w.source("daq");
+    ASSERT_NE(daq, nullptr);
+    ASSERT_FALSE(w.decimated);
+    double first_over = NAN;
+    for (std::size_t k = 0; k < daq->size() && std::isnan(first_over); ++k)
+        for (const char* ch : {"surface_c", "t1_c", "t2_c"})
+            if (daq->min[daq->channel(ch)][k] > max_c) first_over = daq->time_s[k];
+    ASSERT_TRUE(std::isfinite(first_over));
+    EXPECT_NEAR(abort_t, first_over, 1e-6);
+
+    // Current off within one sample period of the violating sample (bench time, the tester's acknowledgement)...
+    std::printf("over-temperature at %.3f s (test time), stop acknowledged %.1f ms later (bench), scale 2\n", abort_t,
+                (ack_t - abort_t) * 1e3);
+    EXPECT_GE(ack_t, abort_t);
+    EXPECT_LE(ack_t - abort_t, daq_period_s);
+    // ...and the cell carries no current since (the plant's truth; the run stores samples while it is live).
+    const auto* cyc = w.source("cycler");
+    ASSERT_NE(cyc, nullptr);
+    const auto ic = cyc->channel("current_a");
+    double max_before = 0;
+    for (std::size_t k = 0; k < cyc->size(); ++k)
+        if (cyc->time_s[k] < abort_t) max_before = std::max(max_before, std::abs(cyc->min[ic][k]));
+    EXPECT_GT(max_before, 39.0);  // it was heating with 40 A
+    ASSERT_NE(d.plant(), nullptr);
+    EXPECT_LT(std::abs(d.plant()->read().current_a), 0.02);  // 0 A plus the simulated sensor noise
+    EXPECT_TRUE(eventually([&] {
+        const auto live = d.status()["live"];
+        return live["current_a"].is_number() && std::abs(live["current_a"].get<double>()) < 0.05;
+    }, 10s));
+    d.shutdown();
+}

@@ -6,19 +6,22 @@ DATA    := $(SHARED)/data/p45b
 BIN     := $(BUILD)/bin
 OUT     := $(BUILD)/run
 
-# Debian packages the build and the tests need (installed by `make deps` when missing).
+# Debian packages the build and the tests need (installed by `make deps` when missing). nodejs and npm build the
+# dashboard (web/), chromium and chromium-driver run its browser test; an npm that came with another nodejs
+# package (NodeSource's provides it and conflicts with Debian's) counts as installed.
 DEBS := cmake g++ make pkg-config \
         libceres-dev libeigen3-dev libboost-dev libboost-system-dev libspdlog-dev nlohmann-json3-dev \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
-        python3 python3-numpy python3-scipy
+        python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver clang libclang-rt-dev
 
-.PHONY: all deps configure build run test test-unit test-data bench prove clean
+.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz
 
 all: build
 
 deps:
 	@missing=""; for p in $(DEBS); do \
-	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || \
+	  { [ $$p = npm ] && command -v npm > /dev/null; } || missing="$$missing $$p"; \
 	done; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing Debian packages:$$missing"; \
@@ -69,6 +72,19 @@ run: build
 
 test: build
 	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) --timeout 600
+	@$(MAKE) --no-print-directory fuzz
+
+# libFuzzer targets (tests/fuzz/: instrument frames, recordings, configs, HTTP requests) under ASan + UBSan, in
+# a clang build of just the code they test; each runs FUZZ_SECONDS from its seed corpus, a crash fails.
+# `make test` runs them briefly; a longer run: `make fuzz FUZZ_SECONDS=1800 FUZZ_OPT=-O1` (README, "Fuzzing").
+FUZZ_BUILD   ?= $(BUILD)-fuzz
+FUZZ_SECONDS ?= 10
+FUZZ_OPT     ?= -O0
+fuzz: deps
+	@cmake -S . -B $(FUZZ_BUILD) -DCELLBENCH_FUZZ_ONLY=ON -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug \
+	  -DCELLBENCH_FUZZ_SECONDS=$(FUZZ_SECONDS) -DCELLBENCH_FUZZ_OPT=$(FUZZ_OPT) > $(FUZZ_BUILD).configure.log 2>&1 || (cat $(FUZZ_BUILD).configure.log; exit 1)
+	cmake --build $(FUZZ_BUILD) -j$(JOBS)
+	cd $(FUZZ_BUILD) && ctest --output-on-failure -j$(JOBS) -L fuzz
 
 test-unit: build
 	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) -L unit
@@ -84,6 +100,13 @@ bench: build
 SEEDS ?= 1 2 3
 prove: build
 	scripts/prove.sh $(BIN) "$(SEEDS)" $(BUILD)/prove
+
+# Installs what `make` built (bin/, share/cellbench/config, lib/systemd/system/cellbenchd.service) under PREFIX:
+# `make && sudo make install` (README "Running as a service"). Does not build, so root never writes to $(BUILD).
+PREFIX ?= /usr/local
+install:
+	@test -x $(BIN)/cellbenchd || { echo "nothing built in $(BUILD)/: run make first (as yourself), then sudo make install"; exit 1; }
+	cmake --install $(BUILD) --prefix $(PREFIX)
 
 clean:
 	rm -rf $(BUILD) $(BUILD).configure.log

@@ -1,9 +1,10 @@
 // cellbenchd: runs the battery-cell test bench unattended (INTERFACES.md, "Daemon").
-//   cellbenchd --config FILE [--listen HOST:PORT] [--db PATH] [--token TOKEN] [--time-scale X]
+//   cellbenchd --config FILE [--listen HOST:PORT] [--db PATH] [--token TOKEN] [--time-scale X] [--web-root DIR]
 // Exit status: 0 after a clean shutdown (SIGTERM/SIGINT), 1 bad configuration or failure to start, 2 usage.
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <functional>
 #include <optional>
 #include <string>
 
@@ -15,6 +16,7 @@
 #include "cellbench/daemon/bench_daemon.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/daemon/http_server.hpp"
+#include "cellbench/daemon/systemd.hpp"
 
 using namespace cellbench;
 
@@ -30,6 +32,10 @@ int main(int argc, char** argv) {
     app.add_option("--token", token, "API bearer token for POST endpoints (default: $CELLBENCH_TOKEN)");
     app.add_option("--time-scale", time_scale, "Bench seconds per wall second of the simulated instruments")
         ->check(CLI::PositiveNumber);
+    std::string web_root;
+    app.add_option("--web-root", web_root,
+                   "Serve the dashboard from this folder (e.g. build/web/dist) instead of the one built in")
+        ->check(CLI::ExistingDirectory);
     app.add_flag("-v,--verbose", verbose, "Debug logging");
     app.add_flag("-q,--quiet", quiet, "Warnings and errors only");
     try {
@@ -39,6 +45,9 @@ int main(int argc, char** argv) {
         return code == 0 ? 0 : 2;
     }
     spdlog::set_level(quiet ? spdlog::level::warn : verbose ? spdlog::level::debug : spdlog::level::info);
+    // Under systemd: "<N>" priorities instead of time stamps when logging to the journal; sd_notify.
+    daemon::systemd::use_journal_format_if_connected();
+    const auto notifier = daemon::systemd::Notifier::from_environment();
 
     daemon::BenchConfig cfg;
     daemon::BenchDaemonOptions opt;
@@ -58,6 +67,8 @@ int main(int argc, char** argv) {
     }
     if (!db.empty()) opt.db_path = db;
     opt.time_scale = time_scale;
+    // The HTTP server reads it when it starts (HttpServerOptions::static_dir); set before any thread runs.
+    opt.web_root = web_root;
     opt.token = token;
     if (opt.token.empty()) {
         const char* env = std::getenv(cfg.token_env.empty() ? "CELLBENCH_TOKEN" : cfg.token_env.c_str());
@@ -72,14 +83,21 @@ int main(int argc, char** argv) {
         std::printf("cellbenchd: API %s\ncellbenchd: database %s\n", bench.api_url().c_str(),
                     bench.database_path().string().c_str());
         std::fflush(stdout);
+        notifier.notify("READY=1\nSTATUS=API " + bench.api_url());
+        // WATCHDOG=1 at half the timeout, only while the daemon's io_context runs what is posted to it.
+        std::optional<daemon::systemd::Watchdog> watchdog;
+        if (const auto timeout = daemon::systemd::watchdog_timeout(); timeout && notifier.active())
+            watchdog.emplace(notifier, *timeout / 2, [&bench](std::function<void()> done) { bench.post(std::move(done)); });
 
         // Signals on their own io_context in the main thread: the daemon's threads never block on them.
         boost::asio::io_context signals_io;
         boost::asio::signal_set signals(signals_io, SIGINT, SIGTERM);
         signals.async_wait([&](const boost::system::error_code& ec, int sig) {
             if (!ec) spdlog::info("signal {}: shutting down", sig);
+            notifier.notify("STOPPING=1\nSTATUS=shutting down");
         });
         signals_io.run();
+        if (watchdog) watchdog->stop();
         bench.shutdown();
     } catch (const InputError& e) {
         std::fprintf(stderr, "cellbenchd: %s\n", e.what());

@@ -5,9 +5,12 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <cstdio>
 #include <deque>
 #include <functional>
 #include <fstream>
+#include <future>
+#include <map>
 #include <mutex>
 #include <sstream>
 #include <thread>
@@ -20,6 +23,7 @@
 #include <spdlog/spdlog.h>
 
 #include "cellbench/daemon/http_server.hpp"
+#include "cellbench/daemon/metrics.hpp"
 #include "cellbench/drivers/can_transport.hpp"
 #include "cellbench/drivers/chamber_client.hpp"
 #include "cellbench/drivers/dewe_driver.hpp"
@@ -397,11 +401,7 @@ struct BenchDaemon::Impl {
     struct ChamberAdapter final : sequencer::Chamber {
         Impl& d;
         explicit ChamberAdapter(Impl& impl) : d(impl) {}
-        void set_setpoint(double c) override {
-            d.chamber->set_temperature(c, [&d = d, c](const std::optional<drivers::ChamberFault>& f) {
-                if (f) d.instrument_fault("chamber", "set point " + std::to_string(c) + " degC: " + f->message, false);
-            });
-        }
+        void set_setpoint(double c) override { d.chamber_setpoint(c, ++d.setpoint_generation, 0); }
         void set_running(bool running) override {
             d.chamber->set_running(running, [&d = d](const std::optional<drivers::ChamberFault>& f) {
                 if (f) d.instrument_fault("chamber", "run/stop: " + f->message, false);
@@ -410,7 +410,9 @@ struct BenchDaemon::Impl {
     } chamber_adapter{*this};
 
     Impl(BenchConfig c, BenchDaemonOptions o) : cfg(std::move(c)), opt(std::move(o)) {
-        if (cfg.simulation) scale = opt.time_scale.value_or(cfg.simulation->time_scale);
+        // --time-scale also applies without a simulation section: a daemon driving `cellbench sim --time-scale X`
+        // from config/bench.hil.json must run its clock, polls and grace periods at the same scale.
+        scale = opt.time_scale.value_or(cfg.simulation ? cfg.simulation->time_scale : 1.0);
         if (!(scale > 0) || !std::isfinite(scale)) throw InputError("time scale: expected a positive number");
         clock = std::make_shared<const sim::BenchClock>(scale, 0.0);
         db_path = opt.db_path.value_or(cfg.database.path);
@@ -447,14 +449,151 @@ struct BenchDaemon::Impl {
         }
     }
 
+    // -- instrument faults (issue 6): episodes, policy, events ----------------------------------------------
+    // A fault opens an episode of its key ("neware", "chamber", "chamber:alarm", "chamber:setpoint", "dewe",
+    // "<instrument>:command"); its first occurrence is a "fault" event (later ones are counted), a valid
+    // reading closes it with a "recovery" event. Recoverable faults leave the run going: the sequencer aborts
+    // it when the instrument stays without readings past its grace (tick). Fatal ones abort it at once.
+    struct FaultEpisode {
+        bool open = false;
+        double since_s = 0.0, last_s = 0.0;
+        std::string fault, message;
+        std::uint64_t occurrences = 0;
+        std::optional<RunId> run;
+    };
+    std::mutex fault_m;  // leaf
+    std::map<std::string, FaultEpisode> episodes;
+
+    static std::string instrument_of(const std::string& key) { return key.substr(0, key.find(':')); }
+
+    // Grace in bench time, never below what the host can promise in wall time (3 s; see limits_for).
+    double grace_for(const std::string& instrument) const {
+        const auto& f = cfg.faults;
+        const double g = instrument == "neware" ? f.cycler.grace_s : instrument == "dewe" ? f.daq.grace_s : f.chamber.grace_s;
+        return std::max(g, scale * 3.0);
+    }
+
+    void record_run_event(std::optional<RunId> run, EventLevel level, const std::string& kind, const std::string& message,
+                          json detail) {
+        if (!store) return;
+        EventRecord e;
+        e.run_id = run;
+        e.unix_s = unix_now_s();
+        e.level = level;
+        e.kind = kind;
+        e.message = message;
+        e.detail = std::move(detail);
+        if (run) {
+            if (auto c = current(); c && c->id == *run) {
+                e.t_s = c->rel(now_s());
+                std::lock_guard l(c->m);
+                if (c->open_step) e.step = c->open_step->index;
+            }
+        }
+        try {
+            store->record_event(e);
+        } catch (const std::exception& ex) {
+            spdlog::warn("cannot record event: {}", ex.what());
+        }
+    }
+
+    void fault(const std::string& key, const std::string& kind, const std::string& message, bool fatal, json extra = nullptr) {
+        const double now = now_s();
+        const std::string instrument = instrument_of(key);
+        auto c = active();
+        bool first = false;
+        std::optional<RunId> run;
+        {
+            std::lock_guard l(fault_m);
+            auto& ep = episodes[key];
+            if (!ep.open) {
+                ep = FaultEpisode{};
+                ep.open = first = true;
+                ep.since_s = now;
+                ep.fault = kind;
+                if (c) ep.run = c->id;
+            } else if (c && ep.run != c->id) {
+                ep.run = c->id;  // a fault still going on when a run started: that run records it too
+                first = true;
+            }
+            ++ep.occurrences;
+            ep.last_s = now;
+            ep.message = message;
+            run = c ? std::optional<RunId>(c->id) : ep.run;
+        }
+        if (first || fatal) {
+            json detail = {{"instrument", instrument}, {"fault", kind}, {"message", message},
+                           {"action", fatal ? "abort" : "reconnect"}};
+            if (!fatal) detail["grace_s"] = grace_for(instrument);
+            if (extra.is_object())
+                for (const auto& [k, v] : extra.items()) detail[k] = v;
+            spdlog::warn("{}: {} fault: {}{}", instrument, kind, message, fatal ? " (fatal: the run aborts)" : "");
+            record_run_event(run, fatal ? EventLevel::error : EventLevel::warning, "fault", instrument + ": " + message,
+                             std::move(detail));
+        }
+        if (fatal && c) c->seq->abort(instrument + ": " + message + " (" + kind + ", immediately fatal)", now);
+    }
+
+    // A valid reading: closes the key's episode (after settle_s bench seconds without a new fault).
+    void recovered(const std::string& key, double settle_s = 0.0) {
+        const double now = now_s();
+        FaultEpisode ep;
+        {
+            std::lock_guard l(fault_m);
+            const auto it = episodes.find(key);
+            if (it == episodes.end() || !it->second.open || now - it->second.last_s < settle_s) return;
+            ep = it->second;
+            it->second.open = false;
+        }
+        const std::string instrument = instrument_of(key);
+        const double down_s = std::max(0.0, now - ep.since_s);
+        spdlog::info("{}: recovered from {} after {:.1f} s ({} occurrences)", instrument, ep.fault, down_s, ep.occurrences);
+        auto c = active();
+        const auto run = ep.run ? ep.run : (c ? std::optional<RunId>(c->id) : std::nullopt);
+        char text[64];
+        std::snprintf(text, sizeof text, " cleared after %.1f s", down_s);
+        record_run_event(run, EventLevel::info, "recovery", instrument + ": " + ep.fault + text,
+                         {{"instrument", instrument}, {"fault", ep.fault}, {"down_s", down_s},
+                          {"occurrences", ep.occurrences}, {"last_message", ep.message}});
+    }
+
+    // Faults reported outside the drivers' own fault streams (commands not taken, set point writes).
     void instrument_fault(const std::string& instrument, const std::string& message, bool safety_data_lost) {
-        if (auto c = active()) c->seq->on_fault(instrument, message, safety_data_lost, now_s());
-        else bench_event(EventLevel::warning, "instrument", instrument + ": " + message);
+        fault(instrument + ":command", "command", message, safety_data_lost);
+    }
+
+    // The latest set point asked for is written until the chamber takes it (a newer one supersedes it): after
+    // an abort, the safe set point must reach a chamber that was unreachable for a while.
+    std::atomic<std::uint64_t> setpoint_generation{0};
+    // Bumped when a run starts: a stop still being retried for an earlier run must not stop the new one.
+    std::atomic<std::uint64_t> run_generation{0};
+
+    void retry_later(int attempt, std::function<void()> fn) {
+        auto timer = std::make_shared<asio::steady_timer>(io);
+        timer->expires_after(std::chrono::milliseconds(std::min<std::int64_t>(5000, 250LL << std::min(attempt, 5))));
+        timer->async_wait([this, timer, fn = std::move(fn)](const boost::system::error_code& ec) {
+            if (!ec && !stopping) fn();
+        });
+    }
+
+    void chamber_setpoint(double c, std::uint64_t gen, int attempt) {
+        chamber->set_temperature(c, [this, c, gen, attempt](const std::optional<drivers::ChamberFault>& f) {
+            if (!f) {
+                if (attempt > 0) spdlog::info("chamber: set point {:.1f} degC taken after {} attempts", c, attempt + 1);
+                return recovered("chamber:command");
+            }
+            if (attempt == 0) instrument_fault("chamber", "set point " + std::to_string(c) + " degC: " + f->message, false);
+            if (f->kind == drivers::ChamberFaultKind::rejected || stopping || gen != setpoint_generation) return;
+            retry_later(attempt, [this, c, gen, attempt] {
+                if (gen == setpoint_generation) chamber_setpoint(c, gen, attempt + 1);
+            });
+        });
     }
 
     void command_result(const std::string& what, const drivers::NewareCommandResult& r) {
         if (r.ok) {
             spdlog::debug("neware {}: ok", what);
+            recovered("neware:command");
             return;
         }
         spdlog::warn("neware {} failed: {}", what, r.error);
@@ -480,10 +619,20 @@ struct BenchDaemon::Impl {
         neware->start_program(path, barcode, [this](const drivers::NewareCommandResult& r) { command_result("start", r); });
     }
 
-    void cycler_stop(const std::string& why) {
-        const double t_cmd = now_s();
-        neware->stop_program([this, t_cmd, why](const drivers::NewareCommandResult& r) {
-            if (!r.ok) return command_result("stop", r);
+    // Stops the tester's program; a stop the tester did not acknowledge (unreachable, stalled) is sent again
+    // with backoff until it is, unless a newer run started meanwhile: the cell is never left on a program.
+    void cycler_stop(const std::string& why, int attempt = 0, std::optional<double> first_cmd = std::nullopt) {
+        const double t_cmd = first_cmd.value_or(now_s());
+        const std::uint64_t gen = run_generation;
+        neware->stop_program([this, t_cmd, why, attempt, gen](const drivers::NewareCommandResult& r) {
+            if (!r.ok) {
+                if (attempt == 0) command_result("stop", r);
+                if (stopping || gen != run_generation) return;
+                spdlog::warn("neware: stop not acknowledged ({}); sending it again", r.error);
+                return retry_later(attempt, [this, why, attempt, t_cmd, gen] {
+                    if (gen == run_generation) cycler_stop(why, attempt + 1, t_cmd);
+                });
+            }
             // When the tester confirmed: recorded so the reaction time of a safety stop is visible.
             const double t_ack = now_s();
             if (auto c = current()) {
@@ -493,15 +642,74 @@ struct BenchDaemon::Impl {
                 e.t_s = c->rel(t_ack);
                 e.kind = "cycler";
                 e.message = "current off: the tester acknowledged the stop";
-                e.detail = {{"commanded_t_s", c->rel(t_cmd)}, {"acknowledged_t_s", c->rel(t_ack)}, {"why", why}};
+                e.detail = {{"commanded_t_s", c->rel(t_cmd)}, {"acknowledged_t_s", c->rel(t_ack)}, {"why", why},
+                            {"attempts", attempt + 1}};
                 store->record_event(e);
             }
         });
     }
 
+    // Bench time at which the tester's current test started (test time 0), per test id: maps the recorded
+    // rows' test time onto the daemon's clock. Set from the first live reading of the test (answer time minus
+    // the tester's total time), so rows keep the tester's exact spacing. Neware strand only.
+    std::int64_t neware_test_id = 0;
+    double neware_test_start_s = kNaN;
+
     void on_neware_sample(const drivers::NewareSample& s) {
         const double t = bench_at(s.time);
         const auto& g = s.group;
+        const auto status = std::string(protocol::neware::to_string(g.status));
+        // A valid answer, with no new fault for a few polls, ends a fault episode (a flapping link stays one).
+        recovered("neware", 3e-3 * cfg.cycler.poll_period_ms);
+        auto c = active();
+
+        auto store_row = [&](const sequencer::CyclerSample& cs) {
+            CyclerSample row;
+            row.unix_s = cs.t_wall_s;
+            row.voltage_v = cs.voltage_v;
+            row.current_a = cs.current_a;
+            row.capacity_ah = cs.capacity_ah;
+            row.energy_wh = cs.energy_wh;
+            row.step_id = cs.step_id;
+            row.cycle = cs.cycle_id;
+            row.step_type = cs.step_type;
+            row.status = cs.status;
+            if (c) {
+                row.t_s = c->rel(cs.t_mono_s);
+                row.soc = c->count_soc(row.t_s, cs.current_a);
+                store->push(c->id, row);
+            }
+            return row;
+        };
+
+        // Recorded rows first (they precede the live reading), on the tester's own time base.
+        if (s.test_id != 0 && s.test_id != neware_test_id && std::isfinite(g.total_time_s)) {
+            neware_test_id = s.test_id;
+            neware_test_start_s = t - g.total_time_s;
+        }
+        if (!s.records.empty() && std::isfinite(neware_test_start_s)) {
+            std::vector<sequencer::CyclerSample> rows;
+            rows.reserve(s.records.size());
+            for (const auto& r : s.records) {
+                sequencer::CyclerSample cs;
+                cs.t_mono_s = neware_test_start_s + r.test_time_s;
+                cs.t_wall_s = unix_at(s.time) - (t - cs.t_mono_s);
+                cs.voltage_v = r.voltage_v;
+                cs.current_a = r.current_a;
+                cs.capacity_ah = r.capacity_ah;
+                cs.energy_wh = r.energy_wh;
+                cs.step_id = r.step_id;
+                cs.cycle_id = r.cycle_id;
+                cs.step_type = r.step_type;
+                cs.status = "working";
+                store_row(cs);
+                rows.push_back(std::move(cs));
+            }
+            if (c) feed([c, rows = std::move(rows)] {
+                for (const auto& cs : rows) c->seq->on_cycler_record(cs);
+            });
+        }
+
         sequencer::CyclerSample cs;
         cs.t_mono_s = t;
         cs.t_wall_s = unix_at(s.time);
@@ -512,30 +720,35 @@ struct BenchDaemon::Impl {
         cs.step_id = g.step_id;
         cs.cycle_id = g.cycle_id;
         cs.step_type = g.step_type;
-        cs.status = std::string(protocol::neware::to_string(g.status));
-
+        cs.status = status;
+        cs.covered_by_records = s.recording;
+        // Without recorded rows (a tester that does not record, or before the first download) the live
+        // readings are the samples stored.
         CyclerSample row;
-        row.unix_s = cs.t_wall_s;
-        row.voltage_v = g.voltage_v;
-        row.current_a = g.current_a;
-        row.capacity_ah = g.capacity_ah;
-        row.energy_wh = g.energy_wh;
-        row.step_id = g.step_id;
-        row.cycle = g.cycle_id;
-        row.step_type = g.step_type;
-        row.status = cs.status;
-
-        auto c = active();
+        if (!s.recording) {
+            row = store_row(cs);
+        } else {
+            row.unix_s = cs.t_wall_s;
+            row.voltage_v = g.voltage_v;
+            row.current_a = g.current_a;
+            row.capacity_ah = g.capacity_ah;
+            row.energy_wh = g.energy_wh;
+            row.step_id = g.step_id;
+            row.cycle = g.cycle_id;
+            row.step_type = g.step_type;
+            row.status = status;
+            if (c) {
+                std::lock_guard lock(c->m);
+                row.soc = std::clamp(1.0 + c->soc_q_ah / c->capacity_ah, 0.0, 1.0);
+            }
+        }
         if (c) {
-            row.t_s = c->rel(t);
-            row.soc = c->count_soc(row.t_s, g.current_a);
             {
                 std::lock_guard lock(c->m);
                 c->last_capacity_ah = g.capacity_ah;
                 c->last_energy_wh = g.energy_wh;
             }
             feed([c, cs] { c->seq->on_cycler(cs); });
-            store->push(c->id, row);
         }
         std::lock_guard lock(live_m);
         row.t_s = t;  // live: bench time
@@ -556,10 +769,24 @@ struct BenchDaemon::Impl {
         }
         spdlog::log(e.kind == drivers::NewareEventKind::connect_failed ? spdlog::level::debug : spdlog::level::info,
                     "neware: {}: {}", drivers::to_string(e.kind), e.message);
-        // A misbehaving parallel group (the client has stopped every member): the run must end, not advance.
-        if (e.kind == drivers::NewareEventKind::group_fault) instrument_fault("neware", e.message, true);
-        else if (e.kind == drivers::NewareEventKind::disconnected || e.kind == drivers::NewareEventKind::protocol_error)
-            instrument_fault("neware", std::string(drivers::to_string(e.kind)) + ": " + e.message, false);
+        // A misbehaving parallel group (a member in protect, sharing off; the client has stopped every member):
+        // immediately fatal. Lost connections, lost or malformed answers: the client reconnects with backoff and
+        // the run goes on while readings come back within the grace (a valid poll answer closes the episode).
+        switch (e.kind) {
+            case drivers::NewareEventKind::group_fault: {
+                json extra = json::object();
+                if (e.fault) extra["member"] = e.fault->member_key;
+                fault("neware:group", "group_fault", e.message, true, std::move(extra));
+                break;
+            }
+            case drivers::NewareEventKind::disconnected:
+            case drivers::NewareEventKind::connect_failed:
+            case drivers::NewareEventKind::timeout:
+            case drivers::NewareEventKind::protocol_error:
+                fault("neware", drivers::to_string(e.kind), e.message, false);
+                break;
+            default: break;  // connected (a reading closes the episode), command_failed (command_result)
+        }
     }
 
     // -- DAQ --------------------------------------------------------------------------------------------------
@@ -574,6 +801,7 @@ struct BenchDaemon::Impl {
         row.t2_c = r.t2_c;
         row.heat_flux_w_per_m2 = r.heat_flux_w_per_m2;
         row.sequence = static_cast<std::int64_t>(r.sequence);
+        recovered("dewe");
         if (auto c = active()) {
             row.t_s = c->rel(t);
             feed([c, ds] { c->seq->on_daq(ds); });
@@ -600,8 +828,44 @@ struct BenchDaemon::Impl {
             daq_detail = h.message;
         }
         if (changed) spdlog::info("dewe: {} ({})", drivers::to_string(h.state), h.message);
-        // Silence is judged by the sequencer's grace period (tick); losses are worth a warning.
-        if (changed && h.state == drivers::DeweStreamState::silent) instrument_fault("dewe", h.message, false);
+        // Silence: a fault episode (the next sample closes it); the sequencer aborts past the DAQ's grace (tick:
+        // no cell temperature). Lost frames (counter gaps) and garbage: counted, and an event at most every
+        // loss_event_interval_s with what was lost since the previous one.
+        if (changed && h.state == drivers::DeweStreamState::silent) fault("dewe", "silence", h.message, false);
+        daq_losses(h.stats);
+    }
+
+    protocol::DeweStreamStats daq_loss_reported{};  // counts at the last loss event (fault_m)
+    double daq_loss_event_s = -1e300;
+    std::optional<RunId> daq_loss_run;  // the run of the last loss event: a new run gets its first one at once
+
+    void daq_losses(const protocol::DeweStreamStats& st) {
+        const double now = now_s();
+        auto c = active();
+        const auto run = c ? std::optional<RunId>(c->id) : std::nullopt;
+        json detail;
+        std::string message;
+        {
+            std::lock_guard l(fault_m);
+            const auto& r = daq_loss_reported;
+            const std::uint64_t samples = st.lost_samples - r.lost_samples, frames = st.lost_frames - r.lost_frames,
+                                garbage = st.garbage - r.garbage, resyncs = st.resyncs - r.resyncs;
+            if (samples + frames + garbage + resyncs == 0) return;
+            if (run == daq_loss_run && now - daq_loss_event_s < cfg.faults.daq.loss_event_interval_s) return;
+            daq_loss_event_s = now;
+            daq_loss_run = run;
+            daq_loss_reported = st;
+            message = "dewe: " + std::to_string(samples) + " samples lost (" + std::to_string(frames) +
+                      " frames missing from the counters), " + std::to_string(garbage) + " garbage frames ignored" +
+                      (resyncs ? ", " + std::to_string(resyncs) + " counter restarts" : std::string());
+            detail = {{"instrument", "dewe"}, {"fault", "data_loss"}, {"action", "count"},
+                      {"lost_samples", samples}, {"lost_frames", frames}, {"garbage_frames", garbage},
+                      {"resyncs", resyncs}, {"total_lost_samples", st.lost_samples},
+                      {"total_lost_frames", st.lost_frames}, {"total_garbage_frames", st.garbage},
+                      {"total_samples", st.samples}};
+        }
+        spdlog::warn("{}", message);
+        record_run_event(run, EventLevel::warning, "fault", message, std::move(detail));
     }
 
     // -- chamber ----------------------------------------------------------------------------------------------
@@ -615,6 +879,9 @@ struct BenchDaemon::Impl {
         row.setpoint_c = s.setpoint_c;
         row.running = s.running;
         row.alarm_bits = s.alarm_word;
+        recovered("chamber");
+        if (s.alarm_word == 0) recovered("chamber:alarm");
+        if (std::abs(s.process_value_c - s.setpoint_c) <= cfg.faults.chamber.setpoint_tolerance_c) recovered("chamber:setpoint");
         if (auto c = active()) {
             row.t_s = c->rel(t);
             feed([c, cs] { c->seq->on_chamber(cs); });
@@ -634,7 +901,26 @@ struct BenchDaemon::Impl {
             chamber_detail = f.operation + ": " + f.message;
         }
         spdlog::warn("chamber: {} ({}): {}", drivers::to_string(f.kind), f.operation, f.message);
-        instrument_fault("chamber", std::string(drivers::to_string(f.kind)) + ": " + f.message, false);
+        // Policy (config: fault_policy.chamber). An alarm bit is immediately fatal; a set point not reached and
+        // an exception answer are fatal when the policy says "abort"; the rest (no answer, lost connection,
+        // garbled answer) is retried on a fresh connection while readings come back within the grace.
+        const auto& p = cfg.faults.chamber;
+        const std::string kind = drivers::to_string(f.kind);
+        const json extra = {{"operation", f.operation}, {"attempts", f.attempts}};
+        switch (f.kind) {
+            case drivers::ChamberFaultKind::alarm: fault("chamber:alarm", kind, f.message, true, extra); break;
+            case drivers::ChamberFaultKind::setpoint_not_reached:
+                fault("chamber:setpoint", kind, f.message, p.setpoint_not_reached == SetpointAction::abort, extra);
+                break;
+            case drivers::ChamberFaultKind::exception_response: {
+                json x = extra;
+                x["exception_code"] = f.exception_code;
+                fault("chamber", kind, f.message, p.exception_response == FaultAction::abort, std::move(x));
+                break;
+            }
+            case drivers::ChamberFaultKind::rejected: fault("chamber:command", kind, f.message, false, extra); break;
+            default: fault("chamber", kind, f.message, false, extra); break;
+        }
     }
 
     // -- start ------------------------------------------------------------------------------------------------
@@ -643,6 +929,8 @@ struct BenchDaemon::Impl {
         RunStoreOptions so;
         so.flush_period = std::chrono::milliseconds(cfg.database.flush_period_ms);
         so.queue_capacity_samples = cfg.database.queue_capacity_samples;
+        so.max_page_count = opt.db_max_page_count;
+        if (opt.db_busy_timeout) so.busy_timeout = *opt.db_busy_timeout;
         so.on_fault = [this](const StoreFault& f) {
             spdlog::error("database: {}: {}", to_string(f.kind), f.message);
             if (f.kind == StoreFaultKind::overflow) return;
@@ -669,6 +957,7 @@ struct BenchDaemon::Impl {
         ho.host = cfg.listen.host;
         ho.port = static_cast<std::uint16_t>(cfg.listen.port);
         ho.token = opt.token;
+        if (!opt.web_root.empty()) ho.static_dir = opt.web_root;
         http = std::make_unique<HttpServer>(io, outer_backend(), ho);
         http->start();
         bound_port = http->local_endpoint().port();
@@ -751,6 +1040,8 @@ struct BenchDaemon::Impl {
         no.members = cfg.cycler.channels;
         no.poll_period = wall_period(cfg.cycler.poll_period_ms, scale);  // poll periods are bench time
         no.request_timeout = std::chrono::milliseconds(cfg.cycler.response_timeout_ms);
+        no.reconnect_initial = std::chrono::milliseconds(cfg.faults.cycler.reconnect_initial_ms);
+        no.reconnect_max = std::chrono::milliseconds(cfg.faults.cycler.reconnect_max_ms);
         no.group = cfg.cycler.group;
         neware_address = no.host + ":" + std::to_string(no.port);
         neware = std::make_unique<drivers::NewareClient>(io, no);
@@ -767,7 +1058,13 @@ struct BenchDaemon::Impl {
             co.map = protocol::ChamberRegisterMap::from_json(cfg.chamber.register_map,
                                                              cfg.source.string() + " $.instruments.chamber.register_map");
         co.poll_interval = wall_period(cfg.chamber.poll_period_ms, scale);
-        co.setpoint_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(30.0 * 60e3 / scale));
+        // Modbus answer timeout and retries are wall time (the link's, not the bench's); the set point watch is
+        // bench time.
+        co.response_timeout = std::chrono::milliseconds(cfg.faults.chamber.response_timeout_ms);
+        co.retries = cfg.faults.chamber.retries;
+        co.setpoint_tolerance_c = cfg.faults.chamber.setpoint_tolerance_c;
+        co.setpoint_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(
+            std::max(1.0, cfg.faults.chamber.setpoint_timeout_s * 1e3 / scale)));
         chamber_address = co.host + ":" + std::to_string(co.port);
         chamber = std::make_unique<drivers::ChamberClient>(io, co);
         chamber->on_status([this](const drivers::ChamberStatus& s) { on_chamber_status(s); });
@@ -794,21 +1091,57 @@ struct BenchDaemon::Impl {
         dewe->start();
     }
 
-    // Runs the daemon left live when it died: the bench is made safe first, then each gets a recovery event.
+    // Runs the daemon left live when it died (crash, kill -9, power loss): the bench is made safe before
+    // anything else -- start() calls this before the tick and the API exist, so no run can start and nothing
+    // else is commanded meanwhile. The cycler is told to stop and the chamber to go to its safe set point, both
+    // at once, each retried until the instrument acknowledges it (at most kRecoveryAttempts, each bounded by
+    // the driver's own timeouts); then every such run gets a recovery event saying what was acknowledged.
     void recover() {
         const auto ids = store->mark_interrupted_runs();
         if (ids.empty()) return;
         spdlog::warn("{} run(s) were live when the daemon stopped: current off, chamber to {:.1f} degC",
                      ids.size(), cfg.chamber.safe_setpoint_c);
-        neware->stop_program([](const drivers::NewareCommandResult& r) {
-            if (!r.ok) spdlog::warn("recovery: cycler stop not acknowledged: {}", r.error);
-        });
-        chamber->set_temperature(cfg.chamber.safe_setpoint_c);
+        constexpr int kRecoveryAttempts = 5;
+        using Ack = std::shared_ptr<std::promise<std::string>>;  // "" = acknowledged, else why not
+        auto wait = [](const Ack& p) {
+            auto f = p->get_future();
+            return f.wait_for(std::chrono::seconds(15)) == std::future_status::ready ? f.get() : std::string("no answer");
+        };
+        std::string cycler_error = "not tried", chamber_error = "not tried";
+        int attempts = 0;
+        while ((!cycler_error.empty() || !chamber_error.empty()) && attempts < kRecoveryAttempts) {
+            ++attempts;
+            Ack cyc, cham;
+            if (!cycler_error.empty()) {
+                cyc = std::make_shared<std::promise<std::string>>();
+                neware->stop_program([cyc](const drivers::NewareCommandResult& r) { cyc->set_value(r.ok ? "" : r.error); });
+            }
+            if (!chamber_error.empty()) {
+                cham = std::make_shared<std::promise<std::string>>();
+                chamber->set_temperature(cfg.chamber.safe_setpoint_c, [cham](const std::optional<drivers::ChamberFault>& f) {
+                    cham->set_value(f ? f->message : std::string());
+                });
+            }
+            if (cyc) cycler_error = wait(cyc);
+            if (cham) chamber_error = wait(cham);
+            if (!cycler_error.empty()) spdlog::warn("recovery: cycler stop not acknowledged (attempt {}): {}", attempts, cycler_error);
+            if (!chamber_error.empty())
+                spdlog::warn("recovery: chamber set point not acknowledged (attempt {}): {}", attempts, chamber_error);
+        }
+        const bool safe = cycler_error.empty() && chamber_error.empty();
+        if (safe) spdlog::warn("recovery: the cycler stopped and the chamber is at its safe set point");
+        else spdlog::error("recovery: the bench could NOT be confirmed safe: cycler: {}; chamber: {}",
+                           cycler_error.empty() ? "stopped" : cycler_error, chamber_error.empty() ? "safe set point" : chamber_error);
+        auto word = [](const std::string& err) { return err.empty() ? std::string("acknowledged") : "not acknowledged: " + err; };
         for (RunId id : ids)
-            bench_event(EventLevel::warning, "recovery",
-                        "the daemon restarted while this run was live; it is marked interrupted. The cycler was "
-                        "commanded to stop and the chamber to its safe set point.",
-                        {{"safe_setpoint_c", cfg.chamber.safe_setpoint_c}}, id);
+            bench_event(safe ? EventLevel::warning : EventLevel::error, "recovery",
+                        "the daemon restarted while this run was live; it is marked interrupted and does not "
+                        "continue. Before anything else the cycler was commanded to stop (" + word(cycler_error) +
+                            ") and the chamber to its safe set point " + fmt::format("{:.1f} degC", cfg.chamber.safe_setpoint_c) +
+                            " (" + word(chamber_error) + ").",
+                        {{"safe_setpoint_c", cfg.chamber.safe_setpoint_c}, {"cycler_stop", word(cycler_error)},
+                         {"chamber_setpoint", word(chamber_error)}, {"attempts", attempts}},
+                        id);
         store->flush();
     }
 
@@ -832,9 +1165,12 @@ struct BenchDaemon::Impl {
         l.max_voltage_v = s.max_voltage_v;
         l.max_current_a = s.max_current_a;
         l.chamber_deviation_c = s.chamber_deviation_c;
-        // Grace in bench time, but never below what the host can promise in wall time (1 s): at 1000x a 5 s
+        // Grace in bench time, but never below what the host can promise in wall time (3 s): at 1000x a 5 s
         // grace would be 5 ms of wall time, which a loaded machine cannot guarantee.
-        l.instrument_loss_grace_s = std::max(s.instrument_loss_grace_s, scale * 1.0);
+        l.instrument_loss_grace_s = std::max(s.instrument_loss_grace_s, scale * 3.0);
+        l.cycler_loss_grace_s = grace_for("neware");
+        l.daq_loss_grace_s = grace_for("dewe");
+        l.chamber_loss_grace_s = grace_for("chamber");
         l.chamber_safe_setpoint_c = cfg.chamber.safe_setpoint_c;
         return l;
     }
@@ -888,6 +1224,7 @@ struct BenchDaemon::Impl {
             std::lock_guard l(ctx_m);
             ctx = c;
         }
+        ++run_generation;  // a stop still being retried belongs to an earlier run
         bench_event(EventLevel::info, "operator", "run started: program " + req.program + ", cell " + req.cell,
                     {{"max_temperature_c", so.limits.max_temperature_c}, {"capacity_ah", so.capacity_ah}}, id);
         try {
@@ -946,6 +1283,8 @@ struct BenchDaemon::Impl {
             if (s != sequencer::RunState::Idle) st = store_state(s);
         }
         j["state"] = api_state(st);
+        // The store's word for how it ended ("failed" covers aborted and interrupted), null while live.
+        j["outcome"] = is_terminal(st) ? json(std::string(to_string(st))) : json(nullptr);
         j["error"] = (st == RunState::aborted || st == RunState::interrupted) && !r.reason.empty() ? json(r.reason) : json(nullptr);
         j["step"] = nullptr;
         if (c && c->id == r.id && live_state(st)) {
@@ -1052,6 +1391,9 @@ double BenchDaemon::bench_now_s() const { return impl_->now_s(); }
 double BenchDaemon::time_scale() const { return impl_->scale; }
 RunStore& BenchDaemon::store() { return *impl_->store; }
 sim::BenchPlant* BenchDaemon::plant() { return impl_->plant ? &*impl_->plant : nullptr; }
+sim::NewareServer* BenchDaemon::neware_server() { return impl_->neware_server.get(); }
+sim::ChamberServer* BenchDaemon::chamber_server() { return impl_->chamber_server.get(); }
+sim::DewePublisher* BenchDaemon::dewe_publisher() { return impl_->dewe_publisher.get(); }
 std::optional<RunId> BenchDaemon::active_run() const {
     if (auto c = impl_->active()) return c->id;
     return std::nullopt;
@@ -1163,17 +1505,28 @@ json BenchDaemon::samples(RunId id, const SampleQuery& q) {
             series[m.api] = {{"min", std::move(mn)}, {"max", std::move(mx)}};
         }
     } else {
+        // Each point carries the source's sample in (previous point, this point] that departs most from the
+        // value shown before, so a DAQ spike between two cycler rows survives (the DAQ may sample faster).
         for (const auto& m : maps) {
             const SourceWindow* s = w.source(m.source);
             if (!s || !base) continue;
             const std::size_t ch = s->channel(m.channel);
             if (ch == std::string::npos) continue;
+            const auto& values = s->min[ch];
             json v = json::array();
-            std::size_t k = 0;
+            std::size_t k = 0;  // next source sample not yet consumed
+            double shown = kNaN;
             for (double t : time_s) {
-                while (k + 1 < s->time_s.size() && s->time_s[k + 1] <= t) ++k;
-                const bool has = !s->time_s.empty() && s->time_s[k] <= t + 1e-9;
-                v.push_back(has ? nullable(s->min[ch][k]) : json(nullptr));
+                std::optional<std::size_t> pick;
+                for (; k < s->time_s.size() && s->time_s[k] <= t + 1e-9; ++k) {
+                    if (!std::isfinite(values[k])) continue;
+                    if (!pick || !std::isfinite(shown) ||
+                        std::abs(values[k] - shown) > std::abs(values[*pick] - shown))
+                        pick = k;
+                }
+                if (!pick && k > 0 && std::isfinite(values[k - 1])) pick = k - 1;  // slower source: latest sample
+                if (pick) shown = values[*pick];
+                v.push_back(pick ? nullable(values[*pick]) : json(nullptr));
             }
             series[m.api] = std::move(v);
         }
@@ -1214,28 +1567,49 @@ json BenchDaemon::stop_run(RunId id) { return impl_->stop_run(id); }
 json BenchDaemon::pause_run(RunId id) { return impl_->pause_run(id); }
 json BenchDaemon::resume_run(RunId id) { return impl_->resume_run(id); }
 
+// ---- lab integration (issue 7): GET /metrics gathers a snapshot here, metrics.cpp formats it; post() is the
+// ---- watchdog's liveness probe of the io_context (cellbenchd's sd_notify WATCHDOG=1 pings).
 std::string BenchDaemon::metrics_text() {
     auto& d = *impl_;
-    std::ostringstream o;
-    auto gauge = [&](const char* name, const char* help, double v) {
-        if (!std::isfinite(v)) return;
-        o << "# HELP " << name << ' ' << help << "\n# TYPE " << name << " gauge\n" << name << ' ' << v << '\n';
-    };
+    metrics::BenchSnapshot s;
+    s.uptime_s = std::chrono::duration<double>(SteadyClock::now() - d.started_at).count();
+    const bool run_active = d.active() != nullptr;
     {
         std::lock_guard l(d.live_m);
-        if (d.live_cycler) {
-            gauge("cellbench_cell_voltage_volts", "Cell terminal voltage.", d.live_cycler->voltage_v);
-            gauge("cellbench_cell_current_amperes", "Cell current, positive when charging.", d.live_cycler->current_a);
-        }
-        if (d.live_daq) gauge("cellbench_cell_surface_celsius", "Cell surface temperature.", d.live_daq->surface_c);
-        if (d.live_chamber) gauge("cellbench_chamber_air_celsius", "Chamber air temperature.", d.live_chamber->ambient_c);
+        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt},
+                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt},
+                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt}};
+        if (d.live_cycler) s.voltage_v = d.live_cycler->voltage_v, s.current_a = d.live_cycler->current_a;
+        if (d.live_daq) s.surface_c = d.live_daq->surface_c;
+        if (d.live_chamber) s.ambient_c = d.live_chamber->ambient_c;
+        if (run_active) s.soc = d.live_soc;
     }
-    const auto st = d.store->stats();
-    gauge("cellbench_store_samples_written", "Samples committed to the database.", static_cast<double>(st.samples_written));
-    gauge("cellbench_store_samples_dropped", "Samples refused by the writer queue.", static_cast<double>(st.samples_dropped));
-    gauge("cellbench_run_active", "1 while a run is active.", d.active() ? 1.0 : 0.0);
-    return o.str();
+    if (d.neware_server) s.instruments[0].sim_requests = d.neware_server->stats().requests;
+    if (d.chamber_server) s.instruments[1].sim_requests = d.chamber_server->stats().requests;
+    if (d.dewe) s.daq_stream = d.dewe->health().stats;
+    if (d.store) s.store = d.store->stats();
+    if (auto c = d.current()) {
+        metrics::RunSnapshot r;
+        r.id = c->id;
+        r.active = c->live;
+        try {
+            const json j = d.run_json(c->id);
+            r.state = j.value("state", "");
+            if (j.contains("samples") && j["samples"].is_number_unsigned()) r.samples = j["samples"].get<std::uint64_t>();
+            if (j.contains("step") && j["step"].is_object()) {
+                if (j["step"].contains("index") && j["step"]["index"].is_number_integer()) r.step_index = j["step"]["index"].get<int>();
+                if (j["step"].contains("count") && j["step"]["count"].is_number_integer()) r.step_count = j["step"]["count"].get<int>();
+            }
+        } catch (const std::exception& e) {
+            spdlog::debug("metrics: run {}: {}", c->id, e.what());
+        }
+        s.run = std::move(r);
+    }
+    return metrics::format_bench_metrics(s);
 }
+
+void BenchDaemon::post(std::function<void()> fn) { asio::post(impl_->io, std::move(fn)); }
+// ---- end of lab integration
 
 
 sim::PlantOptions simulated_plant_options(const BenchConfig& cfg, estimator::ParameterSet params) {

@@ -252,9 +252,13 @@ private:
 };
 
 std::string read_text_file(const fs::path& file) {
+    // Only regular files: a device or FIFO named by mistake (/dev/zero, a pipe) would never end.
+    std::error_code ec;
+    const auto status = fs::status(file, ec);
+    if (fs::exists(status) && !fs::is_regular_file(status))
+        throw InputError(file.string() + ": cannot read: not a regular file");
     std::ifstream in(file, std::ios::binary);
     if (!in) {
-        std::error_code ec;
         const bool exists = fs::exists(file, ec);
         throw InputError(file.string() + ": cannot read: " + (exists ? "permission denied or not a file" : "no such file"));
     }
@@ -263,9 +267,9 @@ std::string read_text_file(const fs::path& file) {
     return ss.str();
 }
 
-json parse_json_text(const std::string& text, const std::string& source) {
+json parse_json_text(std::string_view text, const std::string& source) {
     try {
-        return json::parse(text);
+        return json::parse(text.begin(), text.end());
     } catch (const json::parse_error& e) {
         // nlohmann's message carries "parse error at line L, column C: ..."; drop its "[json.exception...]" tag.
         std::string what = e.what();
@@ -524,6 +528,53 @@ BenchConfig parse_bench_config(const json& j, const std::string& source, const f
                                                   format_number(l.max_current_a));
     }
 
+    // Fault policy (optional): per instrument; every grace defaults to safety.instrument_loss_grace_s.
+    {
+        auto& fp = b.faults;
+        const double grace = b.safety.instrument_loss_grace_s;
+        fp.cycler.grace_s = fp.chamber.grace_s = fp.daq.grace_s = grace;
+        Obj p(ctx, root.get("fault_policy"), "$.fault_policy");
+        {
+            Obj c(ctx, p.get("cycler"), "$.fault_policy.cycler");
+            fp.cycler.grace_s = c.number_or("grace_s", grace, Range::positive());
+            const auto lo = c.integer("reconnect_initial_ms", false, 1, 600000);
+            const auto hi = c.integer("reconnect_max_ms", false, 1, 600000);
+            if (lo) fp.cycler.reconnect_initial_ms = static_cast<int>(*lo);
+            if (hi) fp.cycler.reconnect_max_ms = static_cast<int>(*hi);
+            if (fp.cycler.reconnect_max_ms < fp.cycler.reconnect_initial_ms)
+                ctx.add(c.path(), "expected reconnect_initial_ms <= reconnect_max_ms, got " +
+                                      std::to_string(fp.cycler.reconnect_initial_ms) + " and " +
+                                      std::to_string(fp.cycler.reconnect_max_ms));
+            c.finish();
+        }
+        {
+            Obj c(ctx, p.get("chamber"), "$.fault_policy.chamber");
+            auto& ch = fp.chamber;
+            ch.grace_s = c.number_or("grace_s", grace, Range::positive());
+            ch.response_timeout_ms = static_cast<int>(c.integer_or("response_timeout_ms", ch.response_timeout_ms, 10, 60000));
+            ch.retries = static_cast<int>(c.integer_or("retries", ch.retries, 0, 10));
+            if (const auto a = c.choice("exception_response", false, {"reconnect", "abort"}))
+                ch.exception_response = *a == 0 ? FaultAction::reconnect : FaultAction::abort;
+            ch.setpoint_tolerance_c = c.number_or("setpoint_tolerance_c", ch.setpoint_tolerance_c, Range::positive());
+            ch.setpoint_timeout_s = c.number_or("setpoint_timeout_s", ch.setpoint_timeout_s, Range::positive());
+            if (const auto a = c.choice("setpoint_not_reached", false, {"event", "abort"}))
+                ch.setpoint_not_reached = *a == 0 ? SetpointAction::event : SetpointAction::abort;
+            c.finish();
+        }
+        {
+            Obj d(ctx, p.get("daq"), "$.fault_policy.daq");
+            fp.daq.grace_s = d.number_or("grace_s", grace, Range::positive());
+            fp.daq.loss_event_interval_s = d.number_or("loss_event_interval_s", fp.daq.loss_event_interval_s, Range::positive());
+            d.finish();
+            // The stream is declared silent after stale_after_s; a grace shorter than that could never see it.
+            if (b.daq.stale_after_s > fp.daq.grace_s)
+                ctx.add("$.fault_policy.daq.grace_s", "expected at least instruments.daq.stale_after_s (" +
+                                                          format_number(b.daq.stale_after_s) + " s), got " +
+                                                          format_number(fp.daq.grace_s));
+        }
+        p.finish();
+    }
+
     // Database.
     {
         Obj d(ctx, root.get("database", true), "$.database");
@@ -540,11 +591,15 @@ BenchConfig parse_bench_config(const json& j, const std::string& source, const f
     return b;
 }
 
+BenchConfig parse_bench_config_text(std::string_view text, const std::string& source, const fs::path& base_dir) {
+    return parse_bench_config(parse_json_text(text, source), source, base_dir);
+}
+
 BenchConfig load_bench_config(const fs::path& file) {
-    const json j = read_json_file(file);
+    const std::string text = read_text_file(file);
     fs::path dir = file.parent_path();
     if (dir.empty()) dir = ".";
-    return parse_bench_config(j, file.string(), dir);
+    return parse_bench_config_text(text, file.string(), dir);
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -598,11 +653,16 @@ CellConfig parse_cell_config(const json& j, const std::string& source, const fs:
     return c;
 }
 
+CellConfig parse_cell_config_text(std::string_view text, const std::string& source, const fs::path& base_dir,
+                                  std::string id) {
+    return parse_cell_config(parse_json_text(text, source), source, base_dir, std::move(id));
+}
+
 CellConfig load_cell_config(const fs::path& file) {
-    const json j = read_json_file(file);
+    const std::string text = read_text_file(file);
     fs::path dir = file.parent_path();
     if (dir.empty()) dir = ".";
-    return parse_cell_config(j, file.string(), dir, file.stem().string());
+    return parse_cell_config_text(text, file.string(), dir, file.stem().string());
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -1122,7 +1182,12 @@ Program parse_program(const json& j, const std::string& source, const CellConfig
 
 Program load_program(const fs::path& file, const CellConfig& cell, const ProgramOverrides& overrides,
                      const BenchConfig* bench) {
-    return parse_program(read_json_file(file), file.string(), cell, overrides, bench);
+    return parse_program_text(read_text_file(file), file.string(), cell, overrides, bench);
+}
+
+Program parse_program_text(std::string_view text, const std::string& source, const CellConfig& cell,
+                           const ProgramOverrides& overrides, const BenchConfig* bench) {
+    return parse_program(parse_json_text(text, source), source, cell, overrides, bench);
 }
 
 // ---------------------------------------------------------------------------------------------------------

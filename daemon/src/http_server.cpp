@@ -1,10 +1,13 @@
 #include "cellbench/daemon/http_server.hpp"
+#include "cellbench/daemon/http_handler.hpp"
+#include "cellbench/daemon/web_assets.hpp"
 
 #include <algorithm>
 #include <array>
 #include <atomic>
 #include <charconv>
 #include <cmath>
+#include <cstdlib>
 #include <mutex>
 #include <optional>
 #include <stdexcept>
@@ -492,13 +495,74 @@ private:
         });
     }
 
-    Reply static_file(std::string_view path) {
-        if (st_.static_root.empty()) {
-            if (path == "/")
-                return error(http::status::not_found,
-                             "no dashboard installed in this cellbenchd; the REST API is under /api/v1");
-            return not_found();
+    // The dashboard compiled into the daemon (web_assets.hpp). Only the exact embedded names exist (no file
+    // system behind them, so nothing to traverse); "/" is index.html. Strong ETag with 304 on If-None-Match;
+    // content-hashed names are cached for a year, index.html is revalidated; gzip when the client takes it.
+    Reply embedded_file(std::string_view path) {
+        const auto assets = web_assets();
+        if (assets.empty()) {
+            if (path != "/" && path != "/index.html") return not_found();
+            Reply r;
+            r.res.result(http::status::not_found);
+            r.res.set(http::field::content_type, "text/html; charset=utf-8");
+            r.res.body() =
+                "<!doctype html><meta charset=utf-8><title>cellbenchd: no dashboard</title>"
+                "<h1>This cellbenchd was built without its dashboard</h1>"
+                "<p>The dashboard is bundled from <code>web/</code> with node and npm when cellbenchd is built. "
+                "Install them (<code>make deps</code> installs the Debian packages <code>nodejs npm</code>) and "
+                "rebuild (<code>make</code>, or <code>cmake --build build</code>), or serve a built bundle with "
+                "<code>cellbenchd --web-root DIR</code>.</p><p>The REST API is under <a href=\"/api/v1/status\">"
+                "/api/v1</a>.</p>";
+            return r;
         }
+        if (!is_get()) return method_not_allowed("GET, HEAD");
+        if (path == "/") path = "/index.html";
+        const auto it = std::find_if(assets.begin(), assets.end(), [&](const WebAsset& a) { return a.path == path; });
+        if (it == assets.end()) return error(http::status::not_found, "not found");
+        Reply r;
+        // The gzip representation has its own validator ("HASH-gz"); either names the same file content.
+        const bool gzip = accepts_gzip();
+        const std::string_view hash = it->etag.substr(1, it->etag.size() - 2);  // without the quotes
+        r.res.set(http::field::etag, "\"" + std::string(hash) + (gzip ? "-gz\"" : "\""));
+        r.res.set(http::field::cache_control, it->immutable ? "public, max-age=31536000, immutable" : "no-cache");
+        r.res.set(http::field::vary, "Accept-Encoding");
+        r.res.set("X-Content-Type-Options", "nosniff");
+        const auto inm = req_[http::field::if_none_match];
+        if (!hash.empty() && std::string_view(inm.data(), inm.size()).find(hash) != std::string_view::npos) {
+            r.res.result(http::status::not_modified);
+            return r;
+        }
+        r.res.result(http::status::ok);
+        r.res.set(http::field::content_type, beast::string_view(it->content_type.data(), it->content_type.size()));
+        if (gzip) {
+            r.res.set(http::field::content_encoding, "gzip");
+            r.res.body().assign(it->gzip);
+        } else {
+            r.res.body().assign(it->body);
+        }
+        return r;
+    }
+
+    // Accept-Encoding names gzip (or *) without q=0.
+    bool accepts_gzip() const {
+        const auto field = req_[http::field::accept_encoding];
+        for (auto item : split(std::string_view(field.data(), field.size()), ',')) {
+            while (!item.empty() && (item.front() == ' ' || item.front() == '\t')) item.remove_prefix(1);
+            const auto semi = item.find(';');
+            std::string_view name = item.substr(0, semi), params = semi == std::string_view::npos ? "" : item.substr(semi);
+            while (!name.empty() && (name.back() == ' ' || name.back() == '\t')) name.remove_suffix(1);
+            if (!iequals(name, "gzip") && name != "*") continue;
+            const auto q = params.find("q=");
+            if (q == std::string_view::npos) return true;
+            double v = 1.0;
+            std::from_chars(params.data() + q + 2, params.data() + params.size(), v);
+            return v > 0.0;
+        }
+        return false;
+    }
+
+    Reply static_file(std::string_view path) {
+        if (st_.static_root.empty()) return embedded_file(path);
         if (!is_get()) return method_not_allowed("GET, HEAD");
         // Decode first: "%2e%2e" must be seen as "..". Then refuse any dot segment, hidden name, backslash
         // or NUL, and finally check the canonical result is inside the root (symlinks cannot lead out).
@@ -830,7 +894,8 @@ void HttpServer::start() {
         std::error_code ec;
         st.static_root = fs::canonical(st.opt.static_dir, ec);
         if (ec || !fs::is_directory(st.static_root)) {
-            spdlog::warn("http: dashboard folder {} not found; serving the API only", st.opt.static_dir.string());
+            spdlog::warn("http: dashboard folder {} not found; serving the {}", st.opt.static_dir.string(),
+                         web_assets().empty() ? "API only" : "built-in dashboard");
             st.static_root.clear();
         }
     }
@@ -854,7 +919,10 @@ void HttpServer::start() {
     const std::string bound = (st.bound.address().is_v6() ? "[" + st.bound.address().to_string() + "]"
                                                            : st.bound.address().to_string()) +
                               ":" + std::to_string(st.bound.port());
-    spdlog::info("http: listening on http://{}{}", bound, st.static_root.empty() ? "" : " (dashboard at /)");
+    spdlog::info("http: listening on http://{}{}", bound,
+                 !st.static_root.empty() ? " (dashboard at / from " + st.static_root.string() + ")"
+                 : !web_assets().empty() ? std::string(" (dashboard at /)")
+                                         : std::string(" (built without the dashboard)"));
     if (!st.bound.address().is_loopback())
         spdlog::warn("http: listening on {}, beyond loopback, without TLS: the bearer token and bench data travel "
                      "in clear text; put a TLS-terminating reverse proxy in front or listen on 127.0.0.1",
@@ -914,5 +982,56 @@ void HttpServer::stop() {
 }
 
 tcp::endpoint HttpServer::local_endpoint() const { return state_->bound; }
+
+// ---------------------------------------------------------------------------------------------------------
+// Socket-free handling (http_handler.hpp): the sessions' router on a State that never listens.
+
+HttpResponse handle_http_request(const HttpRequest& request, ApiBackend& backend, const HttpServerOptions& options) {
+    // The State wants an executor for its acceptor and timer; they are never opened or run here.
+    static net::io_context unused_ioc;
+    HttpServer::State st(unused_ioc, backend, options);
+    if (!options.static_dir.empty()) {
+        std::error_code ec;
+        st.static_root = fs::canonical(options.static_dir, ec);
+        if (ec || !fs::is_directory(st.static_root)) st.static_root.clear();
+    }
+    Reply r = Router(st, request).route();
+    const bool head = request.method() == http::verb::head;
+    StringResponse res;
+    if (r.file) {
+        auto& f = *r.file;
+        res.result(f.result());
+        for (const auto& field : f) res.set(field.name_string(), field.value());
+        std::string body(static_cast<std::size_t>(f.body().size()), '\0');
+        beast::error_code ec;
+        std::size_t got = 0;
+        while (got < body.size() && !ec) {
+            const std::size_t n = f.body().file().read(body.data() + got, body.size() - got, ec);
+            if (n == 0) break;
+            got += n;
+        }
+        body.resize(got);
+        res.body() = std::move(body);
+    } else if (r.cursor) {
+        res = std::move(r.res);
+        if (!head)
+            while (auto piece = r.cursor->next()) res.body() += *piece;
+    } else {
+        res = std::move(r.res);
+    }
+    res.version(request.version());
+    res.keep_alive(request.keep_alive());
+    res.set(http::field::server, kServerName);
+    if (!res.count(http::field::cache_control)) res.set(http::field::cache_control, "no-store");
+    if (head && r.cursor) {
+        res.keep_alive(false);  // the server does not know the length of an export: it closes after HEAD
+    } else if (head) {
+        res.content_length(res.body().size());
+        res.body().clear();
+    } else {
+        res.prepare_payload();
+    }
+    return res;
+}
 
 }  // namespace cellbench::daemon

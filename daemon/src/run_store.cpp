@@ -29,6 +29,7 @@
 // line up exactly); unix_s is the wall clock, kept per sample because it can be stepped (NTP) and an export
 // must still say when each row was taken.
 #include "cellbench/daemon/run_store.hpp"
+#include "cellbench/daemon/metrics.hpp"
 
 #include <sqlite3.h>
 
@@ -37,12 +38,15 @@
 #include <limits>
 #include <cmath>
 #include <condition_variable>
+#include <fstream>
 #include <future>
 #include <mutex>
 #include <system_error>
 #include <thread>
 #include <unordered_map>
 #include <variant>
+
+#include <spdlog/spdlog.h>
 
 namespace cellbench::daemon {
 
@@ -762,6 +766,21 @@ struct RunStore::Impl {
     bool closed = false;
     std::uint64_t dropped_unreported = 0;
     StoreStats stats;
+    // Control records (run states, steps, events, fits, parameter sets) whose transaction failed on a
+    // transient fault (disk full, locked, I/O error): kept and retried before every batch and every
+    // kUnsavedRetry, so the abort event written while the disk was full lands once the database is writable
+    // again. What is still unsaved at close goes to the sidecar DB.unsaved.jsonl (imported by the next open).
+    // Writer thread only. The kind of the fault last reported: a fault of the same kind is reported once per
+    // episode (until a commit succeeds), so a full disk does not turn every retry into another event.
+    static constexpr std::chrono::milliseconds kUnsavedRetry{1000};
+    static constexpr std::size_t kMaxUnsaved = 100000;
+    std::vector<Control> unsaved;
+    std::optional<StoreFaultKind> fault_episode;
+    // Ingestion rate per source (cycler, daq, chamber) for GET /metrics; guarded by mu.
+    std::array<metrics::RateMeter, 3> ingest_rates{};
+    static double mono_s() {
+        return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+    }
 
     // Reader pool.
     mutable std::mutex pool_mu;
@@ -787,9 +806,11 @@ struct RunStore::Impl {
 
     template <class Sample>
     std::size_t enqueue_samples(RunId run, std::span<const Sample> samples,
-                                std::vector<std::pair<RunId, Sample>> Batch::*queue) {
+                                std::vector<std::pair<RunId, Sample>> Batch::*queue, std::size_t source,
+                                std::uint64_t StoreStats::*accepted_count) {
         std::lock_guard lk(mu);
         if (closed || readonly) return 0;
+        ingest_rates[source].observe(mono_s(), static_cast<double>(stats.*accepted_count));
         const bool was_empty = pending.empty();
         std::size_t accepted = 0;
         for (const auto& s : samples) {
@@ -807,6 +828,7 @@ struct RunStore::Impl {
             ++queued_samples;
             ++accepted;
         }
+        stats.*accepted_count += accepted;
         if (was_empty && !pending.empty()) {
             first_pending = std::chrono::steady_clock::now();
             cv.notify_one();
@@ -821,11 +843,17 @@ struct RunStore::Impl {
         Batch writing;
         std::unique_lock lk(mu);
         for (;;) {
-            cv.wait(lk, [&] { return stop || !pending.empty(); });
-            if (!stop && !urgent && pending.samples() < opt.flush_rows)
+            if (unsaved.empty()) cv.wait(lk, [&] { return stop || !pending.empty(); });
+            else cv.wait_for(lk, kUnsavedRetry, [&] { return stop || !pending.empty(); });
+            if (!stop && !urgent && !pending.empty() && pending.samples() < opt.flush_rows)
                 cv.wait_until(lk, first_pending + opt.flush_period,
                               [&] { return stop || urgent || pending.samples() >= opt.flush_rows; });
             if (pending.empty()) {
+                if (!unsaved.empty()) {  // nothing new: retry what a fault left unsaved
+                    lk.unlock();
+                    retry_unsaved();
+                    lk.lock();
+                }
                 if (stop) break;
                 continue;
             }
@@ -843,12 +871,80 @@ struct RunStore::Impl {
             writing.clear();
             lk.lock();
         }
+        lk.unlock();
+        if (!unsaved.empty()) write_sidecar();
+    }
+
+    [[nodiscard]] fs::path sidecar_path() const { return fs::path(path.string() + ".unsaved.jsonl"); }
+
+    static bool transient(StoreFaultKind k) {
+        return k == StoreFaultKind::disk_full || k == StoreFaultKind::busy || k == StoreFaultKind::io_error ||
+               k == StoreFaultKind::readonly;
+    }
+    // Keeps the batch's records that matter after a failed retry (waiters are failed by the caller).
+    void retain(std::vector<Control>& ops) {
+        for (auto& op : ops) {
+            const bool keep = std::holds_alternative<SetStateOp>(op) || std::holds_alternative<StepOp>(op) ||
+                              std::holds_alternative<EventOp>(op) || std::holds_alternative<FitOp>(op) ||
+                              std::holds_alternative<ParamsOp>(op);
+            if (keep && unsaved.size() < kMaxUnsaved) unsaved.push_back(std::move(op));
+        }
+    }
+    // One transaction with everything unsaved; true when it committed (or nothing was waiting).
+    bool retry_unsaved() {
+        if (unsaved.empty()) return true;
+        try {
+            ws->begin.run();
+            for (auto& op : unsaved) run_control(op);
+            ws->commit.run();
+        } catch (const std::exception&) {
+            rollback_if_open();
+            return false;  // reported when it first failed
+        }
+        spdlog::warn("{}: database writable again: {} record(s) kept while it was not are now saved", path.string(),
+                     unsaved.size());
+        unsaved.clear();
+        fault_episode.reset();
+        return true;
+    }
+    // At close, with the database still refusing writes: the unsaved records as JSON lines beside it (best
+    // effort: on a full disk this may fail too, then the log is the only record).
+    void write_sidecar() {
+        const fs::path side = sidecar_path();
+        std::FILE* f = std::fopen(side.c_str(), "a");
+        std::size_t n = 0;
+        for (const auto& op : unsaved) {
+            json j;
+            if (const auto* e = std::get_if<EventOp>(&op)) {
+                j = to_json(e->event);
+                j["record"] = "event";
+                spdlog::error("unsaved event (run {}): {}: {}", e->event.run_id ? std::to_string(*e->event.run_id) : "-",
+                              e->event.kind, e->event.message);
+            } else if (const auto* st = std::get_if<SetStateOp>(&op)) {
+                j = {{"record", "run_state"}, {"run_id", st->run}, {"state", to_string(st->state)},
+                     {"reason", st->reason}, {"unix_s", st->unix_s}};
+                spdlog::error("unsaved run state: run {} {} ({})", st->run, to_string(st->state), st->reason);
+            } else {
+                continue;  // steps, fits, parameter sets: derivable from the samples; not kept
+            }
+            if (f && std::fprintf(f, "%s\n", j.dump(-1, ' ', false, json::error_handler_t::replace).c_str()) > 0) ++n;
+        }
+        const bool ok = f && std::fflush(f) == 0;
+        if (f) std::fclose(f);
+        if (ok && n > 0) spdlog::error("{}: the database refused {} record(s) until close: written to {}", path.string(), n, side.string());
+        else if (!ok) spdlog::error("{}: the database refused {} record(s) until close and {} cannot be written either: they are only in this log",
+                                    path.string(), unsaved.size(), side.string());
+        unsaved.clear();
     }
 
     void report(const StoreFault& f) {
         {
             std::lock_guard lk(mu);
             stats.last_fault = f;
+        }
+        if (f.kind != StoreFaultKind::overflow) {
+            if (fault_episode == f.kind) return;  // already reported; nothing committed since
+            fault_episode = f.kind;
         }
         if (opt.on_fault) {
             try {
@@ -1033,6 +1129,7 @@ struct RunStore::Impl {
         const std::size_t n = b.samples();
         std::optional<StoreFault> fault, control_fault;
         bool controls_done = false;
+        retry_unsaved();  // older records first
         try {
             ws->begin.run();
             write_samples(b);
@@ -1072,10 +1169,14 @@ struct RunStore::Impl {
                 stats.samples_written += n;
             }
         }
+        if (!fault) fault_episode.reset();
         if (fault) report(*fault);
         if (control_fault) report(*control_fault);
         if (controls_done) fulfil(b.control);
-        else if (control_fault) fail(b.control, StoreError(control_fault->kind, control_fault->message));
+        else if (control_fault) {
+            if (transient(control_fault->kind)) retain(b.control);
+            fail(b.control, StoreError(control_fault->kind, control_fault->message));
+        }
     }
 
     // -- lifecycle ------------------------------------------------------------------------------------------
@@ -1229,6 +1330,48 @@ EventRecord read_event_row(const Stmt& s) {
 // ---------------------------------------------------------------------------------------------------------
 // RunStore
 
+namespace {
+// Records a previous close could not save (Impl::write_sidecar): queued again, before anything else (restart
+// recovery included), then the file is renamed *.imported so it is never applied twice.
+void import_sidecar(RunStore& store, const fs::path& side) {
+    std::error_code ec;
+    if (!fs::exists(side, ec)) return;
+    std::ifstream in(side);
+    std::string line;
+    std::size_t n = 0;
+    while (std::getline(in, line)) {
+        try {
+            const json j = json::parse(line);
+            const std::string record = j.value("record", "");
+            if (record == "event") {
+                EventRecord e;
+                if (j.contains("run_id") && j["run_id"].is_number_integer()) e.run_id = j["run_id"].get<RunId>();
+                e.unix_s = j.value("time_unix_s", 0.0);
+                if (j.contains("test_time_s") && j["test_time_s"].is_number()) e.t_s = j["test_time_s"].get<double>();
+                e.level = event_level_from_string(j.value("level", "error")).value_or(EventLevel::error);
+                e.kind = j.value("kind", "event");
+                if (j.contains("step") && j["step"].is_number_integer()) e.step = j["step"].get<int>();
+                e.message = j.value("message", "");
+                e.detail = j.contains("detail") ? j["detail"] : json(nullptr);
+                store.record_event(e);
+                ++n;
+            } else if (record == "run_state" && j.contains("run_id") && j["run_id"].is_number_integer()) {
+                if (const auto st = run_state_from_string(j.value("state", ""))) {
+                    store.set_run_state(j["run_id"].get<RunId>(), *st, j.value("reason", ""), j.value("unix_s", 0.0));
+                    ++n;
+                }
+            }
+        } catch (const std::exception&) {
+            // A line cut short by a crash while writing: skip it.
+        }
+    }
+    if (!store.flush()) return;
+    fs::rename(side, fs::path(side.string() + ".imported"), ec);
+    spdlog::warn("{}: {} record(s) a previous run of the daemon could not save were imported from {}",
+                 store.path().string(), n, side.string());
+}
+}  // namespace
+
 RunStore::RunStore(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 RunStore::~RunStore() = default;
 
@@ -1272,7 +1415,10 @@ std::unique_ptr<RunStore> RunStore::open(const fs::path& path, RunStoreOptions o
     static_assert(kApplicationId == 1128428147 && kSchemaVersion == 1, "keep the PRAGMA literals in step");
     Impl* raw = impl.get();
     impl->writer = std::thread([raw] { raw->writer_main(); });
-    return std::unique_ptr<RunStore>(new RunStore(std::move(impl)));
+    const fs::path side = impl->sidecar_path();
+    auto store = std::unique_ptr<RunStore>(new RunStore(std::move(impl)));
+    import_sidecar(*store, side);
+    return store;
 }
 
 std::unique_ptr<RunStore> RunStore::open_readonly(const fs::path& path) {
@@ -1318,9 +1464,15 @@ void RunStore::set_run_state(RunId run, RunState state, const std::string& reaso
 bool RunStore::push(RunId run, const CyclerSample& s) { return push(run, std::span<const CyclerSample>(&s, 1)) == 1; }
 bool RunStore::push(RunId run, const DaqSample& s) { return push(run, std::span<const DaqSample>(&s, 1)) == 1; }
 bool RunStore::push(RunId run, const ChamberSample& s) { return push(run, std::span<const ChamberSample>(&s, 1)) == 1; }
-std::size_t RunStore::push(RunId run, std::span<const CyclerSample> s) { return impl_->enqueue_samples(run, s, &Batch::cycler); }
-std::size_t RunStore::push(RunId run, std::span<const DaqSample> s) { return impl_->enqueue_samples(run, s, &Batch::daq); }
-std::size_t RunStore::push(RunId run, std::span<const ChamberSample> s) { return impl_->enqueue_samples(run, s, &Batch::chamber); }
+std::size_t RunStore::push(RunId run, std::span<const CyclerSample> s) {
+    return impl_->enqueue_samples(run, s, &Batch::cycler, 0, &StoreStats::cycler_samples_accepted);
+}
+std::size_t RunStore::push(RunId run, std::span<const DaqSample> s) {
+    return impl_->enqueue_samples(run, s, &Batch::daq, 1, &StoreStats::daq_samples_accepted);
+}
+std::size_t RunStore::push(RunId run, std::span<const ChamberSample> s) {
+    return impl_->enqueue_samples(run, s, &Batch::chamber, 2, &StoreStats::chamber_samples_accepted);
+}
 
 void RunStore::record_step(RunId run, const StepRecord& step) {
     impl_->check_writable();
@@ -1381,6 +1533,10 @@ StoreStats RunStore::stats() const {
     std::lock_guard lk(impl_->mu);
     StoreStats s = impl_->stats;
     s.samples_queued = impl_->queued_samples;
+    const double now = Impl::mono_s();
+    s.cycler_samples_per_s = impl_->ingest_rates[0].rate(now, static_cast<double>(s.cycler_samples_accepted));
+    s.daq_samples_per_s = impl_->ingest_rates[1].rate(now, static_cast<double>(s.daq_samples_accepted));
+    s.chamber_samples_per_s = impl_->ingest_rates[2].rate(now, static_cast<double>(s.chamber_samples_accepted));
     return s;
 }
 

@@ -428,14 +428,17 @@ std::vector<ConditionError> locate_errors(const ParameterSet& params, const Reco
     return out;
 }
 
-Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options,
-                   const DiagnoseProgress& progress) {
+Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options) {
+    // Progress: the baseline up to 5 %, the candidate rounds (at most max_accepted) to 95 %, then the final
+    // simulation of the improved model. A search that stops early jumps to 95 %.
+    ProgressReporter progress(options.progress);
     if (rec_full.size() < 2) throw InputError(rec_full.source + ": recording has fewer than two rows");
     const double duration = rec_full.time_s.back() - rec_full.time_s.front();
     const std::size_t folds = std::max<std::size_t>(options.folds, 2);
     if (duration < 60.0 * static_cast<double>(folds))
         throw InputError(rec_full.source + ": recording too short to cross-validate (" + std::to_string(duration) +
                          " s; needs at least " + std::to_string(60 * folds) + " s)");
+    progress(0.0, "baseline simulation");
     Diagnosis d;
     d.baseline = rms_of(params, rec_full, &d.baseline_trace);
     d.breakdown = locate_errors(params, rec_full, d.baseline_trace);
@@ -486,8 +489,11 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     QuantityRms current_rms = d.baseline;
     std::map<std::string, Finding> last_round;
     std::size_t round = 0;
+    const double round_share = 0.90 / static_cast<double>(std::max<std::size_t>(options.max_accepted, 1));
     while (round < options.max_accepted) {
         ++round;
+        const double round_start = 0.05 + round_share * static_cast<double>(round - 1);
+        progress(round_start, "round " + std::to_string(round) + " candidates");
         const Errors base_e = errors_of(current, rec);
         const double j_base_all = objective(pb, base_e, all);
         std::vector<double> j_base_test(folds);
@@ -499,7 +505,6 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         std::vector<Finding> round_findings(todo.size());
         std::vector<std::vector<double>> round_x(todo.size());
         std::atomic<std::size_t> next{0}, done{0};
-        std::mutex progress_mutex;
         // Candidates are independent: one per worker thread.
         auto worker = [&] {
             for (std::size_t c; (c = next.fetch_add(1)) < todo.size();) {
@@ -534,10 +539,10 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
                     round_x[c] = full.x;
                 }
-                if (progress) {
-                    std::lock_guard<std::mutex> lock(progress_mutex);
-                    progress("round " + std::to_string(round) + " candidates", ++done, todo.size());
-                }
+                const std::size_t k = ++done;
+                progress(round_start + round_share * static_cast<double>(k) / static_cast<double>(todo.size()),
+                         "round " + std::to_string(round) + " candidates " + std::to_string(k) + "/" +
+                             std::to_string(todo.size()));
             }
         };
         {
@@ -570,6 +575,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         d.findings.push_back(f);
     }
     std::stable_sort(d.findings.begin(), d.findings.end(), [](const auto& a, const auto& b) { return a.score > b.score; });
+    progress(0.95, "simulating the improved model");
     d.improved_params = current;
     d.improved = rms_of(current, rec_full, &d.improved_trace);
     if (d.accepted.empty()) {
@@ -582,6 +588,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         for (const auto& f : d.findings)
             if (f.significant) d.summary += " " + f.effect + " (" + pct(f.score) + " of the held-out error);";
     }
+    progress(1.0, "done");
     return d;
 }
 

@@ -118,7 +118,10 @@ json ModelExtensions::to_json() const {
 ModelExtensions ModelExtensions::from_json(const json& j, const std::string& source) {
     if (!j.is_object()) fail(source, "$.extensions", "expected an object keyed by effect id");
     ModelExtensions e;
-    for (const auto& [key, v] : j.items()) {
+    for (const auto& item : j.items()) {
+        // Not a structured binding: clang 14 (the fuzz build) cannot capture one in the lambdas below.
+        const std::string& key = item.key();
+        const json& v = item.value();
         const std::string path = "$.extensions." + key;
         auto num = [&](const char* name) { return number_member(v, name, source, path); };
         auto positive = [&](const char* name) {

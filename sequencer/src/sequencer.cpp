@@ -308,15 +308,26 @@ void Sequencer::on_fault(const std::string& instrument, const std::string& messa
     if (safety_data_lost) abort_locked(instrument + " lost (" + message + "): the cell cannot be watched", t);
 }
 
+void Sequencer::abort(const std::string& reason, double t) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    abort_locked(reason, t);
+}
+
 void Sequencer::tick(double t) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!active(state_)) return;
-    const double grace = opt_.limits.instrument_loss_grace_s;
+    const auto& lim = opt_.limits;
+    auto grace_of = [&](double g) { return g > 0 ? g : lim.instrument_loss_grace_s; };
     const double since_start = t - run_start_s_;
-    auto silent = [&](double last) { return (last < 0 && since_start > grace) || (last >= 0 && t - last > grace); };
-    if (silent(last_cycler_s_)) return abort_locked("cycler silent for more than " + fmt("%.0f s", grace), t);
-    if (silent(last_daq_s_)) return abort_locked("no cell temperature for more than " + fmt("%.0f s", grace), t);
-    if (silent(last_chamber_s_)) return abort_locked("chamber silent for more than " + fmt("%.0f s", grace), t);
+    auto silent = [&](double last, double grace) {
+        return (last < 0 && since_start > grace) || (last >= 0 && t - last > grace);
+    };
+    if (const double g = grace_of(lim.cycler_loss_grace_s); silent(last_cycler_s_, g))
+        return abort_locked("no cell voltage: cycler silent for more than " + fmt("%.0f s", g), t);
+    if (const double g = grace_of(lim.daq_loss_grace_s); silent(last_daq_s_, g))
+        return abort_locked("no cell temperature for more than " + fmt("%.0f s", g), t);
+    if (const double g = grace_of(lim.chamber_loss_grace_s); silent(last_chamber_s_, g))
+        return abort_locked("chamber silent for more than " + fmt("%.0f s", g), t);
     if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
         state_ == RunState::Running && t - segment_start_s_ > program_.segments[segment_].timeout_s)
         abort_locked("thermal equilibrium not reached within " + fmt("%.0f s", program_.segments[segment_].timeout_s), t);

@@ -2,10 +2,12 @@
 // statuses, limits, the bearer token, keep-alive, the export stream, static files and clean stopping.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <thread>
 
+#include "cellbench/daemon/web_assets.hpp"
 #include "unit/api_test_support.hpp"
 
 namespace fs = std::filesystem;
@@ -115,7 +117,7 @@ TEST(HttpApi, UnknownRunsAndPathsAre404Json) {
     const auto port = srv.port();
     for (const char* path : {"/api/v1/runs/42", "/api/v1/runs/42/events", "/api/v1/runs/42/fits",
                              "/api/v1/runs/42/export.bdf.csv", "/api/v1/runs/abc", "/api/v1/runs/-1",
-                             "/api/v1/runs/1/nothing", "/api/v1/nothing", "/api/v1", "/api/v2/status", "/nothing", "/"}) {
+                             "/api/v1/runs/1/nothing", "/api/v1/nothing", "/api/v1", "/api/v2/status", "/nothing"}) {
         const auto r = request(port, verb::get, path);
         EXPECT_TRUE(is_json_error(r, 404)) << path;
     }
@@ -427,6 +429,55 @@ TEST_F(StaticFiles, ServesTheDashboardWithContentTypes) {
     EXPECT_TRUE(is_json_error(request(port, verb::get, "/missing.js"), 404));
     EXPECT_TRUE(is_json_error(request(port, verb::post, "/index.html"), 405));
     // The API still answers beside the files.
+    EXPECT_EQ(request(port, verb::get, "/api/v1/health").result_int(), 200);
+}
+
+TEST(HttpApi, BuiltInDashboardIsServedWithValidatorsAndGzip) {
+    FakeBackend be;
+    TestServer srv(be);
+    const auto port = srv.port();
+    const auto assets = cellbench::daemon::web_assets();
+    auto r = request(port, verb::get, "/");
+    if (assets.empty()) {  // built without node/npm: / says how to get the dashboard
+        EXPECT_EQ(r.result_int(), 404);
+        EXPECT_NE(r.body().find("built without its dashboard"), std::string::npos) << r.body();
+        return;
+    }
+    ASSERT_EQ(r.result_int(), 200);
+    EXPECT_EQ(r[http::field::content_type], "text/html; charset=utf-8");
+    EXPECT_EQ(r[http::field::cache_control], "no-cache");
+    const std::string etag(r[http::field::etag]);
+    ASSERT_FALSE(etag.empty());
+    EXPECT_NE(r.body().find("<title>cellbench</title>"), std::string::npos);
+    // Every embedded file is served under its name with its type; hashed names are cacheable for a year.
+    for (const auto& a : assets) {
+        r = request(port, verb::get, std::string(a.path));
+        ASSERT_EQ(r.result_int(), 200) << a.path;
+        EXPECT_EQ(r.body(), a.body) << a.path;
+        EXPECT_EQ(std::string(r[http::field::content_type]), std::string(a.content_type)) << a.path;
+        if (a.immutable) {
+            EXPECT_NE(r[http::field::cache_control].find("immutable"), std::string::npos) << a.path;
+        }
+        if (a.path.ends_with(".js") || a.path.ends_with(".css")) {  // index.html names every bundle file
+            EXPECT_NE(request(port, verb::get, "/").body().find(std::string(a.path.substr(1))), std::string::npos) << a.path;
+        }
+    }
+    // Revalidation: the same ETag gives 304 without a body.
+    r = request(port, verb::get, "/", {}, {{"If-None-Match", etag}});
+    EXPECT_EQ(r.result_int(), 304);
+    EXPECT_TRUE(r.body().empty());
+    // gzip when accepted (not when refused with q=0); the compressed body is the embedded one.
+    r = request(port, verb::get, "/index.html", {}, {{"Accept-Encoding", "br, gzip;q=0.8"}});
+    EXPECT_EQ(r[http::field::content_encoding], "gzip");
+    EXPECT_EQ(r[http::field::vary], "Accept-Encoding");
+    const auto index = std::find_if(assets.begin(), assets.end(), [](const auto& a) { return a.path == "/index.html"; });
+    ASSERT_NE(index, assets.end());
+    EXPECT_EQ(r.body(), index->gzip);
+    EXPECT_EQ(request(port, verb::get, "/", {}, {{"Accept-Encoding", "gzip;q=0"}})[http::field::content_encoding], "");
+    // Only the embedded names exist: no file system behind them, API routing unchanged.
+    for (const char* path : {"/nothing.js", "/../CMakeLists.txt", "/%2e%2e/CMakeLists.txt", "/index.html/.."})
+        EXPECT_TRUE(is_json_error(request(port, verb::get, path), 404)) << path;
+    EXPECT_TRUE(is_json_error(request(port, verb::post, "/"), 405));
     EXPECT_EQ(request(port, verb::get, "/api/v1/health").result_int(), 200);
 }
 

@@ -303,6 +303,51 @@ TEST_F(RunStoreTest, DecimationKeepsSpikesAndSmallWindowsAreRaw) {
     EXPECT_EQ(j.at("sources").at("cycler").at("series").at("voltage_v").size(), 101u);
 }
 
+// The dashboard's whole-run and 10-minute views: a single DAQ sample (100 Hz heat flux) far off the rest must be
+// in the decimated window, both through the 1-second rollups (wide buckets) and through the rows (narrow ones).
+TEST_F(RunStoreTest, ASingleSampleSpikeSurvivesDecimationOfEveryChannel) {
+    auto store = RunStore::open(db_);
+    const RunId id = store->create_run(new_run());
+    std::vector<DaqSample> rows;
+    constexpr int kSpike = 73457;  // t = 734.57 s, inside a rollup second, not on a bucket edge
+    for (int k = 0; k < 120000; ++k) {  // 20 minutes at 100 Hz
+        DaqSample s = daq(k / 100.0, 30.0);
+        if (k == kSpike) {
+            s.heat_flux_w_per_m2 = 900.0;
+            s.t1_c = 80.0;
+        }
+        if (k == kSpike + 1000) s.surface_c = -5.0;  // a one-sample dip on another channel
+        rows.push_back(s);
+    }
+    ASSERT_EQ(store->push(id, std::span<const DaqSample>(rows)), rows.size());
+    ASSERT_TRUE(store->flush());
+
+    const auto check = [&](const SampleWindow& w, bool expect_dip) {
+        ASSERT_TRUE(w.decimated);
+        const auto* d = w.source("daq");
+        ASSERT_NE(d, nullptr);
+        const auto hf = d->channel("heat_flux_w_per_m2"), t1 = d->channel("t1_c"), sc = d->channel("surface_c");
+        ASSERT_NE(hf, std::string::npos);
+        EXPECT_DOUBLE_EQ(*std::max_element(d->max[hf].begin(), d->max[hf].end()), 900.0);
+        EXPECT_DOUBLE_EQ(*std::min_element(d->min[hf].begin(), d->min[hf].end()), 40.0);
+        EXPECT_DOUBLE_EQ(*std::max_element(d->max[t1].begin(), d->max[t1].end()), 80.0);
+        if (expect_dip) EXPECT_DOUBLE_EQ(*std::min_element(d->min[sc].begin(), d->min[sc].end()), -5.0);
+        // Exactly one bucket holds the spike, and it is the one whose span contains t = 734.57 s.
+        std::size_t holding = 0;
+        for (std::size_t k = 0; k < d->size(); ++k) {
+            if (d->max[hf][k] != 900.0) continue;
+            ++holding;
+            EXPECT_LE(d->time_s[k], 734.57);
+            EXPECT_GT(d->time_s[k] + w.bucket_s + 1.0, 734.57);  // rollup seconds are placed by their first sample
+        }
+        EXPECT_EQ(holding, 1u);
+    };
+    check(store->samples(id, std::nullopt, std::nullopt, 200), true);  // whole run: 12 s buckets from the rollups
+    check(store->samples(id, 600.0, 1200.0, 200), true);               // 10 minutes in 6 s buckets (rollups)
+    check(store->samples(id, 600.0, 1200.0, 2000), true);              // 10 minutes in 0.6 s buckets (rows)
+    check(store->samples(id, 734.0, 735.0, 10), false);                // 0.2 s buckets (rows)
+}
+
 TEST_F(RunStoreTest, ExportGivesOneRecordingOnTheCyclerTimeBase) {
     auto store = RunStore::open(db_);
     const RunId id = store->create_run(new_run());

@@ -350,6 +350,8 @@ std::string live_text(const json& live, bool all) {
 std::string run_summary(const json& run) {
     std::string s = fmt::format("run {}: {} on {}, {}", str(run, "id"), str(run, "program"), str(run, "cell"),
                                 str(run, "state"));
+    // "failed" is aborted (a fault or a limit) or interrupted (the daemon died while it was live).
+    if (const auto o = str(run, "outcome", ""); !o.empty() && o != str(run, "state", "")) s += " (" + o + ")";
     if (const auto st = step_text(run); !st.empty()) {
         s += ", " + st;
         if (const auto e = num(run["step"], "elapsed_s")) s += " for " + duration(*e);

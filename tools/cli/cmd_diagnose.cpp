@@ -5,20 +5,21 @@
 #include "cellbench/estimator/diagnose.hpp"
 #include "cli/commands.hpp"
 #include "cli/files.hpp"
+#include "cli/progress.hpp"
 #include "cli/report_html.hpp"
 
 namespace cellbench::cli {
 
 int run_diagnose(const DiagnoseCliOptions& o) {
+    OutputFiles outputs({o.json, o.improved, o.report});  // folders checked before the work, all written or none
     const auto params = load_params(o.params);
     const auto rec = load_recording(o.recording);
     estimator::DiagnoseOptions opt;
     opt.effects = o.effects;
-    const bool tty = stderr_is_terminal();
-    auto progress = [tty](const std::string& stage, std::size_t done, std::size_t total) {
-        if (tty) std::fprintf(stderr, "\r%s: %zu/%zu   %s", stage.c_str(), done, total, done == total ? "\n" : "");
-    };
-    const auto d = estimator::diagnose(params, rec, opt, progress);
+    ProgressLine progress("diagnose");  // on a terminal only
+    opt.progress = progress.callback();
+    const auto d = estimator::diagnose(params, rec, opt);
+    progress.finish();
 
     auto q = [](const estimator::QuantityRms& r) {
         char b[160];
@@ -43,10 +44,11 @@ int run_diagnose(const DiagnoseCliOptions& o) {
     std::printf("%s\n", d.summary.c_str());
     std::printf("improved RMS: %s\n", q(d.improved).c_str());
 
-    if (!o.json.empty()) write_json_file(o.json, estimator::diagnosis_to_json(d));
-    if (!o.improved.empty()) write_json_file(o.improved, d.improved_params.to_json());
+    if (!o.json.empty()) outputs.write_json(o.json, estimator::diagnosis_to_json(d));
+    if (!o.improved.empty()) outputs.write_json(o.improved, d.improved_params.to_json());
     if (!o.report.empty())
-        write_file_atomic(o.report, [&](std::ostream& out) { out << render_diagnosis_report(d, rec, o.recording); });
+        outputs.write(o.report, [&](std::ostream& out) { out << render_diagnosis_report(d, rec, o.recording); });
+    outputs.commit();
     return 0;
 }
 

@@ -6,6 +6,7 @@
 #include "cellbench/estimator/fit.hpp"
 #include "cli/commands.hpp"
 #include "cli/files.hpp"
+#include "cli/progress.hpp"
 
 namespace cellbench::cli {
 
@@ -54,6 +55,7 @@ int run_fit(const FitOptions& o) {
     if (!o.db.empty())
         throw InputError(o.db + ": replaying a daemon run (--db/--run) needs cellbenchd's database support, "
                                 "which this build does not have yet");
+    OutputFiles outputs({o.output, o.summary_json});  // folders checked before the fit, all written or none
     std::vector<Recording> recs;
     for (const auto& path : o.recordings) {
         recs.push_back(load_recording(path));
@@ -61,15 +63,15 @@ int run_fit(const FitOptions& o) {
     }
     estimator::CharacterizationOptions co;
     co.cell = o.cell_name;
-    const bool tty = stderr_is_terminal();
-    auto progress = [tty](const std::string& stage, std::size_t done, std::size_t total) {
-        if (tty) std::fprintf(stderr, "\r%s: %zu/%zu%s", stage.c_str(), done, total, done == total ? "\n" : "");
-    };
-    const auto c = estimator::characterize(recs, co, progress);
+    ProgressLine progress("fit");  // on a terminal only
+    co.progress = progress.callback();
+    const auto c = estimator::characterize(recs, co);
+    progress.finish();
     for (const auto& w : c.warnings) spdlog::warn("{}", w);
     print_parameter_table(c);
-    write_json_file(o.output, c.params.to_json());
-    if (!o.summary_json.empty()) write_json_file(o.summary_json, c.summary_json());
+    outputs.write_json(o.output, c.params.to_json());
+    if (!o.summary_json.empty()) outputs.write_json(o.summary_json, c.summary_json());
+    outputs.commit();
     spdlog::info("wrote {}", o.output);
     return 0;
 }

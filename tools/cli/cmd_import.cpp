@@ -69,6 +69,7 @@ void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, doubl
 int run_import(const ImportOptions& o) {
     if (o.neware.empty() && o.bdf.empty())
         throw InputError("import: give a cycler recording (--neware and/or --bdf); --dewesoft alone has no current");
+    OutputFiles outputs({o.output});  // the folder is checked before the work
     Recording rec;
     if (!o.neware.empty()) rec = protocol::parse_neware_export(read_file(o.neware), o.neware);
     if (rec.repaired_timestamps > 0)
@@ -92,7 +93,8 @@ int run_import(const ImportOptions& o) {
     if (!o.dewesoft.empty())
         add_daq_channels(rec, protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft),
                          o.sensitivity_v_per_w_per_m2, o.max_offset_s);
-    write_file_atomic(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec); });
+    outputs.write(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec); });
+    outputs.commit();
     spdlog::info("wrote {} rows ({:.0f} s) to {}", rec.size(), rec.time_s.back() - rec.time_s.front(), o.output);
     return 0;
 }

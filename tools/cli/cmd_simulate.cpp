@@ -21,6 +21,7 @@ nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m) {
 }
 
 int run_simulate(const SimulateOptions& o) {
+    OutputFiles outputs({o.metrics_json, o.output});  // folders checked before the work, all written or none
     const auto params = load_params(o.params);
     const auto rec = load_recording(o.recording);
     const estimator::CellModel model(params);
@@ -44,7 +45,7 @@ int run_simulate(const SimulateOptions& o) {
     line("temperature", metrics.temperature_c, 1.0, "degC");
     line("heat flux", metrics.heat_flux_w, 1.0, "W");
 
-    if (!o.metrics_json.empty()) write_json_file(o.metrics_json, metrics_to_json(metrics));
+    if (!o.metrics_json.empty()) outputs.write_json(o.metrics_json, metrics_to_json(metrics));
     if (!o.output.empty()) {
         std::vector<protocol::ExtraColumn> extra = {
             {"Simulated Voltage / V", &trace.voltage_v},
@@ -53,8 +54,9 @@ int run_simulate(const SimulateOptions& o) {
             {"Simulated SOC / 1", &trace.soc},
             {"Simulated OCV / V", &trace.ocv_v},
         };
-        write_file_atomic(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec, extra); });
+        outputs.write(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec, extra); });
     }
+    outputs.commit();
     return 0;
 }
 

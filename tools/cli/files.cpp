@@ -23,9 +23,19 @@ std::string read_file(const std::filesystem::path& path) {
     return std::move(ss).str();
 }
 
-void write_file_atomic(const std::filesystem::path& path, const std::function<void(std::ostream&)>& writer) {
+namespace {
+
+void check_output_path(const std::filesystem::path& path) {
     const auto dir = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
-    if (!std::filesystem::is_directory(dir)) throw InputError(path.string() + ": folder " + dir.string() + " does not exist");
+    std::error_code ec;
+    if (!std::filesystem::is_directory(dir, ec)) throw InputError(path.string() + ": folder " + dir.string() + " does not exist");
+    if (std::filesystem::is_directory(path, ec)) throw InputError(path.string() + ": is a folder, expected a file name");
+}
+
+// Writes a temporary file beside `path` and returns its name; removes it and throws on failure.
+std::filesystem::path stage(const std::filesystem::path& path, const std::function<void(std::ostream&)>& writer) {
+    check_output_path(path);
+    const auto dir = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
     std::random_device rd;
     std::string tmp_name = ".";  // appended piecewise: GCC 12 warns (-Wrestrict) on a chain of operator+
     tmp_name += path.filename().string();
@@ -33,18 +43,67 @@ void write_file_atomic(const std::filesystem::path& path, const std::function<vo
     tmp_name += std::to_string(rd());
     const auto tmp = dir / tmp_name;
     try {
-        {
-            std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-            if (!out) throw InputError(path.string() + ": cannot open for writing");
-            writer(out);
-            out.flush();
-            if (!out) throw InputError(path.string() + ": write failed (disk full?)");
-        }
-        std::filesystem::rename(tmp, path);
+        std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+        if (!out) throw InputError(path.string() + ": cannot open for writing");
+        writer(out);
+        out.flush();
+        if (!out) throw InputError(path.string() + ": write failed (disk full?)");
     } catch (...) {
         std::error_code ec;
         std::filesystem::remove(tmp, ec);
         throw;
+    }
+    return tmp;
+}
+
+void move_into_place(const std::filesystem::path& tmp, const std::filesystem::path& path) {
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) {
+        std::filesystem::remove(tmp, ec);
+        throw InputError(path.string() + ": cannot write: " + ec.message());
+    }
+}
+
+}  // namespace
+
+void write_file_atomic(const std::filesystem::path& path, const std::function<void(std::ostream&)>& writer) {
+    move_into_place(stage(path, writer), path);
+}
+
+OutputFiles::OutputFiles(std::initializer_list<std::filesystem::path> paths) {
+    for (const auto& p : paths)
+        if (!p.empty()) check_output_path(p);
+}
+
+OutputFiles::~OutputFiles() {
+    for (const auto& s : staged_) {
+        std::error_code ec;
+        std::filesystem::remove(s.tmp, ec);
+    }
+}
+
+void OutputFiles::write(const std::filesystem::path& path, const std::function<void(std::ostream&)>& writer) {
+    staged_.push_back({stage(path, writer), path});
+}
+
+void OutputFiles::write_json(const std::filesystem::path& path, const nlohmann::json& j) {
+    write(path, [&](std::ostream& out) { out << j.dump(2) << '\n'; });
+}
+
+void OutputFiles::commit() {
+    std::vector<Staged> staged;
+    staged.swap(staged_);
+    for (std::size_t k = 0; k < staged.size(); ++k) {
+        try {
+            move_into_place(staged[k].tmp, staged[k].path);
+        } catch (...) {
+            for (std::size_t j = k + 1; j < staged.size(); ++j) {
+                std::error_code ec;
+                std::filesystem::remove(staged[j].tmp, ec);
+            }
+            throw;
+        }
     }
 }
 

@@ -3,8 +3,10 @@
 // output file), and load recordings / parameter sets with errors that name the file.
 #include <filesystem>
 #include <functional>
+#include <initializer_list>
 #include <ostream>
 #include <string>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -19,6 +21,29 @@ std::string read_file(const std::filesystem::path& path);
 // failed command leaves no half-written output behind.
 void write_file_atomic(const std::filesystem::path& path, const std::function<void(std::ostream&)>& writer);
 void write_json_file(const std::filesystem::path& path, const nlohmann::json& j);
+
+// The output files of one command, all or none. The constructor checks, before any work, that every given
+// (non-empty) path can be an output (its folder exists, it is not a folder). write() puts the content in a
+// temporary file beside its destination; commit() renames them all into place. Destroyed without commit()
+// (the command failed), it removes the temporary files: a failed command leaves no output behind, not even
+// the ones it could write, and output files that existed before are unchanged.
+class OutputFiles {
+public:
+    explicit OutputFiles(std::initializer_list<std::filesystem::path> paths = {});
+    ~OutputFiles();
+    OutputFiles(const OutputFiles&) = delete;
+    OutputFiles& operator=(const OutputFiles&) = delete;
+
+    void write(const std::filesystem::path& path, const std::function<void(std::ostream&)>& writer);
+    void write_json(const std::filesystem::path& path, const nlohmann::json& j);
+    void commit();
+
+private:
+    struct Staged {
+        std::filesystem::path tmp, path;
+    };
+    std::vector<Staged> staged_;
+};
 
 // A recording in BDF CSV or a Neware record export (recognised from the header).
 Recording load_recording(const std::filesystem::path& path);

@@ -20,7 +20,11 @@
 //      "created_unix_s": 1.7e9, "started_unix_s": 1.7e9 | null, "ended_unix_s": null,
 //      "samples": 12345,              // rows recorded so far
 //      "step": Step | null,           // the current step while active, else null
-//      "error": null | "why the run failed"}
+//      "error": null | "why the run failed",
+//      "outcome": null | "completed" | "stopped" | "aborted" | "interrupted"}
+//                                     // how a finished run ended: "failed" is "aborted" (a fault or a safety
+//                                     // limit ended it) or "interrupted" (the daemon died while it was live;
+//                                     // marked at restart, with a "recovery" event; it never continues)
 //   Step:
 //     {"index": 12, "count": 140,     // 1-based index into the program's steps, and how many there are
 //      "type": "CC discharge",        // step kind as the program names it (Rest, CC charge, CV charge, ...)

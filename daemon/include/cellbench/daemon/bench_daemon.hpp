@@ -10,8 +10,10 @@
 //
 // Threading: one io_context run by a few threads (drivers, HTTP, tick timer). The sequencer serialises its own
 // calls; the daemon's own locks are leaves (never held while calling the sequencer from a sink callback).
+#include <chrono>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -23,6 +25,9 @@
 
 namespace cellbench::sim {
 class BenchPlant;
+class NewareServer;
+class ChamberServer;
+class DewePublisher;
 }
 
 namespace cellbench::daemon {
@@ -34,6 +39,9 @@ struct BenchDaemonOptions {
     std::optional<double> time_scale;             // overrides simulation.time_scale
     std::optional<std::string> daq_socket_path;   // overrides the can-dgram socket path (tests: a temp path)
     std::optional<double> daq_sample_rate_hz;     // simulated DEWE rate in bench Hz (default 10)
+    std::optional<std::int64_t> db_max_page_count; // database size limit in pages (tests: a "full disk")
+    std::optional<std::chrono::milliseconds> db_busy_timeout;  // wait for another process's lock (default 2 s)
+    std::filesystem::path web_root;               // serve the dashboard from this folder (empty: built in)
     int io_threads = 2;
 };
 
@@ -60,6 +68,10 @@ public:
     [[nodiscard]] RunStore& store();
     // The simulated plant (nullptr when no instrument is simulated): tests inject faults through it.
     [[nodiscard]] sim::BenchPlant* plant();
+    // The simulated instruments the daemon hosts (nullptr when that instrument is real): their fault switches.
+    [[nodiscard]] sim::NewareServer* neware_server();
+    [[nodiscard]] sim::ChamberServer* chamber_server();
+    [[nodiscard]] sim::DewePublisher* dewe_publisher();
     // The active (running or paused) run, if any.
     [[nodiscard]] std::optional<RunId> active_run() const;
 
@@ -77,6 +89,9 @@ public:
     nlohmann::json pause_run(RunId id) override;
     nlohmann::json resume_run(RunId id) override;
     std::string metrics_text() override;
+
+    // Runs fn on the daemon's io_context (cellbenchd's watchdog: a probe that runs proves the loop is alive).
+    void post(std::function<void()> fn);
 
     struct Impl;
 

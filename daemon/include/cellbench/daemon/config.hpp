@@ -138,6 +138,39 @@ struct SafetyLimits {
     double instrument_loss_grace_s = 5.0;     // an instrument silent this long aborts the run
 };
 
+// What the daemon does when an instrument misbehaves ("fault_policy" in the bench file; config/README.md).
+// Recoverable faults (a lost connection, a lost or malformed answer, a silent stream) are retried with backoff
+// while the run goes on, for at most the instrument's grace_s (bench seconds without a valid reading); past it
+// the run aborts: current off, chamber to its safe set point. Immediately fatal, whatever the policy: a
+// parallel-group member in protect (or the group disagreeing), a cycler that does not acknowledge start/stop,
+// a chamber alarm bit, and the safety limits. Every fault and every recovery is a run event.
+enum class FaultAction { reconnect, abort };  // a fault that may clear: retry within the grace, or end the run now
+enum class SetpointAction { event, abort };
+
+struct CyclerFaultPolicy {
+    double grace_s = 5.0;                     // no cell voltage this long aborts (default: safety.instrument_loss_grace_s)
+    int reconnect_initial_ms = 100;           // first reconnect delay (wall), doubled per failure ...
+    int reconnect_max_ms = 5000;              // ... up to this
+};
+struct ChamberFaultPolicy {
+    double grace_s = 5.0;                     // no chamber reading this long aborts (default: instrument_loss_grace_s)
+    int response_timeout_ms = 500;            // Modbus answer timeout (wall)
+    int retries = 2;                          // further attempts of a timed-out / transient request, fresh connection
+    FaultAction exception_response = FaultAction::reconnect;  // a Modbus exception answer
+    double setpoint_tolerance_c = 1.0;        // the set point counts as reached within this
+    double setpoint_timeout_s = 1800.0;       // not reached within this (bench s) after a set point write: a fault
+    SetpointAction setpoint_not_reached = SetpointAction::event;
+};
+struct DaqFaultPolicy {
+    double grace_s = 5.0;                     // no cell temperature this long aborts (default: instrument_loss_grace_s)
+    double loss_event_interval_s = 60.0;      // lost/garbage frames: at most one event per this many bench s
+};
+struct FaultPolicy {
+    CyclerFaultPolicy cycler;
+    ChamberFaultPolicy chamber;
+    DaqFaultPolicy daq;
+};
+
 struct DatabaseConfig {
     std::filesystem::path path = "cellbench.sqlite";  // relative: to the daemon's working directory
     int flush_period_ms = 200;                // samples are committed at least this often
@@ -153,6 +186,7 @@ struct BenchConfig {
     ChamberConfig chamber;
     std::optional<SimulationConfig> simulation;  // present when any instrument is simulated
     SafetyLimits safety;
+    FaultPolicy faults;                       // "fault_policy"
     DatabaseConfig database;
     Endpoint listen{"127.0.0.1", 8750};
     std::string token_env = "CELLBENCH_TOKEN";  // environment variable holding the API token
@@ -243,6 +277,16 @@ Program load_program(const std::filesystem::path& file, const CellConfig& cell,
                      const ProgramOverrides& overrides = {}, const BenchConfig* bench = nullptr);
 Program parse_program(const nlohmann::json& j, const std::string& source, const CellConfig& cell,
                       const ProgramOverrides& overrides = {}, const BenchConfig* bench = nullptr);
+
+// The same loaders from JSON text as read from a file (no file I/O for the document itself; files it refers
+// to, such as a parameter set, are still read). `source` names the text in messages as the file name does;
+// invalid JSON throws InputError naming source, line and column. load_* read the file and call these.
+BenchConfig parse_bench_config_text(std::string_view text, const std::string& source,
+                                    const std::filesystem::path& base_dir);
+CellConfig parse_cell_config_text(std::string_view text, const std::string& source,
+                                  const std::filesystem::path& base_dir, std::string id = {});
+Program parse_program_text(std::string_view text, const std::string& source, const CellConfig& cell,
+                           const ProgramOverrides& overrides = {}, const BenchConfig* bench = nullptr);
 
 // Files by name, as POST /runs names them ({"program": "hppc", "cell": "p45b"}): config_dir/programs/NAME.json
 // and config_dir/cells/NAME.json. Names are [A-Za-z0-9_.-]+ without a leading dot (never a path): anything

@@ -27,7 +27,9 @@ struct HttpServerOptions {
     std::string host = "127.0.0.1";  // an address or a name; 0.0.0.0 / :: listen beyond loopback
     std::uint16_t port = 8750;       // 0 = any free port (tests; see HttpServer::local_endpoint)
     std::string token;               // bearer token for the mutating endpoints; empty = refuse them (403)
-    std::filesystem::path static_dir;  // dashboard files served at / ; empty = no dashboard
+    // Dashboard files served at / from this folder (e.g. BUILD/web/dist, `cellbenchd --web-root`); empty = the
+    // bundle compiled into the daemon (web_assets.hpp).
+    std::filesystem::path static_dir;
 
     std::size_t max_header_bytes = 8 * 1024;   // larger request headers -> 431
     std::size_t max_body_bytes = 64 * 1024;    // larger request bodies -> 413 (API bodies are tiny)

@@ -221,6 +221,9 @@ struct StoreStats {
     std::uint64_t batches = 0, failed_batches = 0;
     double last_batch_ms = 0.0;          // duration of the last commit
     std::optional<StoreFault> last_fault;
+    // Samples accepted by push() (queued for writing), by source, and their rate over the last ~10 s (GET /metrics).
+    std::uint64_t cycler_samples_accepted = 0, daq_samples_accepted = 0, chamber_samples_accepted = 0;
+    double cycler_samples_per_s = 0.0, daq_samples_per_s = 0.0, chamber_samples_per_s = 0.0;
 };
 
 struct RunStoreOptions {

@@ -26,6 +26,7 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/params.hpp"
+#include "cellbench/estimator/progress.hpp"
 #include "cellbench/estimator/simulate.hpp"
 
 namespace cellbench::estimator {
@@ -44,6 +45,8 @@ struct DiagnoseOptions {
     double voltage_floor_v = 0.005;       // cycler voltage accuracy class (0.05 % of a 10 V range)
     double temperature_floor_c = 0.3;     // thermocouple-grade agreement
     double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface
+    // Progress of diagnose() (baseline, round r candidate k of n, final simulation); empty = none.
+    Progress progress;
 };
 
 struct QuantityRms {
@@ -84,11 +87,8 @@ struct Diagnosis {
     std::string summary;                     // plain words
 };
 
-using DiagnoseProgress = std::function<void(const std::string& stage, std::size_t done, std::size_t total)>;
-
 // Throws InputError if the recording is too short to cross-validate (fewer than folds * 60 s).
-Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options = {},
-                   const DiagnoseProgress& progress = {});
+Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options = {});
 
 // "cellbench.diagnosis/1" (INTERFACES.md).
 nlohmann::json diagnosis_to_json(const Diagnosis& d);

@@ -12,6 +12,7 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/params.hpp"
+#include "cellbench/estimator/progress.hpp"
 #include "cellbench/estimator/pulse_fit.hpp"
 #include "cellbench/estimator/segment.hpp"
 
@@ -24,6 +25,8 @@ struct CharacterizationOptions {
     double fallback_capacity_ah = 0.0;
     double fallback_c_th_j_per_k = 0.0;
     double fallback_r_th_k_per_w = 0.0;
+    // Progress of characterize() (segmenting, pulse set k of n, thermal parameters); empty = none.
+    Progress progress;
 };
 
 struct OcvPoint {
@@ -60,11 +63,7 @@ struct Characterization {
     [[nodiscard]] nlohmann::json summary_json() const;
 };
 
-// Progress callback: (stage, done, total). May be empty.
-using FitProgress = std::function<void(const std::string&, std::size_t, std::size_t)>;
-
-Characterization characterize(const std::vector<Recording>& recordings, const CharacterizationOptions& options = {},
-                              const FitProgress& progress = {});
+Characterization characterize(const std::vector<Recording>& recordings, const CharacterizationOptions& options = {});
 
 // Builds the SOC-indexed tables from per-pulse-set fits and OCV points (daemon end-of-run and CLI alike).
 // Breakpoints are the OCV points' SOCs; RC values come from the pulse set nearest in SOC whose fit of that

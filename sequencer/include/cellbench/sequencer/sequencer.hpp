@@ -46,6 +46,8 @@ struct SafetyLimits {
     double max_current_a = 60.0;
     double chamber_deviation_c = 5.0;
     double instrument_loss_grace_s = 10.0;
+    // Per instrument (bench s without a reading before the run aborts); <= 0: instrument_loss_grace_s.
+    double cycler_loss_grace_s = 0.0, daq_loss_grace_s = 0.0, chamber_loss_grace_s = 0.0;
     double chamber_safe_setpoint_c = 25.0;
 };
 
@@ -94,6 +96,9 @@ public:
     void on_chamber(const ChamberSample& s);
     // An instrument fault; safety_data_lost = the cell can no longer be watched (no voltage or temperature).
     void on_fault(const std::string& instrument, const std::string& message, bool safety_data_lost, double t_mono_s);
+    // Ends an active run `aborted` now (current off, chamber to its safe set point), the reason as an event:
+    // an immediately fatal fault the caller has already recorded in detail. No-op when no run is active.
+    void abort(const std::string& reason, double t_mono_s);
     void tick(double t_mono_s);  // timeouts: instrument silence, equilibrium wait
 
     [[nodiscard]] RunState state() const;

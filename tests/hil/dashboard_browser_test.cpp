@@ -1,0 +1,329 @@
+// The dashboard in a real browser: BenchDaemon in process on config/bench.sim.json (every instrument simulated
+// on loopback), a short HPPC (config/programs/hppc_short.json) at a high time scale, headless Chromium driven
+// through chromedriver (W3C WebDriver: JSON over HTTP, spoken here with Boost.Beast and nlohmann_json).
+//  - the live page's plot updates: the newest test time it shows grows between two reads;
+//  - the online fits table fills during the HPPC;
+//  - screenshots of the live page and of the run page land in BUILD/screenshots/ (paths printed).
+// Skips, saying why, where chromium or chromedriver is not installed (`make deps` installs both) or the
+// daemon was built without the dashboard (no node/npm).
+#include <gtest/gtest.h>
+
+#include <fcntl.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <utility>  // before Boost.Asio (Boost 1.74 with g++ 12 / C++20)
+
+#include <chrono>
+#include <csignal>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <boost/asio/connect.hpp>
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/beast/core.hpp>
+#include <boost/beast/http.hpp>
+#include <nlohmann/json.hpp>
+
+#include "cellbench/daemon/bench_daemon.hpp"
+#include "cellbench/daemon/config.hpp"
+#include "cellbench/daemon/web_assets.hpp"
+
+extern char** environ;
+
+using namespace cellbench;
+using namespace std::chrono_literals;
+using nlohmann::json;
+namespace fs = std::filesystem;
+namespace net = boost::asio;
+namespace beast = boost::beast;
+namespace http = beast::http;
+using tcp = net::ip::tcp;
+
+namespace {
+
+const fs::path kSource = CELLBENCH_SOURCE_DIR;
+const fs::path kBuild = fs::path(CELLBENCH_BIN_DIR).parent_path();
+// hppc_short is ~4000 bench seconds: ~20 s of wall time here, the first fit after ~9 s.
+constexpr double kTimeScale = 200.0;
+
+std::string find_program(const std::vector<std::string>& names) {
+    const char* path = std::getenv("PATH");
+    std::string dirs = path ? path : "/usr/bin:/bin";
+    dirs += ":/usr/bin:/usr/lib/chromium";
+    for (const auto& name : names) {
+        std::size_t start = 0;
+        while (start <= dirs.size()) {
+            const auto end = std::min(dirs.find(':', start), dirs.size());
+            const fs::path p = fs::path(dirs.substr(start, end - start)) / name;
+            if (::access(p.c_str(), X_OK) == 0) return p.string();
+            start = end + 1;
+        }
+    }
+    return {};
+}
+
+bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 250ms) {
+    const auto end = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < end) {
+        if (pred()) return true;
+        std::this_thread::sleep_for(poll);
+    }
+    return pred();
+}
+
+std::uint16_t free_port() {
+    net::io_context ioc;
+    tcp::acceptor a(ioc, tcp::endpoint(net::ip::address_v4::loopback(), 0));
+    return a.local_endpoint().port();
+}
+
+std::string base64_decode(const std::string& in) {
+    std::string out;
+    unsigned buf = 0;
+    int bits = 0;
+    for (const char c : in) {
+        int v;
+        if (c >= 'A' && c <= 'Z') v = c - 'A';
+        else if (c >= 'a' && c <= 'z') v = c - 'a' + 26;
+        else if (c >= '0' && c <= '9') v = c - '0' + 52;
+        else if (c == '+') v = 62;
+        else if (c == '/') v = 63;
+        else continue;  // '=' padding, line breaks
+        buf = (buf << 6) | static_cast<unsigned>(v);
+        bits += 6;
+        if (bits >= 8) {
+            bits -= 8;
+            out.push_back(static_cast<char>((buf >> bits) & 0xFF));
+        }
+    }
+    return out;
+}
+
+// chromedriver as a child process (its output in a log file); killed and reaped on destruction.
+class ChildProcess {
+public:
+    ChildProcess(const std::vector<std::string>& argv, const fs::path& log) {
+        posix_spawn_file_actions_t fa;
+        posix_spawn_file_actions_init(&fa);
+        posix_spawn_file_actions_addopen(&fa, STDOUT_FILENO, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+        posix_spawn_file_actions_adddup2(&fa, STDOUT_FILENO, STDERR_FILENO);
+        std::vector<char*> args;
+        for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
+        args.push_back(nullptr);
+        const int rc = posix_spawn(&pid_, args[0], &fa, nullptr, args.data(), environ);
+        posix_spawn_file_actions_destroy(&fa);
+        if (rc != 0) throw std::runtime_error("cannot start " + argv[0] + ": " + std::strerror(rc));
+    }
+    ~ChildProcess() {
+        ::kill(pid_, SIGTERM);
+        int status = 0;
+        for (int k = 0; k < 50 && ::waitpid(pid_, &status, WNOHANG) == 0; ++k) std::this_thread::sleep_for(100ms);
+        if (::waitpid(pid_, &status, WNOHANG) == 0) {
+            ::kill(pid_, SIGKILL);
+            ::waitpid(pid_, &status, 0);
+        }
+    }
+    ChildProcess(const ChildProcess&) = delete;
+    ChildProcess& operator=(const ChildProcess&) = delete;
+
+private:
+    pid_t pid_ = -1;
+};
+
+// A W3C WebDriver client: one request per connection, JSON in and out; the "value" member is returned,
+// and a WebDriver error (non-200 status) throws with its message.
+class WebDriver {
+public:
+    explicit WebDriver(std::uint16_t port) : port_(port) {}
+
+    json call(http::verb verb, const std::string& target, const json& body = nullptr) {
+        beast::tcp_stream stream(ioc_);
+        stream.expires_after(60s);
+        stream.connect(tcp::endpoint(net::ip::address_v4::loopback(), port_));
+        http::request<http::string_body> req{verb, target, 11};
+        req.set(http::field::host, "127.0.0.1:" + std::to_string(port_));
+        if (!body.is_null()) {
+            req.set(http::field::content_type, "application/json; charset=utf-8");
+            req.body() = body.dump();
+        }
+        req.prepare_payload();
+        http::write(stream, req);
+        beast::flat_buffer buffer;
+        http::response_parser<http::string_body> parser;
+        parser.body_limit(64 * 1024 * 1024);  // screenshots
+        http::read(stream, buffer, parser);
+        beast::error_code ec;
+        stream.socket().shutdown(tcp::socket::shutdown_both, ec);
+        const auto& res = parser.get();
+        json j = json::parse(res.body(), nullptr, false);
+        if (res.result_int() != 200 || j.is_discarded()) {
+            const std::string msg = j.is_object() && j.contains("value") && j["value"].is_object()
+                                        ? j["value"].value("error", "") + ": " + j["value"].value("message", "")
+                                        : res.body().substr(0, 500);
+            throw std::runtime_error("WebDriver " + std::string(req.method_string()) + " " + target + ": " +
+                                     std::to_string(res.result_int()) + " " + msg);
+        }
+        return j.contains("value") ? j["value"] : j;
+    }
+
+    bool ready() {
+        try {
+            return call(http::verb::get, "/status").value("ready", false);
+        } catch (const std::exception&) {
+            return false;
+        }
+    }
+
+    void start_session(const std::string& chromium) {
+        const json caps = {{"capabilities",
+                            {{"alwaysMatch",
+                              {{"browserName", "chrome"},
+                               {"goog:chromeOptions",
+                                {{"binary", chromium},
+                                 {"args", {"--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                                           "--window-size=1440,1100", "--hide-scrollbars", "--no-first-run",
+                                           "--disable-extensions", "--force-device-scale-factor=1"}}}}}}}}};
+        session_ = call(http::verb::post, "/session", caps).at("sessionId").get<std::string>();
+    }
+    ~WebDriver() {
+        if (session_.empty()) return;
+        try {
+            call(http::verb::delete_, "/session/" + session_);
+        } catch (const std::exception&) {
+        }
+    }
+
+    void navigate(const std::string& url) { call(http::verb::post, s("/url"), {{"url", url}}); }
+    json script(const std::string& body) {
+        return call(http::verb::post, s("/execute/sync"), {{"script", body}, {"args", json::array()}});
+    }
+    // The viewport (headless: the window) size, so a screenshot can hold the whole page.
+    void resize(int width, int height) { call(http::verb::post, s("/window/rect"), {{"width", width}, {"height", height}}); }
+    void screenshot(const fs::path& png) {
+        const auto data = base64_decode(call(http::verb::get, s("/screenshot")).get<std::string>());
+        fs::create_directories(png.parent_path());
+        std::ofstream(png, std::ios::binary) << data;
+    }
+
+private:
+    std::string s(const std::string& rest) const { return "/session/" + session_ + rest; }
+    net::io_context ioc_;
+    std::uint16_t port_;
+    std::string session_;
+};
+
+struct TempDir {
+    fs::path path;
+    TempDir() {
+        path = fs::temp_directory_path() / ("cellbench-dashboard-" + std::to_string(::getpid()));
+        fs::remove_all(path);
+        fs::create_directories(path);
+    }
+    ~TempDir() {
+        std::error_code ec;
+        fs::remove_all(path, ec);
+    }
+};
+
+}  // namespace
+
+TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
+    const std::string chromium = find_program({"chromium", "chromium-browser", "google-chrome"});
+    const std::string chromedriver = find_program({"chromedriver"});
+    if (chromium.empty() || chromedriver.empty())
+        GTEST_SKIP() << "headless browser test skipped: " << (chromium.empty() ? "chromium" : "chromedriver")
+                     << " is not installed (make deps installs the Debian packages chromium and chromium-driver)";
+    if (daemon::web_assets().empty())
+        GTEST_SKIP() << "headless browser test skipped: cellbenchd was built without the dashboard (node/npm were "
+                        "missing at configure time; make deps installs nodejs and npm)";
+
+    TempDir dir;
+    auto cfg = daemon::load_bench_config(kSource / "config/bench.sim.json");
+    cfg.cycler.endpoint.port = 0;
+    cfg.chamber.endpoint.port = 0;
+    daemon::BenchDaemonOptions opt;
+    opt.listen = daemon::Endpoint{"127.0.0.1", 0};
+    opt.db_path = dir.path / "bench.sqlite";
+    opt.token = "browser-test";
+    opt.time_scale = kTimeScale;
+    opt.daq_socket_path = (dir.path / "dewe.sock").string();
+    daemon::BenchDaemon d(cfg, opt);
+    d.start();
+    ASSERT_TRUE(eventually([&] {
+        for (const auto& i : d.status()["instruments"])
+            if (i["state"] != "connected") return false;
+        return true;
+    }, 20s)) << d.status().dump(2);
+    const std::string base = "http://127.0.0.1:" + std::to_string(d.http_port());
+
+    const std::uint16_t wd_port = free_port();
+    ChildProcess driver({chromedriver, "--port=" + std::to_string(wd_port)}, kBuild / "chromedriver.log");
+    WebDriver wd(wd_port);
+    ASSERT_TRUE(eventually([&] { return wd.ready(); }, 20s, 100ms)) << "chromedriver did not come up; see "
+                                                                    << (kBuild / "chromedriver.log");
+    wd.start_session(chromium);
+
+    const auto id = d.start_run({"hppc_short", "p45b", {{"program", "hppc_short"}, {"cell", "p45b"}}})["id"].get<daemon::RunId>();
+    wd.navigate(base + "/#/");
+    const auto live = [&] { return wd.script("return window.cellbench ? window.cellbench.live : null;"); };
+
+    // The live page shows the active run and its plot gets data...
+    json first;
+    ASSERT_TRUE(eventually([&] {
+        first = live();
+        return first.is_object() && first["runId"] == id && first["lastTime"].is_number() && first["points"].get<int>() > 0;
+    }, 20s)) << "live page never plotted run " << id << ": " << first.dump();
+    // Page weight of the first load (fresh profile, nothing cached): the page and its files, API calls aside.
+    const json weight = wd.script(
+        "const nav = performance.getEntriesByType('navigation')[0];"
+        "const files = performance.getEntriesByType('resource').filter(e => !e.name.includes('/api/'));"
+        "return {bytes: nav.transferSize + files.reduce((s, e) => s + e.transferSize, 0), files: files.length + 1};");
+    std::printf("dashboard first load: %lld bytes transferred in %d files\n", weight["bytes"].get<long long>(),
+                weight["files"].get<int>());
+    EXPECT_GT(weight["bytes"].get<long long>(), 1000);  // the entries are there (not all from a cache)
+    EXPECT_LT(weight["bytes"].get<long long>(), 500 * 1000) << "issue 7: first load under 500 kB";
+    // ...and keeps updating: the newest test time shown grows while the run records.
+    json later;
+    EXPECT_TRUE(eventually([&] {
+        later = live();
+        return later["lastTime"].is_number() && later["lastTime"].get<double>() > first["lastTime"].get<double>() &&
+               later["updates"].get<int>() > first["updates"].get<int>();
+    }, 20s)) << "first " << first.dump() << ", later " << later.dump();
+
+    // The online fits table fills during the HPPC (one row per completed pulse set).
+    int rows = 0;
+    const bool filled = eventually([&] {
+        rows = wd.script("return document.querySelectorAll('#fits-table tbody tr').length;").get<int>();
+        return rows >= 1;
+    }, 40s, 500ms);
+    const fs::path shots = kBuild / "screenshots";
+    wd.resize(1440, 1500);  // the whole live page, fits table included
+    std::this_thread::sleep_for(1500ms);  // charts re-laid out and redrawn at the new size (cosmetic only)
+    wd.screenshot(shots / "dashboard-live.png");
+    std::printf("screenshot: %s\n", (shots / "dashboard-live.png").c_str());
+    EXPECT_TRUE(filled) << "no fit row after the first pulse set; run " << d.get_run(id).dump() << ", fits "
+                        << d.fits(id).dump();
+    EXPECT_LE(static_cast<std::size_t>(rows), d.fits(id)["fits"].size());  // the API may be one fit ahead
+
+    // The run page: charts, fits as a table and against SOC, events, steps.
+    wd.navigate(base + "/#/runs/" + std::to_string(id));
+    EXPECT_TRUE(eventually([&] {
+        return wd.script("return document.querySelectorAll('#fits-table tbody tr').length;").get<int>() >= 1 &&
+               wd.script("return document.querySelectorAll('.fitcharts canvas').length;").get<int>() == 6;
+    }, 15s)) << "run page did not show the fits";
+    wd.resize(1440, 2000);
+    std::this_thread::sleep_for(1000ms);
+    wd.screenshot(shots / "dashboard-run.png");
+    std::printf("screenshot: %s\n", (shots / "dashboard-run.png").c_str());
+    // No script errors surfaced as a page-level failure note.
+    EXPECT_EQ(wd.script("return document.querySelectorAll('.note.warn').length;").get<int>(), 0);
+}

@@ -1,0 +1,83 @@
+// Small helpers: DOM building, formatting, the REST client.
+
+export const API = "/api/v1";
+
+// GET a JSON endpoint; throws Error(message from {"error": ...} or the status).
+export async function get(path, signal) {
+  const res = await fetch(API + path, { signal, headers: { Accept: "application/json" } });
+  if (!res.ok) {
+    let msg = `${res.status} ${res.statusText}`;
+    try { msg = (await res.json()).error || msg; } catch { /* not JSON */ }
+    throw new Error(msg);
+  }
+  return res.json();
+}
+
+// h("div.card", {onclick}, child, "text", ...)
+export function h(tag, attrs, ...children) {
+  const [name, ...classes] = tag.split(".");
+  const el = document.createElement(name || "div");
+  if (classes.length) el.className = classes.join(" ");
+  if (attrs) {
+    for (const [k, v] of Object.entries(attrs)) {
+      if (v == null || v === false) continue;
+      if (k.startsWith("on")) el.addEventListener(k.slice(2), v);
+      else if (k === "html") el.innerHTML = v;
+      else el.setAttribute(k, v === true ? "" : v);
+    }
+  }
+  append(el, children);
+  return el;
+}
+function append(el, children) {
+  for (const c of children) {
+    if (c == null || c === false) continue;
+    if (Array.isArray(c)) append(el, c);
+    else el.append(c instanceof Node ? c : String(c));
+  }
+}
+
+export const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+
+// Numbers: fixed decimals, "–" for null/NaN.
+export function fmt(x, digits = 3, scale = 1) {
+  return x == null || !Number.isFinite(x) ? "–" : (x * scale).toFixed(digits);
+}
+
+// Test time in seconds as h:mm:ss (or m:ss).
+export function hms(s, withTenths = false) {
+  if (s == null || !Number.isFinite(s)) return "–";
+  const neg = s < 0;
+  s = Math.abs(s);
+  const hh = Math.floor(s / 3600), mm = Math.floor((s % 3600) / 60);
+  const ss = withTenths ? (s % 60).toFixed(1).padStart(4, "0") : String(Math.floor(s % 60)).padStart(2, "0");
+  return (neg ? "-" : "") + (hh ? `${hh}:${String(mm).padStart(2, "0")}:${ss}` : `${mm}:${ss}`);
+}
+
+export function dateTime(unix) {
+  if (unix == null) return "–";
+  const d = new Date(unix * 1000);
+  const p = (n) => String(n).padStart(2, "0");
+  return `${d.getFullYear()}-${p(d.getMonth() + 1)}-${p(d.getDate())} ${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}`;
+}
+
+export function duration(run) {
+  if (!run.started_unix_s) return null;
+  return (run.ended_unix_s ?? Date.now() / 1000) - run.started_unix_s;
+}
+
+export const pill = (text, cls = text) => h("span.pill." + String(cls).replace(/[^a-z_-]/gi, ""), null, text);
+
+export function isActive(run) { return run && ["starting", "running", "paused"].includes(run.state); }
+
+// A repeating poll that never overlaps itself; stop() cancels it.
+export function poller(fn, periodMs) {
+  let timer = null, stopped = false;
+  const loop = async () => {
+    if (stopped) return;
+    try { await fn(); } catch (e) { if (!stopped) console.warn(e); }
+    if (!stopped) timer = setTimeout(loop, periodMs);
+  };
+  loop();
+  return { stop() { stopped = true; clearTimeout(timer); } };
+}

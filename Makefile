@@ -14,7 +14,7 @@ DEBS := cmake g++ make pkg-config \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
         python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver clang libclang-rt-dev
 
-.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz
+.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz soak
 
 all: build
 
@@ -95,6 +95,15 @@ test-data: build
 bench: build
 	@for b in $(BIN)/*_bench; do echo "== $$b"; $$b --benchmark_counters_tabular=true || exit 1; done
 	/usr/bin/python3 bench/scipy_baseline.py $(DATA)/hppc_1c_30degC.bdf.csv
+
+# The soak campaign (issue 6; not part of `make test`): SOAK_HOURS of bench time (CC, short HPPC, Random Walk at
+# 25 and 40 degC) at SOAK_SCALE x against a real cellbenchd, instrument faults injected at random; report in
+# $(BUILD)/soak/report.md (README "Operations"). The defaults take about 8 minutes of wall time.
+SOAK_HOURS ?= 12
+SOAK_SCALE ?= 100
+SOAK_SEED  ?= 6
+soak: build
+	$(BIN)/cellbench_soak --hours $(SOAK_HOURS) --time-scale $(SOAK_SCALE) --seed $(SOAK_SEED) --report $(BUILD)/soak/report.md
 
 # The proof table of `cellbench diagnose` on generated recordings with hidden effects (SEEDS="1 2 3").
 SEEDS ?= 1 2 3

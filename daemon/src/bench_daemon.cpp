@@ -153,6 +153,7 @@ struct RunContext final : sequencer::RunSink {
     // Leaf lock: sink callbacks (under the sequencer's lock) and sample handlers.
     mutable std::mutex m;
     int step_index = 0;
+    std::string end_reason;  // why the run ended (terminal state), as the sequencer said
     std::optional<StepRecord> open_step;
     struct StepStart {
         double t_s;
@@ -177,6 +178,7 @@ struct RunContext final : sequencer::RunSink {
         if (is_terminal(st)) {
             live = false;
             std::lock_guard lock(m);
+            end_reason = reason;  // the API shows it even while the store cannot commit it (disk full, locked)
             close_step_locked(unix_now_s(), last_cycler_t_s, state == sequencer::RunState::Completed ? "end" : "stopped");
         }
         store.set_run_state(id, st, reason);
@@ -1285,7 +1287,12 @@ struct BenchDaemon::Impl {
         j["state"] = api_state(st);
         // The store's word for how it ended ("failed" covers aborted and interrupted), null while live.
         j["outcome"] = is_terminal(st) ? json(std::string(to_string(st))) : json(nullptr);
-        j["error"] = (st == RunState::aborted || st == RunState::interrupted) && !r.reason.empty() ? json(r.reason) : json(nullptr);
+        std::string reason = r.reason;
+        if (c && c->id == r.id && is_terminal(st)) {
+            std::lock_guard l(c->m);
+            if (!c->end_reason.empty()) reason = c->end_reason;
+        }
+        j["error"] = (st == RunState::aborted || st == RunState::interrupted) && !reason.empty() ? json(reason) : json(nullptr);
         j["step"] = nullptr;
         if (c && c->id == r.id && live_state(st)) {
             std::optional<CyclerSample> lc;
@@ -1545,6 +1552,19 @@ json BenchDaemon::events(RunId id) {
         ev.push_back(std::move(x));
     }
     return {{"run_id", id}, {"events", std::move(ev)}};
+}
+
+json BenchDaemon::steps(RunId id) {
+    if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));
+    json out = json::array();
+    for (const auto& s : impl_->store->steps(id)) {
+        auto opt = [](const std::optional<double>& v) { return v && std::isfinite(*v) ? json(*v) : json(nullptr); };
+        out.push_back({{"index", s.index}, {"segment", s.segment}, {"step_id", s.step_id}, {"cycle", s.cycle},
+                       {"type", s.type}, {"started_s", s.started_t_s}, {"ended_s", opt(s.ended_t_s)},
+                       {"capacity_ah", opt(s.capacity_ah)}, {"energy_wh", opt(s.energy_wh)},
+                       {"end_reason", s.end_reason}});
+    }
+    return {{"run_id", id}, {"steps", std::move(out)}};
 }
 
 json BenchDaemon::fits(RunId id) {

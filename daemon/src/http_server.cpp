@@ -359,7 +359,7 @@ private:
         if (n >= 2 && n <= 3 && seg[0] == "runs") {
             const std::string_view action = n == 3 ? seg[2] : std::string_view{};
             const bool reads = n == 2 || action == "samples" || action == "events" || action == "fits" ||
-                               action == "export.bdf.csv";
+                               action == "steps" || action == "export.bdf.csv";
             const bool mutates = action == "stop" || action == "pause" || action == "resume";
             if (!reads && !mutates) return not_found();
             if (reads && !is_get()) return method_not_allowed("GET, HEAD");
@@ -372,6 +372,7 @@ private:
             if (action == "samples") return samples(*id, query);
             if (action == "events") return call([&] { return json(http::status::ok, be.events(*id)); });
             if (action == "fits") return call([&] { return json(http::status::ok, be.fits(*id)); });
+            if (action == "steps") return call([&] { return json(http::status::ok, be.steps(*id)); });
             if (action == "export.bdf.csv") return export_csv(*id);
             if (action == "stop") return call([&] { return json(http::status::ok, be.stop_run(*id)); });
             if (action == "pause") return call([&] { return json(http::status::ok, be.pause_run(*id)); });

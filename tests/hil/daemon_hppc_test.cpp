@@ -148,6 +148,11 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     const auto pulses = std::count_if(steps.begin(), steps.end(), [](const auto& s) { return s.step_id == 8; });
     EXPECT_EQ(static_cast<std::size_t>(pulses), kPulseSets);
     for (const auto& s : steps) EXPECT_TRUE(s.ended_t_s.has_value()) << "step " << s.index << " never ended";
+    // The same steps through the API (GET /runs/{id}/steps), for the dashboard's run page.
+    const auto api_steps = d.steps(id)["steps"];
+    ASSERT_EQ(api_steps.size(), steps.size());
+    EXPECT_EQ(api_steps[7]["step_id"], 8);
+    EXPECT_EQ(api_steps[7]["end_reason"], steps[7].end_reason);
 
     const auto fits = d.fits(id)["fits"];
     const auto truth = thesis_cell();

@@ -25,7 +25,7 @@ export function runView(app, id) {
   const head = h("div.card", { style: "margin-bottom:16px" }, h("div.empty", null, "loading…"));
   const chartsBox = h("div");
   const fitsCard = h("div.card", { style: "margin-bottom:16px" }, h("h2", null, "Online fits by pulse set"), h("div"), h("div", { style: "margin-top:14px" }));
-  const stepsCard = h("div.card", null, h("h2", null, "Program steps and segments"), h("div"));
+  const stepsCard = h("div.card", null, h("h2", null, "Steps the tester ran"), h("div"));
   const eventsCard = h("div.card", null, h("h2", null, "Events"), h("div"));
   app.append(head, chartsBox, fitsCard, h("div.grid2", null, stepsCard, eventsCard));
   const charts = new ChartGroup(chartsBox, undefined, { height: 190 });
@@ -34,7 +34,8 @@ export function runView(app, id) {
 
   const p = poller(async () => {
     if (!active) return;
-    const [run, ev, fits] = await Promise.all([get(`/runs/${id}`), get(`/runs/${id}/events`), get(`/runs/${id}/fits`)]);
+    const [run, ev, fits, st] = await Promise.all([get(`/runs/${id}`), get(`/runs/${id}/events`), get(`/runs/${id}/fits`),
+                                                   get(`/runs/${id}/steps`)]);
     head.replaceChildren(...[
       h("div.runhead", null, h("h1", null, `Run ${run.id}`), pill(run.state),
         h("span.meta", null, `${run.program} · cell ${run.cell} · created ${dateTime(run.created_unix_s)} · ${run.samples ?? 0} samples`,
@@ -45,7 +46,7 @@ export function runView(app, id) {
       isActive(run) ? stepBlock(run) : null,
       run.error ? h("div.note.warn", { style: "margin:10px 0 0" }, run.error) : null].filter(Boolean));
     // Charts and tables only change while the run records; a finished run is fetched once.
-    const s = `${run.samples}|${(ev.events || []).length}|${(fits.fits || []).length}`;
+    const s = `${run.samples}|${(ev.events || []).length}|${(fits.fits || []).length}|${(st.steps || []).length}`;
     if (s !== sig) {
       sig = s;
       const resp = await get(`/runs/${id}/samples?max_points=3000`);
@@ -55,15 +56,16 @@ export function runView(app, id) {
       fitCharts.root.style.display = list.length ? "" : "none";
       fitCharts.setFits(list);
       const events = ev.events || [];
-      // The program's course as the events tell it (segments started, steps, equilibrium, fits). The API has no
-      // per-step table yet; the current step is in the run (above) while it is active.
-      const steps = events.filter((e) => e.level === "info" || e.step != null);
+      // GET /runs/{id}/steps: every step with its times, charge moved and why it ended.
+      const steps = st.steps || [];
       stepsCard.lastChild.replaceWith(steps.length
         ? h("div.scroll", null, h("table", null,
-            h("thead", null, h("tr", null, ["test time", "step", "kind", "what"].map((t) => h("th", null, t)))),
-            h("tbody", null, steps.map((e) => h("tr", null, h("td.num", null, hms(e.test_time_s)), h("td.num", null, e.step ?? ""),
-              h("td", null, e.kind), h("td", null, e.message))))))
-        : h("div.empty", null, "no program events recorded"));
+            h("thead", null, h("tr", null, ["#", "step", "cycle", "type", "start", "duration", "Ah", "ended by"].map((t) => h("th", null, t)))),
+            h("tbody", null, steps.map((x) => h("tr", null, h("td.num", null, x.index), h("td.num", null, x.step_id),
+              h("td.num", null, x.cycle), h("td", null, x.type), h("td.num", null, hms(x.started_s)),
+              h("td.num", null, x.ended_s != null ? hms(x.ended_s - x.started_s) : "…"),
+              h("td.num", null, fmt(x.capacity_ah, 4)), h("td", null, x.end_reason || ""))))))
+        : h("div.empty", null, "no steps recorded"));
       eventsCard.lastChild.replaceWith(events.length ? eventsTable(events) : h("div.empty", null, "no events"));
     }
     active = isActive(run);

@@ -168,6 +168,13 @@ public:
     //     "charge":    {"r0_ohm": 0.0, "r1_ohm": 0.0, "c1_f": 0.0, "r2_ohm": 0.0, "c2_f": 0.0} | null}]}
     virtual nlohmann::json fits(RunId id) = 0;
 
+    // GET /api/v1/runs/{id}/steps -> the steps the tester ran, in order (an addition to INTERFACES.md):
+    //   {"run_id": 3, "steps": [{"index": 1, "segment": 2, "step_id": 8, "cycle": 3, "type": "dc",
+    //     "started_s": 4200.0, "ended_s": 4230.0 | null, "capacity_ah": 0.0375 | null, "energy_wh": ... | null,
+    //     "end_reason": "time"}]}
+    // The default says the backend does not keep steps (404).
+    virtual nlohmann::json steps(RunId id) { throw NotFound("no steps are kept for run " + std::to_string(id)); }
+
     // GET /api/v1/runs/{id}/export.bdf.csv -> the run as BDF CSV (INTERFACES.md), streamed.
     // Throw NotFound here (before any data) for an unknown id, so the client gets a proper 404.
     virtual std::unique_ptr<ExportCursor> export_bdf_csv(RunId id) = 0;

@@ -83,6 +83,7 @@ public:
     nlohmann::json samples(RunId id, const SampleQuery& query) override;
     nlohmann::json events(RunId id) override;
     nlohmann::json fits(RunId id) override;
+    nlohmann::json steps(RunId id) override;
     std::unique_ptr<ExportCursor> export_bdf_csv(RunId id) override;
     nlohmann::json start_run(const StartRequest& request) override;
     nlohmann::json stop_run(RunId id) override;

@@ -580,7 +580,7 @@ BenchConfig parse_bench_config(const json& j, const std::string& source, const f
         Obj d(ctx, root.get("database", true), "$.database");
         if (const auto p = d.string("path", true)) b.database.path = *p;
         // The flush period bounds what kill -9 can lose; the reliability goal is at most 1 s.
-        b.database.flush_period_ms = static_cast<int>(d.integer_or("flush_period_ms", 200, 10, 1000));
+        b.database.flush_period_ms = static_cast<int>(d.integer_or("flush_period_ms", 200, 10, 500));
         b.database.queue_capacity_samples =
             static_cast<std::size_t>(d.integer_or("queue_capacity_samples", 500000, 1000, 100000000));
         d.finish();

@@ -153,6 +153,17 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
                                                 e == asio::error::operation_aborted
                                                     ? "connect timed out after " + ms_text(self->options.connect_timeout)
                                                     : e.message());
+                                        // A TCP self-connection: with nothing listening on a loopback port in
+                                        // the ephemeral range, the connect can bind that very port and
+                                        // "connect" to itself (simultaneous open), which would also keep the
+                                        // tester from listening there again. Not a tester: drop it.
+                                        boost::system::error_code le, re;
+                                        const auto local = self->socket.local_endpoint(le);
+                                        const auto remote = self->socket.remote_endpoint(re);
+                                        if (!le && !re && local == remote)
+                                            return self->connect_failed("connected to itself (nothing listens on " +
+                                                                        self->options.host + ":" +
+                                                                        std::to_string(self->options.port) + ")");
                                         self->on_connected(gen);
                                     });
             });

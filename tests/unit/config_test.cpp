@@ -177,7 +177,7 @@ TEST(Config, ABenchFileWithSeveralErrorsReportsThemAll) {
     EXPECT_TRUE(has_issue(issues, "$.instruments.daq.layout.frames", "")) << all;
     EXPECT_TRUE(has_issue(issues, "$.instruments.chamber.unit_id", "0..247")) << all;
     EXPECT_TRUE(has_issue(issues, "$.safety.max_current_a", "missing")) << all;
-    EXPECT_TRUE(has_issue(issues, "$.database.flush_period_ms", "10..1000")) << all;
+    EXPECT_TRUE(has_issue(issues, "$.database.flush_period_ms", "10..500")) << all;
     EXPECT_TRUE(has_issue(issues, "$.listen", "HOST:PORT")) << all;
     EXPECT_TRUE(has_issue(issues, "$.instrumnets", "unknown field")) << all;
     for (const auto& i : issues) EXPECT_EQ(i.file, "broken.json");

@@ -78,7 +78,7 @@ test: build
 # a clang build of just the code they test; each runs FUZZ_SECONDS from its seed corpus, a crash fails.
 # `make test` runs them briefly; a longer run: `make fuzz FUZZ_SECONDS=1800 FUZZ_OPT=-O1` (README, "Fuzzing").
 FUZZ_BUILD   ?= $(BUILD)-fuzz
-FUZZ_SECONDS ?= 10
+FUZZ_SECONDS ?= 5
 FUZZ_OPT     ?= -O0
 fuzz: deps
 	@cmake -S . -B $(FUZZ_BUILD) -DCELLBENCH_FUZZ_ONLY=ON -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug \
@@ -93,6 +93,7 @@ test-data: build
 	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) -L data
 
 bench: build
+	cmake --build $(BUILD) -j$(JOBS) --target benches
 	@for b in $(BIN)/*_bench; do echo "== $$b"; $$b --benchmark_counters_tabular=true || exit 1; done
 	/usr/bin/python3 bench/scipy_baseline.py $(DATA)/hppc_1c_30degC.bdf.csv
 
@@ -103,6 +104,7 @@ SOAK_HOURS ?= 12
 SOAK_SCALE ?= 100
 SOAK_SEED  ?= 6
 soak: build
+	cmake --build $(BUILD) -j$(JOBS) --target cellbench_soak
 	$(BIN)/cellbench_soak --hours $(SOAK_HOURS) --time-scale $(SOAK_SCALE) --seed $(SOAK_SEED) --report $(BUILD)/soak/report.md
 
 # The proof table of `cellbench diagnose` on generated recordings with hidden effects (SEEDS="1 2 3").

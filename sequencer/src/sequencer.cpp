@@ -192,7 +192,8 @@ void Sequencer::record_locked(const CyclerSample& s) {
         rec_.ambient_c.push_back(last_chamber_ ? last_chamber_->air_c : kNaN);
     }
     if (program_.segments[std::min(segment_, program_.segments.size() - 1)].kind != Segment::Kind::Cycler) return;
-    if (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_) {
+    // Step 0 is the idle tester (a live reading before its first row or after its test): no step of the program.
+    if (s.step_id > 0 && (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_)) {
         sink_.on_step(s.t_mono_s, static_cast<int>(segment_), s.step_id, s.cycle_id, s.step_type);
         last_step_id_ = s.step_id;
         last_cycle_id_ = s.cycle_id;

@@ -151,8 +151,11 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     // The same steps through the API (GET /runs/{id}/steps), for the dashboard's run page.
     const auto api_steps = d.steps(id)["steps"];
     ASSERT_EQ(api_steps.size(), steps.size());
-    EXPECT_EQ(api_steps[7]["step_id"], 8);
-    EXPECT_EQ(api_steps[7]["end_reason"], steps[7].end_reason);
+    for (std::size_t k = 0; k < steps.size(); ++k) {
+        EXPECT_EQ(api_steps[k]["step_id"], steps[k].step_id) << "step " << k;
+        EXPECT_EQ(api_steps[k]["end_reason"], steps[k].end_reason) << "step " << k;
+        EXPECT_DOUBLE_EQ(api_steps[k]["started_s"].get<double>(), steps[k].started_t_s) << "step " << k;
+    }
 
     const auto fits = d.fits(id)["fits"];
     const auto truth = thesis_cell();

@@ -580,12 +580,28 @@ struct NewareServer::Impl {
             acceptor.close(ec);
             spdlog::info("neware sim: refusing connections");
         } else if (!acceptor.is_open()) {
-            try {
-                open_acceptor(bound_port);
-                spdlog::info("neware sim: accepting connections again on port {}", bound_port.load());
-            } catch (const std::exception& e) {
+            reopen(0);
+        }
+    }
+
+    // Listens again on the same port. A client retrying meanwhile may hold that (ephemeral) port for a moment
+    // with its own connecting socket, so a failed bind is retried every 50 ms for up to 5 s.
+    void reopen(int attempt) {
+        if (stopping || acceptor.is_open()) return;
+        try {
+            open_acceptor(bound_port);
+            spdlog::info("neware sim: accepting connections again on port {}", bound_port.load());
+        } catch (const std::exception& e) {
+            boost::system::error_code ignored;
+            acceptor.close(ignored);
+            if (attempt >= 100) {
                 spdlog::error("neware sim: cannot listen again on port {}: {}", bound_port.load(), e.what());
+                return;
             }
+            auto retry = std::make_shared<asio::steady_timer>(io, std::chrono::milliseconds(50));
+            retry->async_wait([this, retry, attempt](const boost::system::error_code& ec) {
+                if (!ec) reopen(attempt + 1);
+            });
         }
     }
 

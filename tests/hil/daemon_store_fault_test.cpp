@@ -76,7 +76,8 @@ struct Fixture {
     }
 
     bool connected() {
-        for (const auto& i : d->status()["instruments"])
+        const auto status = d->status();  // kept: a range-for over a temporary's member would dangle
+        for (const auto& i : status["instruments"])
             if (i["state"] != "connected") return false;
         return true;
     }

@@ -259,7 +259,8 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
     daemon::BenchDaemon d(cfg, opt);
     d.start();
     ASSERT_TRUE(eventually([&] {
-        for (const auto& i : d.status()["instruments"])
+        const auto status = d.status();  // kept: a range-for over a temporary's member would dangle
+        for (const auto& i : status["instruments"])
             if (i["state"] != "connected") return false;
         return true;
     }, 20s)) << d.status().dump(2);

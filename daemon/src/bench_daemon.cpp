@@ -287,8 +287,13 @@ struct RunContext final : sequencer::RunSink {
         if (std::isfinite(last_cycler_t_s) && t_s > last_cycler_t_s && std::isfinite(current_a))
             soc_q_ah += current_a * (t_s - last_cycler_t_s) / 3600.0;
         last_cycler_t_s = t_s;
-        return std::clamp(1.0 + soc_q_ah / capacity_ah, 0.0, 1.0);
+        return soc_locked();
     }
+    double soc() {
+        std::lock_guard lock(m);
+        return soc_locked();
+    }
+    double soc_locked() const { return std::clamp(1.0 + soc_q_ah / capacity_ah, 0.0, 1.0); }
 
     json step_json(double t_s) const {
         std::lock_guard lock(m);
@@ -665,7 +670,8 @@ struct BenchDaemon::Impl {
         recovered("neware", 3e-3 * cfg.cycler.poll_period_ms);
         auto c = active();
 
-        auto store_row = [&](const sequencer::CyclerSample& cs) {
+        // The store's row of a reading (t_s and soc are the run's; set when stored).
+        auto row_of = [](const sequencer::CyclerSample& cs) {
             CyclerSample row;
             row.unix_s = cs.t_wall_s;
             row.voltage_v = cs.voltage_v;
@@ -676,6 +682,10 @@ struct BenchDaemon::Impl {
             row.cycle = cs.cycle_id;
             row.step_type = cs.step_type;
             row.status = cs.status;
+            return row;
+        };
+        auto store_row = [&](const sequencer::CyclerSample& cs) {
+            CyclerSample row = row_of(cs);
             if (c) {
                 row.t_s = c->rel(cs.t_mono_s);
                 row.soc = c->count_soc(row.t_s, cs.current_a);
@@ -730,19 +740,8 @@ struct BenchDaemon::Impl {
         if (!s.recording) {
             row = store_row(cs);
         } else {
-            row.unix_s = cs.t_wall_s;
-            row.voltage_v = g.voltage_v;
-            row.current_a = g.current_a;
-            row.capacity_ah = g.capacity_ah;
-            row.energy_wh = g.energy_wh;
-            row.step_id = g.step_id;
-            row.cycle = g.cycle_id;
-            row.step_type = g.step_type;
-            row.status = status;
-            if (c) {
-                std::lock_guard lock(c->m);
-                row.soc = std::clamp(1.0 + c->soc_q_ah / c->capacity_ah, 0.0, 1.0);
-            }
+            row = row_of(cs);
+            if (c) row.soc = c->soc();  // the Coulomb count of the recorded rows so far
         }
         if (c) {
             {

@@ -601,7 +601,9 @@ PulseFitRecord pulse_fit_record(RunId run_id, int pulse_set, double t_s, double 
         {"joint_converged", fit.joint_converged},
         {"joint_ocv_offset_v", nullable(fit.joint_ocv_offset_v)},
         {"r0_steps", {{"ab_ohm", nullable(fit.r0.ab_ohm)}, {"cd_ohm", nullable(fit.r0.cd_ohm)},
-                      {"ef_ohm", nullable(fit.r0.ef_ohm)}, {"gh_ohm", nullable(fit.r0.gh_ohm)}}},
+                      {"ef_ohm", nullable(fit.r0.ef_ohm)}, {"gh_ohm", nullable(fit.r0.gh_ohm)},
+                      {"discharge_sampling_corrected_ohm", nullable(fit.r0.discharge_corrected_ohm)},
+                      {"charge_sampling_corrected_ohm", nullable(fit.r0.charge_corrected_ohm)}}},
         {"rows", {fit.begin, fit.end}},
         {"warnings", fit.warnings},
     };

@@ -254,7 +254,9 @@ nlohmann::json Characterization::summary_json() const {
         e["ocv_v"] = f.ocv_v;
         e["temperature_c"] = num_or_null(f.temperature_c);
         e["r0_steps_ohm"] = {{"ab", num_or_null(f.r0.ab_ohm)}, {"cd", num_or_null(f.r0.cd_ohm)},
-                             {"ef", num_or_null(f.r0.ef_ohm)}, {"gh", num_or_null(f.r0.gh_ohm)}};
+                             {"ef", num_or_null(f.r0.ef_ohm)}, {"gh", num_or_null(f.r0.gh_ohm)},
+                             {"discharge_sampling_corrected", num_or_null(f.r0.discharge_corrected_ohm)},
+                             {"charge_sampling_corrected", num_or_null(f.r0.charge_corrected_ohm)}};
         e["thesis"] = {{"discharge", rc_json(f.thesis_discharge)},
                        {"charge", rc_json(f.thesis_charge)},
                        {"rms_v", num_or_null(f.thesis_rms_v)}};

@@ -845,6 +845,49 @@ Rc2Params<double> unpack(const std::array<double, kNumJoint>& p, int b) {
     return {p[b], p[b + 1], p[b + 2], p[b + 3], p[b + 4]};
 }
 
+// Total RC-pair voltage at every window row for the joint parameters p (the JointCost recursion).
+std::vector<double> rc_voltage(const Window& w, const std::array<double, kNumJoint>& p) {
+    std::vector<double> s(w.n(), 0.0);
+    double v[2][2] = {{0, 0}, {0, 0}};
+    for (std::size_t k = 1; k < w.n(); ++k) {
+        const double dt = w.t[k] - w.t[k - 1];
+        for (int d = 0; d < 2; ++d) {
+            const double u = d == 0 ? discharge_part(w.i[k]) : charge_part(w.i[k]);
+            for (int pair = 0; pair < 2; ++pair) {
+                const double a = std::exp(-dt / p[5 * d + 2 + 2 * pair]);
+                v[d][pair] = a * v[d][pair] + p[5 * d + 1 + 2 * pair] * (1.0 - a) * u;
+            }
+        }
+        s[k] = v[0][0] + v[0][1] + v[1][0] + v[1][1];
+    }
+    return s;
+}
+
+// Eq. 3.2 at the four steps with the fitted pairs' movement between the rows either side taken out:
+// R0 = (dV - dV_rc - dOCV) / dI. Window row of recording row r: r - w.first.
+void sampling_corrected_r0(const Window& w, const std::array<double, kNumJoint>& p, const PulseSet& ps, R0Steps& r0) {
+    const auto s = rc_voltage(w, p);
+    auto at = [&](std::size_t rec_row) {
+        const std::size_t k = rec_row - w.first;
+        if (k < 1 || k >= w.n()) return kNaN;
+        const double di = w.i[k] - w.i[k - 1];
+        if (!(std::abs(di) > 0.0)) return kNaN;
+        return ((w.v[k] - w.v[k - 1]) - (s[k] - s[k - 1]) - (w.ocv[k] - w.ocv[k - 1])) / di;
+    };
+    r0.discharge_corrected_ohm = finite_mean({at(ps.pulse_begin), at(ps.discharge_end)});
+    r0.charge_corrected_ohm = finite_mean({at(ps.charge_begin), at(ps.charge_end)});
+}
+
+Candidate candidate_of(const JointResult& r) {
+    Candidate c;
+    const auto& p = r.p;
+    c.theta << p[kC], p[0], p[5], p[1], p[6], p[3], p[8];
+    c.tau = {p[2], p[4], p[7], p[9]};
+    c.cost = r.cost;
+    c.feasible = true;
+    return c;
+}
+
 void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
     std::vector<std::size_t> rows;
     std::vector<double> y;
@@ -915,6 +958,28 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
         if (!(r.p[2] < r.p[4])) best_bd = box.split_at(std::sqrt(best.tau[0] * best.tau[1]));
         if (!(r.p[7] < r.p[9])) best_bc = box.split_at(std::sqrt(best.tau[2] * best.tau[3]));
         r = polish(w, rows, best, best_bd, best_bc, o, out.r0);
+    }
+    // 4. R0 held at the sampling-corrected steps: correct with the fitted pairs, refine the pairs, repeat (the
+    //    correction is ~1 % of R0 and moves the pairs little, so this settles in two or three rounds).
+    if (o.r0_from_steps && o.r0_step_sampling_correction && std::isfinite(out.r0.discharge_ohm) &&
+        std::isfinite(out.r0.charge_ohm)) {
+        R0Steps held = out.r0;
+        for (int round = 0; round < 4; ++round) {
+            sampling_corrected_r0(w, r.p, out.pulse_set, held);
+            if (!std::isfinite(held.discharge_corrected_ohm) || !std::isfinite(held.charge_corrected_ohm) ||
+                !(held.discharge_corrected_ohm > 0.0) || !(held.charge_corrected_ohm > 0.0))
+                break;
+            const double change = std::max(std::abs(held.discharge_corrected_ohm - r.p[0]) / r.p[0],
+                                           std::abs(held.charge_corrected_ohm - r.p[5]) / r.p[5]);
+            if (change < 1e-5) break;
+            held.discharge_ohm = held.discharge_corrected_ohm;
+            held.charge_ohm = held.charge_corrected_ohm;
+            const JointResult next = polish(w, rows, candidate_of(r), best_bd, best_bc, o, held);
+            if (!(next.p[2] < next.p[4]) || !(next.p[7] < next.p[9])) break;
+            r = next;
+            out.r0.discharge_corrected_ohm = r.p[0];
+            out.r0.charge_corrected_ohm = r.p[5];
+        }
     }
 
     out.joint_discharge = unpack(r.p, 0);

@@ -60,6 +60,7 @@ void Sequencer::start(const Program& program, double t) {
     rec_.surface_c.clear();
     fitted_pulse_sets_ = 0;
     window_begin_ = 0;
+    last_ocv_v_ = last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
     full_charge_row_ = 0;
     run_start_s_ = t;
     last_cycler_s_ = last_daq_s_ = last_chamber_s_ = -1;
@@ -246,8 +247,18 @@ void Sequencer::check_pulse_sets_locked() {
     }
     const double soc = 1.0 + (q - q_full) / opt_.capacity_ah;
     (void)full_row;
-    auto job = [this, window, pset = *ps, soc] {
-        estimator::PulseFitOptions po;
+    // OCV slope (V/Ah) for the fit: the chord from the previous pulse set's rested voltage to this one's, when
+    // they are at least 2 % of the capacity apart. The first pulse set has none (the fit says so in a warning);
+    // without it the pairs absorb the OCV's fall during the pulse (tau1 about doubles) and R0 reads ~0.5 % high.
+    estimator::PulseFitOptions po;
+    const double ocv_v = window.voltage_v[ps->pulse_begin - 1];
+    if (std::isfinite(last_ocv_v_) && std::isfinite(ocv_v) && std::abs(q - last_ocv_q_ah_) > 0.02 * opt_.capacity_ah) {
+        const double slope = (ocv_v - last_ocv_v_) / (q - last_ocv_q_ah_);
+        if (std::isfinite(slope) && slope > 0.0) po.docv_dah_v_per_ah = slope;
+    }
+    last_ocv_v_ = ocv_v;
+    last_ocv_q_ah_ = q;
+    auto job = [this, window, pset = *ps, soc, po] {
         auto fit = estimator::fit_pulse_set(window, pset, po);
         fit.soc = soc;
         sink_.on_pulse_fit(fit);

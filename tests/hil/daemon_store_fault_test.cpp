@@ -164,6 +164,8 @@ TEST(DaemonStoreFault, AFullDiskAbortsTheRunSafelyAndTheAbortIsRecorded) {
     auto store = daemon::RunStore::open(db);
     EXPECT_TRUE(has_database_abort(store->events(id)));
     EXPECT_EQ(store->get_run(id)->state, daemon::RunState::aborted);
-    if (sidecar) EXPECT_TRUE(fs::exists(fs::path(db.string() + ".unsaved.jsonl.imported")));
+    if (sidecar) {
+        EXPECT_TRUE(fs::exists(fs::path(db.string() + ".unsaved.jsonl.imported")));
+    }
     EXPECT_EQ(store->integrity_check(), "ok");
 }

@@ -331,7 +331,9 @@ TEST_F(RunStoreTest, ASingleSampleSpikeSurvivesDecimationOfEveryChannel) {
         EXPECT_DOUBLE_EQ(*std::max_element(d->max[hf].begin(), d->max[hf].end()), 900.0);
         EXPECT_DOUBLE_EQ(*std::min_element(d->min[hf].begin(), d->min[hf].end()), 40.0);
         EXPECT_DOUBLE_EQ(*std::max_element(d->max[t1].begin(), d->max[t1].end()), 80.0);
-        if (expect_dip) EXPECT_DOUBLE_EQ(*std::min_element(d->min[sc].begin(), d->min[sc].end()), -5.0);
+        if (expect_dip) {
+            EXPECT_DOUBLE_EQ(*std::min_element(d->min[sc].begin(), d->min[sc].end()), -5.0);
+        }
         // Exactly one bucket holds the spike, and it is the one whose span contains t = 734.57 s.
         std::size_t holding = 0;
         for (std::size_t k = 0; k < d->size(); ++k) {

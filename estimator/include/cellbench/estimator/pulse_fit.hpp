@@ -62,6 +62,12 @@ struct PulseFitOptions {
     // refinement: with 0.1 s sampling a fast RC pair and R0 trade off (the fit can move part of R0 into a
     // sub-second pair), while the steps measure R0 directly.
     bool r0_from_steps = true;
+    // With r0_from_steps: take out of each step what the fitted RC pairs moved in the sampling interval
+    // between the rows either side of it (eq. 3.2's V_B is one interval, 0.1 s, after the step and carries
+    // R1 (1 - exp(-dt/tau1)) + ... of relaxation: +1-2 % for the thesis cell). The held R0 is then the one with
+    // which the exact ZOH model reproduces the measured steps; held R0 and pairs are refined alternately.
+    // R0Steps keeps the uncorrected eq. 3.2 values.
+    bool r0_step_sampling_correction = true;
     double extended_end_ocv_v = kNaN;
     bool thesis_method = true;     // run the per-segment fits (method 1)
     bool joint_method = true;      // run the joint fit (method 2)
@@ -83,6 +89,10 @@ struct R0Steps {
     double gh_ohm = kNaN;  // (V_G - V_H) / |I_c|: charge pulse end
     double discharge_ohm = kNaN;  // "R0 DA" = mean(AB, CD)
     double charge_ohm = kNaN;     // "R0 CA" = mean(EF, GH)
+    // The same steps less the RC pairs' movement over the sampling interval, from the joint fit
+    // (PulseFitOptions::r0_step_sampling_correction); NaN when not computed. The joint result holds these.
+    double discharge_corrected_ohm = kNaN;
+    double charge_corrected_ohm = kNaN;
 };
 
 // One 5-parameter exponential fit of the thesis (eqs. 3.6, 3.10, 3.14, 3.18) and what it gives.

@@ -11,6 +11,7 @@
 // point, the reason is recorded and the run ends `aborted`. A run never continues blind.
 #include <functional>
 #include <memory>
+#include <limits>
 #include <mutex>
 #include <optional>
 #include <string>
@@ -138,6 +139,10 @@ private:
     double full_charge_row_ = 0;  // row where SOC = 1 (end of the last CCCV charge before the pulses)
     std::size_t fitted_pulse_sets_ = 0;
     std::size_t window_begin_ = 0;
+    // The last fitted pulse set's rested voltage V_A and charge count (Ah from the run start) at A: with this
+    // pulse set's they give the OCV slope the fit needs (a chord over one SOC step).
+    double last_ocv_v_ = std::numeric_limits<double>::quiet_NaN();
+    double last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
     std::mutex workers_mutex_;
     std::vector<std::thread> workers_;
 };

@@ -86,6 +86,7 @@ Child spawn(const std::vector<std::string>& args, const fs::path& log, bool stdo
         if (f) ::dup2(::fileno(f), STDERR_FILENO);
         ::dup2(stdout_to_log && f ? ::fileno(f) : fds[1], STDOUT_FILENO);
         ::close(fds[0]);
+        ::close_range(3, ~0U, 0);  // the test's own sockets stay with the test
         std::vector<char*> argv;
         for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
         argv.push_back(nullptr);

@@ -43,6 +43,7 @@ SimProcess start_sim(const fs::path& config) {
     if (p.pid == 0) {
         dup2(fds[1], STDOUT_FILENO);
         close(fds[0]);
+        close_range(3, ~0U, 0);  // the test's own sockets stay with the test
         execl(kBin.c_str(), kBin.c_str(), "-q", "sim", "--config", config.c_str(), "--time-scale", "100", nullptr);
         _exit(127);
     }

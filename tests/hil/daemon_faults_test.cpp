@@ -30,6 +30,7 @@
 #include "cellbench/sim/dewe_publisher.hpp"
 #include "cellbench/sim/neware_server.hpp"
 #include "cellbench/sim/plant.hpp"
+#include "hil/hil_support.hpp"
 
 using namespace cellbench;
 using namespace std::chrono_literals;
@@ -38,30 +39,20 @@ namespace fs = std::filesystem;
 
 namespace {
 
+using cellbench::test::eventually;
+
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 constexpr double kScale = 10.0;
 constexpr double kLongGraceS = 300.0;  // 30 s wall: recoverable faults must not reach it
 constexpr double kShortGraceS = 30.0;  // the 3 s wall floor at this scale
-
-bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 50ms) {
-    const auto end = std::chrono::steady_clock::now() + limit;
-    while (std::chrono::steady_clock::now() < end) {
-        if (pred()) return true;
-        std::this_thread::sleep_for(poll);
-    }
-    return pred();
-}
 
 // A bench of our own: config folder with the bench file, the cell and a program holding a 2 A discharge
 // (3000 s of bench time, far longer than any test) after an optional chamber set point.
 class FaultBench {
 public:
     explicit FaultBench(const std::string& tag, const std::function<void(daemon::BenchConfig&)>& tweak = {},
-                        double chamber_setpoint_c = 30.0) {
-        static int serial = 0;
-        dir_ = fs::temp_directory_path() /
-               ("cellbench-faults-" + tag + "-" + std::to_string(::getpid()) + "-" + std::to_string(serial++));
-        fs::remove_all(dir_);
+                        double chamber_setpoint_c = 30.0)
+        : tmp_("faults-" + tag), dir_(tmp_.path) {
         fs::create_directories(dir_ / "cells");
         fs::create_directories(dir_ / "programs");
         fs::copy_file(kSource / "config/bench.sim.json", dir_ / "bench.sim.json");
@@ -76,29 +67,18 @@ public:
               {"type": "cc_discharge", "current_a": 2.0, "cutoff_voltage_v": 2.9, "time_s": 3000},
               {"type": "rest", "time_s": 10},
               {"type": "end"}]}]})";
-        cfg_ = daemon::load_bench_config(dir_ / "bench.sim.json");
-        cfg_.cycler.endpoint.port = 0;
-        cfg_.chamber.endpoint.port = 0;
+        cfg_ = test::sim_bench_config(dir_ / "bench.sim.json");
         cfg_.cycler.response_timeout_ms = 300;  // wall: a stalled answer is declared lost quickly
         cfg_.faults.cycler.grace_s = cfg_.faults.chamber.grace_s = cfg_.faults.daq.grace_s = kLongGraceS;
         cfg_.faults.chamber.response_timeout_ms = 200;
         cfg_.faults.chamber.retries = 1;
         if (tweak) tweak(cfg_);
-        daemon::BenchDaemonOptions o;
-        o.listen = daemon::Endpoint{"127.0.0.1", 0};
-        o.db_path = dir_ / "bench.sqlite";
-        o.token = "t";
-        o.time_scale = kScale;
-        o.daq_socket_path = (dir_ / "dewe.sock").string();
+        const auto o = test::daemon_options_in(tmp_, kScale, "t");
         if (std::getenv("CELLBENCH_HIL_VERBOSE")) spdlog::set_level(spdlog::level::debug);
         d_ = std::make_unique<daemon::BenchDaemon>(cfg_, o);
         d_->start();
     }
-    ~FaultBench() {
-        d_.reset();
-        std::error_code ec;
-        fs::remove_all(dir_, ec);
-    }
+    ~FaultBench() { d_.reset(); }  // before the folder goes
 
     daemon::BenchDaemon& d() { return *d_; }
     sim::NewareServer& neware() { return *d_->neware_server(); }
@@ -107,12 +87,7 @@ public:
 
     // Starts the hold program once every instrument is connected; returns when the tester discharges.
     ::testing::AssertionResult start_discharging() {
-        if (!eventually([&] {
-                const json status = d_->status();  // kept: a range-for over a temporary's member would dangle
-                for (const auto& i : status["instruments"])
-                    if (i["state"] != "connected") return false;
-                return true;
-            }, 30s))
+        if (!eventually([&] { return test::instruments_connected(*d_); }, 30s))
             return ::testing::AssertionFailure() << "instruments not connected: " << d_->status().dump();
         id_ = d_->start_run({"hold", "p45b", {}})["id"].get<daemon::RunId>();
         if (!eventually([&] { return plant_current_a() < -1.5 || state() != "running"; }, 30s) || state() != "running")
@@ -169,6 +144,7 @@ public:
     }
 
 private:
+    test::TempDir tmp_;
     fs::path dir_;
     daemon::BenchConfig cfg_;
     std::unique_ptr<daemon::BenchDaemon> d_;

@@ -29,8 +29,12 @@
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/sim/plant.hpp"
+#include "hil/hil_support.hpp"
 
 using namespace cellbench;
+using cellbench::test::eventually;
+using cellbench::test::instruments_connected;
+using cellbench::test::TempDir;
 using namespace std::chrono_literals;
 using nlohmann::json;
 namespace fs = std::filesystem;
@@ -41,56 +45,6 @@ namespace {
 constexpr double kHppcTimeScale = 400.0;
 
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
-
-struct TempDir {
-    fs::path path;
-    explicit TempDir(const std::string& tag) {
-        static int serial = 0;
-        path = fs::temp_directory_path() /
-               ("cellbench-" + tag + "-" + std::to_string(::getpid()) + "-" + std::to_string(serial++));
-        fs::remove_all(path);
-        fs::create_directories(path);
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::remove_all(path, ec);
-    }
-};
-
-// Waits (polling) until pred holds; the limit only bounds a broken test's runtime, it is no timing claim.
-bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 100ms) {
-    const auto end = std::chrono::steady_clock::now() + limit;
-    while (std::chrono::steady_clock::now() < end) {
-        if (pred()) return true;
-        std::this_thread::sleep_for(poll);
-    }
-    return pred();
-}
-
-daemon::BenchDaemonOptions options_in(const TempDir& dir, double time_scale) {
-    daemon::BenchDaemonOptions o;
-    o.listen = daemon::Endpoint{"127.0.0.1", 0};
-    o.db_path = dir.path / "bench.sqlite";
-    o.token = "hil-token";
-    o.time_scale = time_scale;
-    o.daq_socket_path = (dir.path / "dewe.sock").string();
-    return o;
-}
-
-// Simulated instruments on any free port, so tests may run beside a cellbenchd on the default ports.
-daemon::BenchConfig sim_config(const fs::path& file) {
-    auto cfg = daemon::load_bench_config(file);
-    cfg.cycler.endpoint.port = 0;
-    cfg.chamber.endpoint.port = 0;
-    return cfg;
-}
-
-bool instruments_connected(daemon::BenchDaemon& d) {
-    const auto s = d.status();
-    for (const auto& i : s["instruments"])
-        if (i["state"] != "connected") return false;
-    return true;
-}
 
 bool terminal(const std::string& state) { return state == "completed" || state == "stopped" || state == "failed"; }
 
@@ -106,7 +60,7 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     if (const char* env = std::getenv("CELLBENCH_HIL_TIME_SCALE")) scale = std::atof(env);
     TempDir dir("daemon-hppc");
     if (std::getenv("CELLBENCH_HIL_VERBOSE")) spdlog::set_level(spdlog::level::debug);
-    daemon::BenchDaemon d(sim_config(kSource / "config/bench.sim.json"), options_in(dir, scale));
+    daemon::BenchDaemon d(test::sim_bench_config(kSource / "config/bench.sim.json"), test::daemon_options_in(dir, scale));
     d.start();
     ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
 
@@ -215,11 +169,11 @@ TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
           {"type": "rest", "time_s": 60},
           {"type": "end"}]}]})";
 
-    auto cfg = sim_config(dir.path / "bench.sim.json");
+    auto cfg = test::sim_bench_config(dir.path / "bench.sim.json");
     const double max_c = 33.0;  // 3 K above the start: the 40 A discharge gets there in about 10 bench s
     cfg.safety.max_temperature_c = max_c;
     const double daq_period_s = 0.1;  // the simulated DEWE samples at 10 Hz of bench time
-    daemon::BenchDaemon d(cfg, options_in(dir, 2.0));
+    daemon::BenchDaemon d(cfg, test::daemon_options_in(dir, 2.0));
     d.start();
     ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
 

@@ -23,6 +23,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cellbench/daemon/bench_daemon.hpp"
+#include "hil/hil_support.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/sim/plant.hpp"
 
@@ -33,54 +34,30 @@ namespace fs = std::filesystem;
 
 namespace {
 
+using cellbench::test::eventually;
+
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 constexpr double kScale = 50.0;
 constexpr double kSafeSetpointC = 25.0;  // config/bench.sim.json
 
-bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 50ms) {
-    const auto end = std::chrono::steady_clock::now() + limit;
-    while (std::chrono::steady_clock::now() < end) {
-        if (pred()) return true;
-        std::this_thread::sleep_for(poll);
-    }
-    return pred();
-}
-
 struct Fixture {
+    test::TempDir tmp;
     fs::path dir;
     std::unique_ptr<daemon::BenchDaemon> d;
 
-    explicit Fixture(const std::string& tag, std::optional<std::int64_t> max_pages) {
-        dir = fs::temp_directory_path() / ("cellbench-storefault-" + tag + "-" + std::to_string(::getpid()));
-        fs::remove_all(dir);
-        fs::create_directories(dir);
-        auto cfg = daemon::load_bench_config(kSource / "config/bench.sim.json");
-        cfg.cycler.endpoint.port = 0;
-        cfg.chamber.endpoint.port = 0;
+    explicit Fixture(const std::string& tag, std::optional<std::int64_t> max_pages)
+        : tmp("storefault-" + tag), dir(tmp.path) {
+        auto cfg = test::sim_bench_config(kSource / "config/bench.sim.json");
         cfg.simulation->initial_soc = 0.5;  // the run's first charge lasts ~0.5 h of bench time: current flows
-        daemon::BenchDaemonOptions o;
-        o.listen = daemon::Endpoint{"127.0.0.1", 0};
-        o.db_path = dir / "bench.sqlite";
-        o.token = "t";
-        o.time_scale = kScale;
-        o.daq_socket_path = (dir / "dewe.sock").string();
+        auto o = test::daemon_options_in(tmp, kScale, "t");
         o.db_max_page_count = max_pages;
         o.db_busy_timeout = 500ms;
         d = std::make_unique<daemon::BenchDaemon>(cfg, o);
         d->start();
     }
-    ~Fixture() {
-        d.reset();
-        std::error_code ec;
-        fs::remove_all(dir, ec);
-    }
+    ~Fixture() { d.reset(); }  // before the folder goes
 
-    bool connected() {
-        const auto status = d->status();  // kept: a range-for over a temporary's member would dangle
-        for (const auto& i : status["instruments"])
-            if (i["state"] != "connected") return false;
-        return true;
-    }
+    bool connected() { return test::instruments_connected(*d); }
     double current() { return d->plant()->read().current_a; }
     double setpoint() { return d->plant()->read().chamber_setpoint_c; }
 };

@@ -36,6 +36,7 @@
 #include "cellbench/daemon/bench_daemon.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/daemon/web_assets.hpp"
+#include "hil/hil_support.hpp"
 
 extern char** environ;
 
@@ -49,6 +50,11 @@ namespace http = beast::http;
 using tcp = net::ip::tcp;
 
 namespace {
+
+// The browser is polled less often than the daemon: each check is a WebDriver round trip.
+bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 250ms) {
+    return test::eventually(pred, limit, poll);
+}
 
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 const fs::path kBuild = fs::path(CELLBENCH_BIN_DIR).parent_path();
@@ -69,15 +75,6 @@ std::string find_program(const std::vector<std::string>& names) {
         }
     }
     return {};
-}
-
-bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, std::chrono::milliseconds poll = 250ms) {
-    const auto end = std::chrono::steady_clock::now() + limit;
-    while (std::chrono::steady_clock::now() < end) {
-        if (pred()) return true;
-        std::this_thread::sleep_for(poll);
-    }
-    return pred();
 }
 
 std::uint16_t free_port() {
@@ -116,6 +113,8 @@ public:
         posix_spawn_file_actions_init(&fa);
         posix_spawn_file_actions_addopen(&fa, STDOUT_FILENO, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
         posix_spawn_file_actions_adddup2(&fa, STDOUT_FILENO, STDERR_FILENO);
+        // The in-process daemon's sockets stay with the test (the browser must not hold its ports open).
+        posix_spawn_file_actions_addclosefrom_np(&fa, 3);
         std::vector<char*> args;
         for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
         args.push_back(nullptr);
@@ -221,19 +220,6 @@ private:
     std::string session_;
 };
 
-struct TempDir {
-    fs::path path;
-    TempDir() {
-        path = fs::temp_directory_path() / ("cellbench-dashboard-" + std::to_string(::getpid()));
-        fs::remove_all(path);
-        fs::create_directories(path);
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::remove_all(path, ec);
-    }
-};
-
 }  // namespace
 
 TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
@@ -246,24 +232,11 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
         GTEST_SKIP() << "headless browser test skipped: cellbenchd was built without the dashboard (node/npm were "
                         "missing at configure time; make deps installs nodejs and npm)";
 
-    TempDir dir;
-    auto cfg = daemon::load_bench_config(kSource / "config/bench.sim.json");
-    cfg.cycler.endpoint.port = 0;
-    cfg.chamber.endpoint.port = 0;
-    daemon::BenchDaemonOptions opt;
-    opt.listen = daemon::Endpoint{"127.0.0.1", 0};
-    opt.db_path = dir.path / "bench.sqlite";
-    opt.token = "browser-test";
-    opt.time_scale = kTimeScale;
-    opt.daq_socket_path = (dir.path / "dewe.sock").string();
-    daemon::BenchDaemon d(cfg, opt);
+    test::TempDir dir("dashboard");
+    const auto cfg = test::sim_bench_config(kSource / "config/bench.sim.json");
+    daemon::BenchDaemon d(cfg, test::daemon_options_in(dir, kTimeScale, "browser-test"));
     d.start();
-    ASSERT_TRUE(eventually([&] {
-        const auto status = d.status();  // kept: a range-for over a temporary's member would dangle
-        for (const auto& i : status["instruments"])
-            if (i["state"] != "connected") return false;
-        return true;
-    }, 20s)) << d.status().dump(2);
+    ASSERT_TRUE(eventually([&] { return test::instruments_connected(d); }, 20s)) << d.status().dump(2);
     const std::string base = "http://127.0.0.1:" + std::to_string(d.http_port());
 
     const std::uint16_t wd_port = free_port();

@@ -207,6 +207,9 @@ int main(int argc, char** argv) {
             ::dup2(::fileno(f), STDOUT_FILENO);
             ::dup2(::fileno(f), STDERR_FILENO);
         }
+        // Nothing of ours beyond stdio: an inherited listening socket of the simulated tester would keep
+        // its port listening in the daemon (never accepting) after the tester closes it for a refuse fault.
+        ::close_range(3, ~0U, 0);
         const std::string bin = (kBinDir / "cellbenchd").string(), cfg = (dir / "hil.json").string(),
                           scale = std::to_string(o.time_scale);
         ::execl(bin.c_str(), bin.c_str(), "--config", cfg.c_str(), "--listen", "127.0.0.1:0", "--token", kToken,

@@ -10,6 +10,7 @@
 #include <fstream>
 #include <map>
 #include <mutex>
+#include <random>
 #include <optional>
 #include <sstream>
 #include <stdexcept>
@@ -207,6 +208,26 @@ struct NewareServer::Impl {
         acceptor.listen();
         bound_port = acceptor.local_endpoint().port();
         accept();
+    }
+
+    // Port 0 ("any free port"): a port below the kernel's ephemeral range (20000-32767), not one from it. The
+    // refused-connections fault closes the listener and opens it again on the same port; an ephemeral port
+    // may meanwhile be handed to any outgoing connection on the machine (the daemon's own reconnect attempts
+    // included), and then the listener could not come back while that connection lives.
+    void open_acceptor_any() {
+        std::random_device seed;
+        std::mt19937 pick(seed());
+        std::uniform_int_distribution<int> port(20000, 32767);
+        for (int attempt = 0; attempt < 64; ++attempt) {
+            try {
+                open_acceptor(port(pick));
+                return;
+            } catch (const boost::system::system_error&) {
+                boost::system::error_code ignored;
+                acceptor.close(ignored);
+            }
+        }
+        open_acceptor(0);
     }
 
     void accept();
@@ -734,7 +755,10 @@ NewareServer::~NewareServer() { stop(); }
 void NewareServer::start() {
     if (impl_->thread.joinable()) return;
     try {
-        impl_->open_acceptor(impl_->options.port);
+        if (impl_->options.port == 0)
+            impl_->open_acceptor_any();
+        else
+            impl_->open_acceptor(impl_->options.port);
     } catch (const std::exception& e) {
         throw std::runtime_error("neware sim: cannot listen on " + impl_->options.host + ":" +
                                  std::to_string(impl_->options.port) + ": " + e.what());

@@ -37,7 +37,7 @@ namespace cellbench::sim {
 
 struct NewareServerOptions {
     std::string host = "127.0.0.1";
-    int port = 0;  // 0: any free port (see port())
+    int port = 0;  // 0: a free port below the ephemeral range (see port())
     // The unit as the API addresses it.
     std::string ip = "127.0.0.1";
     int devtype = 24, devid = 1, subdevid = 1;

@@ -1,0 +1,76 @@
+#pragma once
+// What the in-process daemon HIL tests share: a scratch folder, polling until a condition holds, daemon
+// options and a simulated-bench config that keep clear of a cellbenchd on the default ports.
+#include <unistd.h>
+
+#include <chrono>
+#include <filesystem>
+#include <functional>
+#include <string>
+#include <system_error>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+
+#include "cellbench/daemon/bench_daemon.hpp"
+#include "cellbench/daemon/config.hpp"
+
+namespace cellbench::test {
+
+// A fresh folder under the system temp dir, removed with everything in it when the test ends.
+struct TempDir {
+    std::filesystem::path path;
+    explicit TempDir(const std::string& tag) {
+        static int serial = 0;
+        path = std::filesystem::temp_directory_path() /
+               ("cellbench-" + tag + "-" + std::to_string(::getpid()) + "-" + std::to_string(serial++));
+        std::filesystem::remove_all(path);
+        std::filesystem::create_directories(path);
+    }
+    ~TempDir() {
+        std::error_code ec;
+        std::filesystem::remove_all(path, ec);
+    }
+    TempDir(const TempDir&) = delete;
+    TempDir& operator=(const TempDir&) = delete;
+};
+
+// Waits (polling) until pred holds; the limit only bounds a broken test's runtime, it is no timing claim.
+inline bool eventually(const std::function<bool()>& pred, std::chrono::milliseconds limit,
+                       std::chrono::milliseconds poll = std::chrono::milliseconds(50)) {
+    const auto end = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < end) {
+        if (pred()) return true;
+        std::this_thread::sleep_for(poll);
+    }
+    return pred();
+}
+
+// Daemon options for a test: API on an ephemeral loopback port, database and DAQ socket in dir.
+inline daemon::BenchDaemonOptions daemon_options_in(const TempDir& dir, double time_scale,
+                                                    const std::string& token = "hil-token") {
+    daemon::BenchDaemonOptions o;
+    o.listen = daemon::Endpoint{"127.0.0.1", 0};
+    o.db_path = dir.path / "bench.sqlite";
+    o.token = token;
+    o.time_scale = time_scale;
+    o.daq_socket_path = (dir.path / "dewe.sock").string();
+    return o;
+}
+
+// A bench config with the simulated instruments on free ports, so tests may run beside a cellbenchd.
+inline daemon::BenchConfig sim_bench_config(const std::filesystem::path& file) {
+    auto cfg = daemon::load_bench_config(file);
+    cfg.cycler.endpoint.port = 0;
+    cfg.chamber.endpoint.port = 0;
+    return cfg;
+}
+
+inline bool instruments_connected(daemon::BenchDaemon& d) {
+    const nlohmann::json s = d.status();  // kept alive while its members are iterated
+    for (const auto& i : s["instruments"])
+        if (i["state"] != "connected") return false;
+    return true;
+}
+
+}  // namespace cellbench::test

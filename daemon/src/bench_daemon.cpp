@@ -574,6 +574,7 @@ struct BenchDaemon::Impl {
     std::atomic<std::uint64_t> setpoint_generation{0};
     // Bumped when a run starts: a stop still being retried for an earlier run must not stop the new one.
     std::atomic<std::uint64_t> run_generation{0};
+    std::atomic<std::uint64_t> stop_serial{0};  // cycler stops sent (cycler_start)
 
     void retry_later(int attempt, std::function<void()> fn) {
         auto timer = std::make_shared<asio::steady_timer>(io);
@@ -609,7 +610,11 @@ struct BenchDaemon::Impl {
     }
 
     // -- cycler ---------------------------------------------------------------------------------------------
-    void cycler_start(const protocol::StepProgram& program, const std::string& barcode) {
+    // A start that never left the daemon (tester unreachable) is sent again with backoff while the cycler's
+    // loss grace lasts: the tester cannot have acted on it. Any other failure (refused, answer lost: the
+    // tester may have started) is fatal to the run, as the sequencer cannot trust the program to run.
+    void cycler_start(const protocol::StepProgram& program, const std::string& barcode, int attempt = 0,
+                      std::optional<double> first_try_s = std::nullopt) {
         const std::string xml = protocol::compile_step_file(program);
         std::string path;
         if (neware_server) {
@@ -623,12 +628,29 @@ struct BenchDaemon::Impl {
             path = p.string();
         }
         spdlog::info("neware: starting step program '{}' ({} steps) from {}", program.name, program.steps.size(), path);
-        neware->start_program(path, barcode, [this](const drivers::NewareCommandResult& r) { command_result("start", r); });
+        const double t_first = first_try_s.value_or(now_s());
+        const std::uint64_t gen = run_generation, stops = stop_serial;
+        // Still wanted: the same run, running (not paused, not ended), and no stop sent since.
+        auto wanted = [this, gen, stops] {
+            if (stopping || gen != run_generation || stops != stop_serial) return false;
+            const auto c = active();
+            return c && c->seq->state() == sequencer::RunState::Running;
+        };
+        neware->start_program(path, barcode, [this, program, barcode, attempt, t_first, wanted](const drivers::NewareCommandResult& r) {
+            if (r.ok || !r.never_sent) return command_result("start", r);
+            if (!wanted()) return;
+            if (now_s() - t_first >= grace_for("neware")) return command_result("start", r);
+            if (attempt == 0) instrument_fault("neware", "start not sent: " + r.error + "; sending it again", false);
+            retry_later(attempt, [this, program, barcode, attempt, t_first, wanted] {
+                if (wanted()) cycler_start(program, barcode, attempt + 1, t_first);
+            });
+        });
     }
 
     // Stops the tester's program; a stop the tester did not acknowledge (unreachable, stalled) is sent again
     // with backoff until it is, unless a newer run started meanwhile: the cell is never left on a program.
     void cycler_stop(const std::string& why, int attempt = 0, std::optional<double> first_cmd = std::nullopt) {
+        if (attempt == 0) ++stop_serial;  // a start still being retried is no longer wanted
         const double t_cmd = first_cmd.value_or(now_s());
         const std::uint64_t gen = run_generation;
         neware->stop_program([this, t_cmd, why, attempt, gen](const drivers::NewareCommandResult& r) {

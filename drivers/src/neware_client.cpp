@@ -6,6 +6,8 @@
 #include <deque>
 #include <mutex>
 #include <stdexcept>
+#include <string>
+#include <string_view>
 
 #include <utility>  // before Asio: Boost 1.74 awaitable.hpp uses std::exchange without it
 
@@ -35,6 +37,9 @@ const char* to_string(NewareEventKind kind) {
 namespace {
 
 std::string ms_text(std::chrono::milliseconds ms) { return std::to_string(ms.count()) + " ms"; }
+
+// How the error of a request that expired in the queue begins (NewareCommandResult::never_sent).
+constexpr std::string_view kNotSent = "not sent within ";
 
 }  // namespace
 
@@ -373,7 +378,7 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
                 poll_pending = false;
                 continue;  // a poll that never went out: the next one will
             }
-            const std::string why = "not sent within " + ms_text(options.request_timeout) +
+            const std::string why = std::string(kNotSent) + ms_text(options.request_timeout) +
                                     (link == Link::up ? " (tester busy)" : " (not connected)");
             emit(NewareEventKind::timeout, std::string(command_name(p.command)) + ": " + why);
             complete(p.done, std::nullopt, why);
@@ -595,6 +600,7 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
         NewareCommandResult result;
         if (!response) {
             result.error = error;
+            result.never_sent = error.starts_with(kNotSent);
             return result;
         }
         const auto* r = std::get_if<ChannelCommandResponse>(&*response);

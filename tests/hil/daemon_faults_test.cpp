@@ -89,12 +89,13 @@ public:
     ::testing::AssertionResult start_discharging() {
         if (!eventually([&] { return test::instruments_connected(*d_); }, 30s))
             return ::testing::AssertionFailure() << "instruments not connected: " << d_->status().dump();
-        id_ = d_->start_run({"hold", "p45b", {}})["id"].get<daemon::RunId>();
+        start_run();
         if (!eventually([&] { return plant_current_a() < -1.5 || state() != "running"; }, 30s) || state() != "running")
             return ::testing::AssertionFailure() << "the run never discharged: " << state() << " " << events().dump(1);
         return ::testing::AssertionSuccess();
     }
 
+    void start_run() { id_ = d_->start_run({"hold", "p45b", {}})["id"].get<daemon::RunId>(); }
     daemon::RunId id() const { return id_; }
     std::string state() { return d_->get_run(id_)["state"].get<std::string>(); }
     json run() { return d_->get_run(id_); }
@@ -175,6 +176,24 @@ TEST(DaemonFaults, NewareConnectionDroppedReconnectsAndTheRunContinues) {
     const double t0 = b.d().status()["live"]["time_unix_s"].get<double>();
     EXPECT_TRUE(eventually([&] { return b.d().status()["live"]["time_unix_s"].get<double>() > t0; }, 10s));
     b.stop();
+}
+
+TEST(DaemonFaults, NewareUnreachableWhenARunStartsTheStartIsSentWhenItIsBack) {
+    // The start command cannot leave the daemon (no connection): the tester cannot have acted on it, so it is
+    // sent again while the loss grace lasts instead of aborting the run.
+    FaultBench b("neware-refuse-start");
+    ASSERT_TRUE(eventually([&] { return test::instruments_connected(b.d()); }, 30s)) << b.d().status().dump();
+    b.neware().set_refuse_connections(true);
+    b.neware().drop_connections();
+    b.start_run();
+    ASSERT_TRUE(b.wait_for("fault", "neware")) << DUMP(b);
+    // Longer than the client's request timeout: the first start expired unsent.
+    std::this_thread::sleep_for(3s);
+    EXPECT_EQ(b.state(), "running") << b.error() << " " << DUMP(b);
+    EXPECT_GT(b.plant_current_a(), -0.5) << "nothing can have started the tester's program yet";
+    b.neware().set_refuse_connections(false);
+    EXPECT_TRUE(b.still_running()) << DUMP(b);
+    EXPECT_TRUE(b.wait_for("recovery", "neware")) << DUMP(b);
 }
 
 TEST(DaemonFaults, NewareRefusedBeyondGraceAbortsAndTheStopReachesTheTesterWhenItIsBack) {

@@ -14,6 +14,8 @@
 #include <mutex>
 #include <sstream>
 #include <thread>
+#include <tuple>
+#include <utility>
 #include <vector>
 
 #include <boost/asio/executor_work_guard.hpp>
@@ -22,12 +24,14 @@
 #include <boost/asio/steady_timer.hpp>
 #include <spdlog/spdlog.h>
 
+#include "cellbench/daemon/diagnose_jobs.hpp"
 #include "cellbench/daemon/http_server.hpp"
 #include "cellbench/daemon/metrics.hpp"
 #include "cellbench/drivers/can_transport.hpp"
 #include "cellbench/drivers/chamber_client.hpp"
 #include "cellbench/drivers/dewe_driver.hpp"
 #include "cellbench/drivers/neware_client.hpp"
+#include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
@@ -373,6 +377,9 @@ struct BenchDaemon::Impl {
 
     std::unique_ptr<HttpServer> http;
     std::uint16_t bound_port = 0;
+
+    // Diagnosis jobs (POST /runs/{id}/diagnose, POST /diagnose): their own worker thread.
+    std::unique_ptr<DiagnoseJobs> diagnoses;
 
     // Instruments' state and live values (leaf lock).
     mutable std::mutex live_m;
@@ -963,6 +970,7 @@ struct BenchDaemon::Impl {
         if (!db_path.parent_path().empty()) std::filesystem::create_directories(db_path.parent_path());
         store = RunStore::open(db_path, so);
         step_file_dir = std::filesystem::absolute(db_path).parent_path() / "stepfiles";
+        diagnoses = std::make_unique<DiagnoseJobs>();
 
         feed_thread = std::thread([this] { feed_loop(); });
         guard.emplace(io.get_executor());
@@ -1345,6 +1353,7 @@ struct BenchDaemon::Impl {
             wait_commands();
         }
         if (auto c = current()) c->seq->wait_for_fits();
+        if (diagnoses) diagnoses->stop();  // before the store closes: a job may be reading a run
         if (tick_timer) tick_timer->cancel();
         if (neware) neware->stop();
         if (chamber) chamber->stop();
@@ -1601,6 +1610,168 @@ std::unique_ptr<ExportCursor> BenchDaemon::export_bdf_csv(RunId id) {
     std::ostringstream out;
     protocol::write_bdf_csv(out, rec);
     return std::make_unique<StringExportCursor>(out.str());
+}
+
+// ---- diagnosis jobs (api.hpp "Diagnosis jobs"; the work is in diagnose_jobs.cpp and the estimator).
+namespace {
+
+json read_json(const std::filesystem::path& path) {
+    std::ifstream in(path);
+    if (!in) throw InputError(path.string() + ": cannot read");
+    try {
+        return json::parse(in);
+    } catch (const json::parse_error& e) {
+        throw InputError(path.string() + ": invalid JSON: " + e.what());
+    }
+}
+
+// A parameter set as the diagnosis requests name it: config/cells/NAME.json, a cellbench.params/1 file, or a
+// cell (cellbench.cell/1) standing for the parameter set its "params" names. Returns it and the file's stem.
+std::pair<estimator::ParameterSet, std::string> load_named_params(const std::filesystem::path& config_dir,
+                                                                  const std::string& name) {
+    const auto where = (config_dir / "cells").string();
+    try {
+        const auto file = cell_file(config_dir, name);
+        std::error_code ec;
+        if (!std::filesystem::is_regular_file(file, ec))
+            throw BadRequest("\"params\": no parameter set \"" + name + "\" in " + where +
+                             " (GET /api/v1/cells lists them)");
+        const json j = read_json(file);
+        if (j.is_object() && j.contains("schema") && j["schema"] == "cellbench.cell/1") {
+            const CellConfig cell = load_cell_config(file);
+            if (!cell.params_path)
+                throw BadRequest("\"params\": cell \"" + name + "\" names no parameter set (its \"params\"); name one in " +
+                                 where);
+            return {load_param_file(*cell.params_path), cell.params_path->stem().string()};
+        }
+        return {estimator::ParameterSet::from_json(j, file.string()), file.stem().string()};
+    } catch (const InputError& e) {
+        throw BadRequest(std::string("\"params\": ") + e.what());
+    }
+}
+
+void check_effects(const std::vector<std::string>& effects) {
+    const auto& cat = estimator::effect_catalogue();
+    for (const auto& e : effects)
+        if (std::find(cat.begin(), cat.end(), e) == cat.end()) {
+            std::string list;
+            for (const auto& c : cat) list += (list.empty() ? "" : ", ") + c;
+            throw BadRequest("\"effects\": unknown effect id \"" + e + "\" (known: " + list + ")");
+        }
+}
+
+}  // namespace
+
+json BenchDaemon::diagnose_run(RunId id, const DiagnoseRequest& request) {
+    auto& d = *impl_;
+    const json run = d.run_json(id);  // NotFound
+    const std::string state = run.value("state", "");
+    if (state == "starting" || state == "running" || state == "paused")
+        throw Conflict("run " + std::to_string(id) + " is still " + state + "; diagnose it once it has ended");
+    check_effects(request.effects);
+    estimator::ParameterSet params;
+    std::string used;
+    if (request.params == "run") {
+        const auto fitted = d.store->latest_parameter_set(id);
+        if (!fitted)
+            throw BadRequest("\"params\": \"run\": run " + std::to_string(id) +
+                             " has no fitted parameter set (the daemon fits one when an HPPC with enough pulse sets "
+                             "ends); name a parameter set under " + (d.cfg.config_dir / "cells").string() + " instead");
+        try {
+            params = estimator::ParameterSet::from_json(fitted->params, "run " + std::to_string(id) + " parameter set");
+        } catch (const InputError& e) {
+            throw BadRequest(std::string("\"params\": \"run\": ") + e.what());
+        }
+        used = "run " + std::to_string(id);
+    } else {
+        std::tie(params, used) = load_named_params(d.cfg.config_dir, request.params);
+    }
+    json info = {{"source", {{"kind", "run"}, {"run_id", id}, {"program", run.value("program", "")},
+                             {"cell", run.value("cell", "")}}},
+                 {"params", request.params},
+                 {"params_used", used}};
+    RunStore* store = d.store.get();
+    return d.diagnoses->submit(std::move(info), request.effects,
+                               [store, id, params = std::move(params)](const std::function<void(std::string_view)>& stage) {
+                                   stage("reading run " + std::to_string(id) + " from the database");
+                                   DiagnoseInput in{params, store->export_recording(id)};
+                                   in.recording.source = "run " + std::to_string(id);
+                                   return in;
+                               });
+}
+
+json BenchDaemon::diagnose_recording(const DiagnoseRequest& request, std::string csv) {
+    auto& d = *impl_;
+    if (request.params == "run")
+        throw BadRequest("\"params\": \"run\" names a run's fitted parameter set; name a parameter set under " +
+                         (d.cfg.config_dir / "cells").string());
+    check_effects(request.effects);
+    auto [params, used] = load_named_params(d.cfg.config_dir, request.params);
+    std::string name = request.body.is_object() ? request.body.value("name", std::string{}) : std::string{};
+    const std::string source = name.empty() ? std::string("uploaded recording") : name;
+    // The header and the first rows now, for a clear 400; the whole file on the worker (it may be large).
+    {
+        std::size_t end = 0;
+        for (int lines = 0; lines < 200 && end != std::string::npos; ++lines) {
+            end = csv.find('\n', end);
+            if (end != std::string::npos) ++end;
+        }
+        const std::string_view head = end == std::string::npos ? std::string_view(csv) : std::string_view(csv).substr(0, end);
+        try {
+            (void)protocol::parse_bdf_csv(head, source);
+        } catch (const InputError& e) {
+            throw BadRequest(std::string("not a BDF CSV recording: ") + e.what());
+        }
+    }
+    json info = {{"source", {{"kind", "upload"}, {"bytes", csv.size()}, {"name", name}}},
+                 {"params", request.params},
+                 {"params_used", used}};
+    return d.diagnoses->submit(
+        std::move(info), request.effects,
+        [csv = std::move(csv), params = std::move(params), source](const std::function<void(std::string_view)>& stage) {
+            stage("parsing the recording");
+            protocol::BdfReadReport report;
+            DiagnoseInput in{params, protocol::parse_bdf_csv(csv, source, &report)};
+            if (report.repaired_timestamps > 0)
+                spdlog::info("diagnosis: {}: repaired {} repeated or slightly backward timestamps", source,
+                             report.repaired_timestamps);
+            return in;
+        });
+}
+
+json BenchDaemon::diagnosis(std::int64_t job) { return impl_->diagnoses->get(job); }
+json BenchDaemon::list_diagnoses() { return impl_->diagnoses->list(); }
+
+json BenchDaemon::cells() {
+    const auto& dir = impl_->cfg.config_dir;
+    json cells = json::array(), sets = json::array();
+    for (const auto& name : list_cells(dir)) {
+        json c = {{"name", name}, {"params", nullptr}};
+        try {
+            const CellConfig cell = load_cell_config(cell_file(dir, name));
+            c["description"] = cell.name;
+            if (cell.params_path) c["params"] = cell.params_path->stem().string();
+        } catch (const std::exception& e) {
+            c["error"] = e.what();
+        }
+        cells.push_back(std::move(c));
+    }
+    std::error_code ec;
+    std::vector<std::filesystem::path> files;
+    if (std::filesystem::is_directory(dir / "cells", ec))
+        for (const auto& e : std::filesystem::directory_iterator(dir / "cells", ec))
+            if (e.is_regular_file() && e.path().extension() == ".json") files.push_back(e.path());
+    std::sort(files.begin(), files.end());
+    for (const auto& f : files) {
+        try {
+            const json j = read_json(f);
+            if (!j.is_object() || j.value("schema", "") != "cellbench.params/1") continue;
+            sets.push_back({{"name", f.stem().string()}, {"cell", j.value("cell", "")},
+                            {"capacity_ah", j.contains("capacity_ah") ? j["capacity_ah"] : json(nullptr)}});
+        } catch (const std::exception&) {
+        }
+    }
+    return {{"cells", std::move(cells)}, {"parameter_sets", std::move(sets)}, {"programs", list_programs(dir)}};
 }
 
 json BenchDaemon::start_run(const StartRequest& request) { return impl_->start_run(request); }

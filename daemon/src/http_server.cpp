@@ -262,6 +262,18 @@ public:
         return static_file(path);
     }
 
+    // POST /api/v1/diagnose (the one request with a large body), judged on the header alone.
+    static bool is_upload(const Request& req) {
+        if (req.method() != http::verb::post) return false;
+        std::string_view path(req.target().data(), req.target().size());
+        path = path.substr(0, path.find('?'));
+        if (path.size() > 1 && path.back() == '/') path.remove_suffix(1);
+        return path == "/api/v1/diagnose";
+    }
+
+    // The token check of an upload, on its header (Session::on_header).
+    std::optional<Reply> check_upload_token() const { return check_token(); }
+
     static Reply error(http::status status, const std::string& message) {
         Reply r;
         r.res.result(status);
@@ -356,11 +368,32 @@ private:
             }
             return method_not_allowed("GET, HEAD, POST");
         }
+        if (n == 1 && seg[0] == "cells") {
+            if (!is_get()) return method_not_allowed("GET, HEAD");
+            return call([&] { return json(http::status::ok, be.cells()); });
+        }
+        if (n == 1 && seg[0] == "diagnose") {
+            if (!is_post()) return method_not_allowed("POST");
+            if (auto denied = check_token()) return std::move(*denied);
+            return diagnose_upload(query);
+        }
+        if (n == 1 && seg[0] == "diagnoses") {
+            if (!is_get()) return method_not_allowed("GET, HEAD");
+            return call([&] { return json(http::status::ok, be.list_diagnoses()); });
+        }
+        if (n == 2 && seg[0] == "diagnoses") {
+            if (!is_get()) return method_not_allowed("GET, HEAD");
+            const auto job = parse_run_id(seg[1]);
+            if (!job)
+                return error(http::status::not_found,
+                             "no diagnosis job \"" + std::string(seg[1].substr(0, 100)) + "\" (job ids are positive integers)");
+            return call([&] { return json(http::status::ok, be.diagnosis(*job)); });
+        }
         if (n >= 2 && n <= 3 && seg[0] == "runs") {
             const std::string_view action = n == 3 ? seg[2] : std::string_view{};
             const bool reads = n == 2 || action == "samples" || action == "events" || action == "fits" ||
                                action == "steps" || action == "export.bdf.csv";
-            const bool mutates = action == "stop" || action == "pause" || action == "resume";
+            const bool mutates = action == "stop" || action == "pause" || action == "resume" || action == "diagnose";
             if (!reads && !mutates) return not_found();
             if (reads && !is_get()) return method_not_allowed("GET, HEAD");
             if (mutates && !is_post()) return method_not_allowed("POST");
@@ -376,6 +409,7 @@ private:
             if (action == "export.bdf.csv") return export_csv(*id);
             if (action == "stop") return call([&] { return json(http::status::ok, be.stop_run(*id)); });
             if (action == "pause") return call([&] { return json(http::status::ok, be.pause_run(*id)); });
+            if (action == "diagnose") return diagnose_run(*id);
             return call([&] { return json(http::status::ok, be.resume_run(*id)); });
         }
         return not_found();
@@ -384,8 +418,104 @@ private:
     Reply not_found() const {
         return error(http::status::not_found,
                      "no such endpoint: " + method_text() + " " + std::string(req_.target().substr(0, 200)) +
-                         " (the API is under /api/v1: health, status, runs, runs/{id}[/samples|events|fits|"
-                         "export.bdf.csv|stop|pause|resume])");
+                         " (the API is under /api/v1: health, status, cells, runs, runs/{id}[/samples|events|fits|"
+                         "steps|export.bdf.csv|stop|pause|resume|diagnose], diagnose, diagnoses[/{job}])");
+    }
+
+    // A diagnosis job's reply: 202 Accepted with the job and where to poll it.
+    static Reply accepted_job(const nlohmann::json& job) {
+        Reply r = json(http::status::accepted, job);
+        if (job.is_object() && job.contains("id") && job["id"].is_number_integer())
+            r.res.set(http::field::location,
+                      std::string(kApiPrefix) + "/diagnoses/" + std::to_string(job["id"].get<std::int64_t>()));
+        return r;
+    }
+
+    // "params" (a plain name or "run") and "effects" (strings) of a diagnosis request; an error reply if bad.
+    static std::optional<Reply> check_diagnose_request(const DiagnoseRequest& dr) {
+        if (dr.params.empty())
+            return error(http::status::bad_request,
+                         "\"params\": expected a non-empty string: a parameter set under config/cells/ (e.g. "
+                         "\"p45b-thesis\") or \"run\" (the run's own fitted parameter set)");
+        if (!valid_name(dr.params))
+            return error(http::status::bad_request,
+                         "\"params\": \"" + dr.params.substr(0, 100) +
+                             "\" is not a plain name (letters, digits, '.', '_', '-'; no paths)");
+        if (dr.effects.size() > 64) return error(http::status::bad_request, "\"effects\": too many entries");
+        for (const auto& e : dr.effects)
+            if (!valid_name(e))
+                return error(http::status::bad_request,
+                             "\"effects\": \"" + e.substr(0, 100) + "\" is not an effect id (see INTERFACES.md)");
+        return std::nullopt;
+    }
+
+    // POST /runs/{id}/diagnose {"params": NAME, "effects": [...]?}
+    Reply diagnose_run(RunId id) {
+        const std::string example = R"(expected a JSON object like {"params": "p45b-thesis"} or {"params": "run"})";
+        nlohmann::json body;
+        try {
+            body = nlohmann::json::parse(req_.body());
+        } catch (const nlohmann::json::parse_error& e) {
+            return error(http::status::bad_request,
+                         req_.body().empty() ? "empty request body: " + example
+                                             : "invalid JSON at byte " + std::to_string(e.byte) + ": " + example);
+        }
+        if (!body.is_object()) return error(http::status::bad_request, "request body: " + example);
+        DiagnoseRequest dr;
+        const auto p = body.find("params");
+        if (p == body.end() || !p->is_string())
+            return error(http::status::bad_request, "\"params\": expected a string: " + example);
+        dr.params = p->get<std::string>();
+        if (const auto e = body.find("effects"); e != body.end() && !e->is_null()) {
+            if (!e->is_array())
+                return error(http::status::bad_request, "\"effects\": expected an array of effect ids (strings)");
+            for (const auto& x : *e) {
+                if (!x.is_string())
+                    return error(http::status::bad_request, "\"effects\": expected an array of effect ids (strings)");
+                dr.effects.push_back(x.get<std::string>());
+            }
+        }
+        if (auto bad = check_diagnose_request(dr)) return std::move(*bad);
+        dr.body = std::move(body);
+        return call([&] { return accepted_job(st_.backend.diagnose_run(id, dr)); });
+    }
+
+    // POST /diagnose?params=NAME[&effects=a,b] with a BDF CSV recording as the body.
+    Reply diagnose_upload(std::string_view query) {
+        DiagnoseRequest dr;
+        dr.body = nlohmann::json::object();
+        for (const auto part : split(query, '&')) {
+            if (part.empty()) continue;
+            const auto eq = part.find('=');
+            const auto key = percent_decode(part.substr(0, eq), true);
+            const auto value = percent_decode(eq == std::string_view::npos ? "" : part.substr(eq + 1), true);
+            if (!key || !value) return error(http::status::bad_request, "malformed query string");
+            if (*key == "params") {
+                dr.params = *value;
+            } else if (*key == "effects") {
+                for (const auto e : split(*value, ','))
+                    if (!e.empty()) dr.effects.emplace_back(e);
+            } else if (*key == "name") {
+                dr.body["name"] = value->substr(0, 200);  // the file's name, for the job's description
+            }
+        }
+        if (dr.params.empty())
+            return error(http::status::bad_request,
+                         "missing ?params=NAME: the parameter set under config/cells/ to diagnose the recording with "
+                         "(e.g. /api/v1/diagnose?params=p45b-thesis)");
+        if (dr.params == "run")
+            return error(http::status::bad_request,
+                         "\"params\": \"run\" names a run's own fitted parameter set; an uploaded recording needs "
+                         "a parameter set under config/cells/");
+        if (auto bad = check_diagnose_request(dr)) return std::move(*bad);
+        if (req_.body().size() > st_.opt.max_upload_bytes)
+            return error(http::status::payload_too_large, "recording too large (limit " +
+                                                              std::to_string(st_.opt.max_upload_bytes) + " bytes)");
+        if (req_.body().empty())
+            return error(http::status::bad_request,
+                         "empty request body: expected a BDF CSV recording (header row with \"Test Time / s\", "
+                         "\"Voltage / V\", \"Current / A\")");
+        return call([&] { return accepted_job(st_.backend.diagnose_recording(dr, req_.body())); });
     }
 
     Reply start_run() {
@@ -634,7 +764,10 @@ private:
         if (st_->stopping) return;
         parser_.emplace();
         parser_->header_limit(static_cast<std::uint32_t>(st_->opt.max_header_bytes));
-        parser_->body_limit(st_->opt.max_body_bytes);
+        // The header is parsed against the larger limit (Beast checks Content-Length there); on_header applies
+        // the limit of the endpoint.
+        body_limit_ = std::max(st_->opt.max_body_bytes, st_->opt.max_upload_bytes);
+        parser_->body_limit(body_limit_);
         // One deadline for the whole request (header and body) and for the keep-alive idle time.
         stream_.expires_after(st_->opt.request_timeout);
         http::async_read_header(stream_, buffer_, *parser_,
@@ -644,6 +777,18 @@ private:
     void on_header(beast::error_code ec, std::size_t) {
         if (ec) return on_read_error(ec);
         started_ = std::chrono::steady_clock::now();
+        {
+            // Only an upload of a recording (POST /api/v1/diagnose) may carry a large body, and only with the
+            // token: refuse before reading megabytes from a client that may not send them.
+            const auto& req = parser_->get();
+            const bool upload = Router::is_upload(req);
+            body_limit_ = upload ? st_->opt.max_upload_bytes : st_->opt.max_body_bytes;
+            if (const auto len = parser_->content_length(); len && *len > body_limit_)
+                return on_read_error(http::error::body_limit);
+            parser_->body_limit(body_limit_);  // chunked bodies
+            if (upload && !parser_->is_done())
+                if (auto denied = Router(*st_, req).check_upload_token()) return reply_and_close(std::move(*denied));
+        }
         if (parser_->is_done()) return handle_request();
         // curl and others wait for "100 Continue" before sending a larger body.
         const auto expect = parser_->get()[http::field::expect];
@@ -676,14 +821,19 @@ private:
         Reply r;
         if (ec == http::error::body_limit)
             r = Router::error(http::status::payload_too_large,
-                              "request body too large (limit " + std::to_string(st_->opt.max_body_bytes) + " bytes)");
+                              "request body too large (limit " + std::to_string(body_limit_) + " bytes)");
         else if (ec == http::error::header_limit)
             r = Router::error(http::status::request_header_fields_too_large,
                               "request header too large (limit " + std::to_string(st_->opt.max_header_bytes) + " bytes)");
         else
             r = Router::error(http::status::bad_request, "malformed HTTP request: " + ec.message());
-        // The rest of the request is unread: answer, then close (draining what the client still sends).
         started_ = std::chrono::steady_clock::now();
+        reply_and_close(std::move(r));
+    }
+
+    // An answer before the request's body was read: the rest of the request is unread, so answer, then close
+    // (draining what the client still sends).
+    void reply_and_close(Reply&& r) {
         r.res.version(11);
         r.res.keep_alive(false);
         finish_headers(r.res, false);
@@ -862,6 +1012,7 @@ private:
 
     std::array<char, 8192> drain_buf_{};
     std::size_t drained_ = 0;
+    std::size_t body_limit_ = 0;  // of the request being read
 };
 
 // ---------------------------------------------------------------------------------------------------------

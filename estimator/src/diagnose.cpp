@@ -438,6 +438,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     if (duration < 60.0 * static_cast<double>(folds))
         throw InputError(rec_full.source + ": recording too short to cross-validate (" + std::to_string(duration) +
                          " s; needs at least " + std::to_string(60 * folds) + " s)");
+    if (options.cancel && options.cancel->load()) throw DiagnoseCancelled();
     progress(0.0, "baseline simulation");
     Diagnosis d;
     d.baseline = rms_of(params, rec_full, &d.baseline_trace);
@@ -508,6 +509,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         // Candidates are independent: one per worker thread.
         auto worker = [&] {
             for (std::size_t c; (c = next.fetch_add(1)) < todo.size();) {
+                if (options.cancel && options.cancel->load()) break;
                 const auto& id = todo[c];
                 const auto& spec = *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
                 Finding& fd = round_findings[c];
@@ -553,6 +555,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             worker();
             for (auto& t : pool) t.join();
         }
+        if (options.cancel && options.cancel->load()) throw DiagnoseCancelled();
         // Accept the strongest significant one and look again on top of it.
         std::size_t best = round_findings.size();
         for (std::size_t k = 0; k < round_findings.size(); ++k)

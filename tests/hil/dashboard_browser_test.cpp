@@ -300,4 +300,31 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
     std::printf("screenshot: %s\n", (shots / "dashboard-run.png").c_str());
     // No script errors surfaced as a page-level failure note.
     EXPECT_EQ(wd.script("return document.querySelectorAll('.note.warn').length;").get<int>(), 0);
+
+    // The Diagnosis page diagnoses the finished run through the daemon (token from localStorage): progress, then
+    // findings, the "where" table and the trace charts.
+    ASSERT_TRUE(eventually([&] {
+        const auto st = d.get_run(id)["state"].get<std::string>();
+        return st == "completed" || st == "stopped" || st == "failed";
+    }, 120s, 500ms));
+    wd.script("localStorage.setItem('cellbench.token', 'browser-test'); return null;");
+    wd.navigate(base + "/#/diagnosis/" + std::to_string(id));
+    ASSERT_TRUE(eventually([&] {
+        return wd.script("const r = document.getElementById('diag-run'), p = document.getElementById('diag-params');"
+                         "return !!(r && p && r.value === '" + std::to_string(id) + "' && p.value);").get<bool>();
+    }, 15s)) << "diagnosis page did not list the run";
+    wd.script("document.getElementById('diag-start').click(); return null;");
+    const bool diagnosed = eventually([&] {
+        return wd.script("return document.querySelectorAll('#diag-findings .finding').length > 0 && "
+                         "document.querySelectorAll('#diag-where tbody tr').length > 0 && "
+                         "document.querySelectorAll('#diag-result canvas').length >= 3;").get<bool>();
+    }, 120s, 500ms);
+    wd.resize(1440, 2400);
+    std::this_thread::sleep_for(1000ms);
+    wd.screenshot(shots / "dashboard-diagnosis.png");
+    std::printf("screenshot: %s\n", (shots / "dashboard-diagnosis.png").c_str());
+    EXPECT_TRUE(diagnosed) << "no diagnosis shown; page: "
+                           << wd.script("return document.getElementById('diag-job').innerText + ' | ' + "
+                                        "document.querySelectorAll('.note.warn').length;").dump();
+    EXPECT_EQ(wd.script("return document.querySelectorAll('.note.warn').length;").get<int>(), 0);
 }

@@ -20,30 +20,12 @@ struct Series {
     std::vector<double> y;  // same length as t; NaN = gap
 };
 
-// Min/max per pixel bucket, so that spikes survive the decimation.
-std::vector<std::pair<double, double>> decimate(const std::vector<double>& t, const std::vector<double>& y,
-                                                double t0, double t1, int buckets) {
+// Min/max per pixel bucket, so that spikes survive the decimation (the estimator's decimate_rows, which the
+// daemon's Diagnosis page uses too).
+std::vector<std::pair<double, double>> decimate(const std::vector<double>& t, const std::vector<double>& y, int buckets) {
     std::vector<std::pair<double, double>> pts;
-    if (t.empty()) return pts;
-    std::vector<double> lo(static_cast<std::size_t>(buckets), INFINITY), hi(static_cast<std::size_t>(buckets), -INFINITY);
-    std::vector<double> tlo(static_cast<std::size_t>(buckets)), thi(static_cast<std::size_t>(buckets));
-    for (std::size_t k = 0; k < t.size() && k < y.size(); ++k) {
-        if (!std::isfinite(y[k])) continue;
-        const auto b = static_cast<std::size_t>(
-            std::clamp(static_cast<int>((t[k] - t0) / (t1 - t0) * buckets), 0, buckets - 1));
-        if (y[k] < lo[b]) lo[b] = y[k], tlo[b] = t[k];
-        if (y[k] > hi[b]) hi[b] = y[k], thi[b] = t[k];
-    }
-    for (std::size_t b = 0; b < lo.size(); ++b) {
-        if (!std::isfinite(lo[b])) continue;
-        if (tlo[b] <= thi[b]) {
-            pts.emplace_back(tlo[b], lo[b]);
-            pts.emplace_back(thi[b], hi[b]);
-        } else {
-            pts.emplace_back(thi[b], hi[b]);
-            pts.emplace_back(tlo[b], lo[b]);
-        }
-    }
+    for (const std::size_t k : estimator::decimate_rows(t, {&y}, 2 * static_cast<std::size_t>(buckets)))
+        pts.emplace_back(t[k], y[k]);
     return pts;
 }
 
@@ -75,7 +57,7 @@ std::string chart(const std::string& title, const std::string& unit, const std::
     }
     int lx = w - mr - 330;
     for (const auto& s : series) {
-        const auto pts = decimate(t, s.y, t0, t1, 900);
+        const auto pts = decimate(t, s.y, 900);
         if (pts.empty()) continue;
         o << "<polyline fill='none' stroke='" << s.color << "' stroke-width='1' points='";
         for (const auto& [x, y] : pts) o << fmt("%.1f", X(x)) << ',' << fmt("%.1f", Y(y)) << ' ';

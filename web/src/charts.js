@@ -212,3 +212,58 @@ export class FitCharts {
     this.root.remove();
   }
 }
+
+// Time charts of given series on one x (test time), sharing cursor and drag-to-zoom (double-click returns):
+// the Diagnosis page's traces. panels: [{title, unit, digits, series: [{label, color, data, dash?}]}].
+export class TraceCharts {
+  constructor(container, time, panels, { height = 220 } = {}) {
+    const key = "tr" + ++groupSerial;
+    this.root = h("div.grid2");
+    container.append(this.root);
+    this.plots = panels.map((p) => {
+      const el = h("div.card.chart");
+      this.root.append(el);
+      const plot = new uPlot({
+        title: `${p.title} (${p.unit})`,
+        width: Math.max(300, el.clientWidth - 32),
+        height,
+        cursor: { sync: { key }, drag: { x: true, y: false, setScale: false } },
+        scales: { x: { time: false } },
+        legend: { live: true },
+        series: [
+          { label: "test time", value: (u, v) => hms(v, true) },
+          ...p.series.map((s) => ({
+            label: s.label, stroke: s.color, width: s.width ?? 1.25, dash: s.dash, spanGaps: true, points: { show: false },
+            value: (u, v) => (v == null ? "–" : v.toFixed(p.digits ?? 4) + " " + p.unit),
+          })),
+        ],
+        axes: [
+          { values: (u, splits) => splits.map((v) => hms(v)), grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
+          { size: 64, grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
+        ],
+        hooks: { setSelect: [(u) => {
+          if (u.select.width < 4) return;
+          const lo = u.posToVal(u.select.left, "x"), hi = u.posToVal(u.select.left + u.select.width, "x");
+          u.setSelect({ left: 0, top: 0, width: 0, height: 0 }, false);
+          this.plots.forEach(({ plot }) => plot.setScale("x", { min: lo, max: hi }));
+        }] },
+      }, [time, ...p.series.map((s) => s.data)], el);
+      el.addEventListener("dblclick", () => this.plots.forEach(({ plot }) =>
+        plot.setScale("x", { min: time[0], max: time[time.length - 1] })));
+      return { el, plot };
+    });
+    this.resize = new ResizeObserver(() => {
+      for (const { el, plot } of this.plots) {
+        const w = Math.max(300, el.clientWidth - 32);
+        if (Math.abs(plot.width - w) > 2) plot.setSize({ width: w, height });
+      }
+    });
+    this.plots.forEach(({ el }) => this.resize.observe(el));
+  }
+
+  destroy() {
+    this.resize.disconnect();
+    this.plots.forEach(({ plot }) => plot.destroy());
+    this.root.remove();
+  }
+}

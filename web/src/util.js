@@ -13,6 +13,32 @@ export async function get(path, signal) {
   return res.json();
 }
 
+// The API token for mutating requests (POST), kept in this browser's localStorage. cellbenchd refuses POSTs
+// without it (401) or when it has none configured (403).
+const TOKEN_KEY = "cellbench.token";
+export const apiToken = {
+  get() { try { return localStorage.getItem(TOKEN_KEY) || ""; } catch { return ""; } },
+  set(t) { try { if (t) localStorage.setItem(TOKEN_KEY, t); else localStorage.removeItem(TOKEN_KEY); } catch { /* private mode */ } },
+};
+
+// POST to the API with the stored token. body: an object (sent as JSON) or a Blob/File/string with `type`.
+// Throws Error(message from {"error": ...}) with .status.
+export async function post(path, body, type = "application/json") {
+  const headers = { Accept: "application/json", "Content-Type": type };
+  const t = apiToken.get();
+  if (t) headers.Authorization = `Bearer ${t}`;
+  const payload = type === "application/json" && typeof body !== "string" ? JSON.stringify(body ?? {}) : body;
+  const res = await fetch(API + path, { method: "POST", headers, body: payload });
+  let j = null;
+  try { j = await res.json(); } catch { /* not JSON */ }
+  if (!res.ok) {
+    const e = new Error(j?.error || `${res.status} ${res.statusText}`);
+    e.status = res.status;
+    throw e;
+  }
+  return j;
+}
+
 // h("div.card", {onclick}, child, "text", ...)
 export function h(tag, attrs, ...children) {
   const [name, ...classes] = tag.split(".");

@@ -1,7 +1,7 @@
 // Runs list, run page and diagnosis page.
-import { ChartGroup, FitCharts } from "./charts.js";
+import { ChartGroup, FitCharts, TraceCharts } from "./charts.js";
 import { eventsTable, fitsTable, stepBlock } from "./parts.js";
-import { API, dateTime, duration, esc, fmt, get, h, hms, isActive, pill, poller } from "./util.js";
+import { API, apiToken, dateTime, duration, fmt, get, h, hms, isActive, pill, post, poller } from "./util.js";
 
 export function runsView(app) {
   const box = h("div.card", null, h("h2", null, "Runs"), h("div.empty", null, "loading…"));
@@ -73,34 +73,184 @@ export function runView(app, id) {
   return () => { p.stop(); charts.destroy(); fitCharts.destroy(); };
 }
 
-// Diagnosis: `cellbench diagnose` runs offline (seconds to minutes of CPU; it is not a request the daemon's
-// I/O threads should serve). The page shows what it writes: the HTML report (--report) in a sandboxed frame,
-// or the diagnosis JSON (--json) rendered here. Files are read by the browser, nothing is uploaded.
+// Diagnosis: the daemon diagnoses a finished run (POST /runs/{id}/diagnose) or an uploaded BDF CSV recording
+// (POST /diagnose) on its own worker thread; the page polls the job (GET /diagnoses/{job}) with a progress bar
+// and shows the findings, where the error sits and the traces (measured against simulated). Reports written
+// by `cellbench diagnose --report/--json` can still be dropped here and are shown without uploading them.
 export function diagnosisView(app, runId) {
-  const cmdBox = h("div");
+  let runs = [], cells = { cells: [], parameter_sets: [] }, job = null, charts = null, stopped = false;
+  const polls = [];
+
+  const tokenInput = h("input", { type: "password", id: "diag-token", placeholder: "API token", autocomplete: "off", size: 16, value: apiToken.get() });
+  tokenInput.addEventListener("change", () => apiToken.set(tokenInput.value.trim()));
+  const runSel = h("select", { id: "diag-run" });
+  const paramsSel = h("select", { id: "diag-params" });
+  const runBtn = h("button.btn.primary", { id: "diag-start", onclick: () => start("run") }, "Diagnose run");
+  const fileInput = h("input", { type: "file", id: "diag-file", accept: ".csv,text/csv" });
+  const upParamsSel = h("select", { id: "diag-upload-params" });
+  const upBtn = h("button.btn", { id: "diag-upload", onclick: () => start("upload") }, "Upload and diagnose");
+  const msg = h("div");
+  const jobBox = h("div", { id: "diag-job" });
+  const resultBox = h("div", { id: "diag-result" });
+  const recentBox = h("div", { id: "diag-recent" });
+
+  const field = (label, ...el) => h("label.field", null, h("span.small.muted", null, label), ...el);
+  app.append(
+    h("div.card", { style: "margin-bottom:16px" },
+      h("h2", null, "Diagnose a run or a recording"),
+      h("p.muted", { style: "margin-top:0" },
+        "The daemon simulates the recording with a parameter set, shows where the simulation misses it and names the physics ",
+        "the model leaves out (cellbench diagnose). It runs in the background, one job at a time; a diagnosis takes seconds to minutes."),
+      h("div.toolbar", null, field("run", runSel), field("parameter set", paramsSel), runBtn),
+      h("div.toolbar", null, field("or a recording (BDF CSV)", fileInput), field("parameter set", upParamsSel), upBtn),
+      h("div.toolbar", { style: "margin-bottom:0" }, field("API token (for starting jobs; kept in this browser)", tokenInput)),
+      msg, jobBox),
+    resultBox,
+    h("div.card", { style: "margin-bottom:16px" }, h("h2", null, "Recent diagnoses"), recentBox));
+
+  const note = (text, cls = "warn") => msg.replaceChildren(text ? h("div.note." + cls, { style: "margin:10px 0 0" }, text) : "");
+
+  function paramOptions(sel, withRun, preferred) {
+    const keep = sel.value;
+    const opts = (cells.parameter_sets || []).map((p) => h("option", { value: p.name }, p.cell ? `${p.name} · ${p.cell}` : p.name));
+    if (withRun) opts.push(h("option", { value: "run" }, "the run's own fitted parameter set"));
+    sel.replaceChildren(...opts);
+    const want = [keep, preferred].find((v) => v && [...sel.options].some((o) => o.value === v));
+    if (want) sel.value = want;
+  }
+  // The parameter set of the run's cell (config/cells/CELL.json "params"), else the first one.
+  const cellParams = (r) => (cells.cells || []).find((c) => c.name === r?.cell)?.params;
+
+  function fillRuns() {
+    runSel.replaceChildren(...(runs.length ? runs.map((r) => h("option", { value: r.id, disabled: isActive(r) || null },
+      `run ${r.id} · ${r.program} · ${r.cell} · ${r.state}${isActive(r) ? " (still recording)" : ""}`))
+      : [h("option", { value: "" }, "no runs recorded yet")]));
+    const pick = runs.find((r) => String(r.id) === String(runId) && !isActive(r)) || runs.find((r) => !isActive(r));
+    if (pick) runSel.value = String(pick.id);
+    runBtn.disabled = !pick || null;
+  }
+  runSel.addEventListener("change", () => {
+    const r = runs.find((x) => String(x.id) === runSel.value);
+    paramOptions(paramsSel, true, cellParams(r));
+    if (cellParams(r)) paramsSel.value = cellParams(r);
+  });
+
+  async function start(kind) {
+    note("");
+    try {
+      let j;
+      if (kind === "run") {
+        if (!runSel.value) return note("Choose a finished run.");
+        j = await post(`/runs/${runSel.value}/diagnose`, { params: paramsSel.value });
+      } else {
+        const f = fileInput.files[0];
+        if (!f) return note("Choose a BDF CSV recording first.");
+        const q = new URLSearchParams({ params: upParamsSel.value, name: f.name });
+        j = await post(`/diagnose?${q}`, f, "text/csv");
+      }
+      follow(j.id);
+      refreshRecent();
+    } catch (e) {
+      if (e.status === 401) note(`${e.message} — enter the API token (cellbenchd --token / CELLBENCH_TOKEN) above.`);
+      else note(e.message);
+    }
+  }
+
+  // Polls one job until it has finished, then shows its report.
+  function follow(id) {
+    polls.splice(0).forEach((p) => p.stop());
+    job = id;
+    resultBox.replaceChildren();
+    const p = poller(async () => {
+      const j = await get(`/diagnoses/${id}`);
+      if (stopped || job !== id) return;
+      const pct = Math.round(100 * (j.progress || 0));
+      jobBox.replaceChildren(h("div", { style: "margin-top:12px" },
+        h("div.small", null, h("b", null, `Job ${j.id}`), ` · ${describe(j)} · `, pill(j.state), ` ${pct} % · ${j.stage || ""}`),
+        h("div.progress", { title: `${pct} %` }, h("div", { style: `width:${pct}%` }))));
+      if (j.state === "running") return;
+      p.stop();
+      if (j.state === "failed") jobBox.append(h("div.note.warn", { style: "margin:10px 0 0" }, `Diagnosis failed: ${j.error}`));
+      else showResult(j);
+      refreshRecent();
+    }, 700);
+    polls.push(p);
+  }
+
+  function showResult(j) {
+    if (charts) { charts.destroy(); charts = null; }
+    const d = j.diagnosis;
+    const t = j.traces;
+    const chartsBox = h("div");
+    const file = (obj, name, label) => h("a.btn", { download: name,
+      href: URL.createObjectURL(new Blob([JSON.stringify(obj, null, 2)], { type: "application/json" })) }, label);
+    resultBox.replaceChildren(
+      h("div.card", { style: "margin-bottom:16px" },
+        h("div.runhead", null, h("h1", null, `Diagnosis ${j.id}`), h("span.meta", null,
+          `${describe(j)} · parameter set ${j.params_used || j.params}${j.wall_s != null ? ` · ${j.wall_s.toFixed(1)} s` : ""}`),
+          h("span", { style: "margin-left:auto;display:flex;gap:8px" }, file(d, `diagnosis-${j.id}.json`, "Diagnosis JSON"),
+            j.improved_params ? file(j.improved_params, `improved-params-${j.id}.json`, "Improved parameter set") : null)),
+        d.summary ? h("p.note", { style: "margin:12px 0 0" }, d.summary) : null,
+        rmsTable(d)),
+      chartsBox,
+      diagnosisCard(d, "Findings and where the error sits"));
+    if (t && t.time_s?.length) {
+      const panels = [];
+      const v = t.voltage_v || {}, e = t.voltage_error_v || {}, s = t.surface_c;
+      panels.push({ title: "Voltage", unit: "V", digits: 4, series: [
+        { label: "measured", color: "#1b2430", data: v.measured },
+        { label: "baseline model", color: "#d92d20", data: v.baseline },
+        v.improved && { label: "improved model", color: "#1f6feb", data: v.improved }].filter(Boolean) });
+      const mv = (a) => (a || []).map((x) => (x == null ? null : 1e3 * x));
+      panels.push({ title: "Voltage error, simulated − measured", unit: "mV", digits: 2, series: [
+        { label: "baseline model", color: "#d92d20", data: mv(e.baseline) },
+        e.improved && { label: "improved model", color: "#1f6feb", data: mv(e.improved) }].filter(Boolean) });
+      if (s) panels.push({ title: "Surface temperature", unit: "°C", digits: 2, series: [
+        { label: "measured", color: "#1b2430", data: s.measured },
+        { label: "baseline model", color: "#d92d20", data: s.baseline },
+        s.improved && { label: "improved model", color: "#1f6feb", data: s.improved }].filter(Boolean) });
+      chartsBox.append(h("div.small.muted", { style: "margin:0 0 6px" },
+        `${t.points} of ${t.rows} rows plotted (each bucket keeps its extremes) · drag to zoom, double-click to return`));
+      charts = new TraceCharts(chartsBox, t.time_s, panels);
+    }
+  }
+
+  async function refreshRecent() {
+    const list = (await get("/diagnoses")).diagnoses || [];
+    recentBox.replaceChildren(list.length ? h("table", null,
+      h("thead", null, h("tr", null, ["job", "what", "parameter set", "state", "created", ""].map((x) => h("th", null, x)))),
+      h("tbody", null, list.map((j) => h("tr", null, h("td.num", null, j.id), h("td", null, describe(j)),
+        h("td", null, j.params_used || j.params), h("td", null, pill(j.state), j.state === "running" ? ` ${Math.round(100 * j.progress)} %` : ""),
+        h("td.num", null, dateTime(j.created_unix_s)),
+        h("td", null, j.id === job ? h("span.muted.small", null, "shown") : h("a", { href: "#", onclick: (ev) => { ev.preventDefault(); follow(j.id); refreshRecent(); } }, "show"))))))
+      : h("div.empty", null, "none since cellbenchd started (the last 8 are kept in memory)"));
+    return list;
+  }
+
+  Promise.all([get("/runs"), get("/cells").catch(() => cells)]).then(async ([r, c]) => {
+    if (stopped) return;
+    runs = r.runs || [];
+    cells = c || cells;
+    fillRuns();
+    const sel = runs.find((x) => String(x.id) === runSel.value);
+    paramOptions(paramsSel, true, cellParams(sel));
+    paramOptions(upParamsSel, false, cellParams(runs[0]));
+    const list = await refreshRecent();
+    // Show the running job, else the newest one (a page reload keeps its report).
+    const shown = list.find((j) => j.state === "running") || list[0];
+    if (shown && job == null) { follow(shown.id); refreshRecent(); }
+  }).catch((e) => note(`cannot reach cellbenchd: ${e.message}`));
+
+  // Secondary: reports of `cellbench diagnose` files, read by the browser (nothing is uploaded).
   const input = h("input", { type: "file", accept: ".html,.htm,.json", multiple: true, style: "display:none" });
   const drop = h("div.drop", null, h("div", null, h("b", null, "Drop a diagnose report here"), " (", h("code", null, "--report R.html"), " or ",
     h("code", null, "--json D.json"), ") or "), h("button.btn", { onclick: () => input.click() }, "choose files…"), input);
   const out = h("div", { style: "margin-top:16px" });
-  app.append(h("div.card", { style: "margin-bottom:16px" }, h("h2", null, "Diagnose a run or a recording"),
-    h("p.muted", { style: "margin-top:0" }, "cellbench diagnose compares a recording with what the parameter set predicts and names the physics the model leaves out. ",
-      "It runs offline with the command line tool; this page shows its report. The files stay in your browser."), cmdBox), drop, out);
-
-  get("/runs").then(({ runs }) => {
-    const sel = h("select", { id: "diag-run" }, (runs || []).map((r) => h("option", { value: r.id, selected: String(r.id) === String(runId) || null }, `run ${r.id} · ${r.program} · ${r.cell} · ${r.state}`)));
-    const cmd = h("pre", { style: "margin:8px 0 0;white-space:pre-wrap" });
-    const update = () => {
-      const r = (runs || []).find((x) => String(x.id) === sel.value);
-      if (!r) { cmd.textContent = "no runs recorded yet"; return; }
-      const base = location.origin;
-      cmd.innerHTML = esc(`curl -o run-${r.id}.bdf.csv ${base}${API}/runs/${r.id}/export.bdf.csv\n` +
-        `cellbench diagnose --params config/cells/${r.cell}.json run-${r.id}.bdf.csv --json run-${r.id}.diagnosis.json --report run-${r.id}.report.html`);
-    };
-    sel.addEventListener("change", update);
-    cmdBox.append(h("div", null, h("span.small.muted", null, "for a run: "), sel, " ", h("a.small", { href: "#", onclick: (e) => { e.preventDefault(); location.href = `${API}/runs/${sel.value}/export.bdf.csv`; } }, "download its BDF CSV")), h("div.code", null, cmd));
-    update();
-  }).catch(() => {});
-
+  app.append(h("details.card", { style: "margin-bottom:16px" },
+    h("summary", null, h("b", null, "Reports from the command line"), h("span.muted.small", null, " — view a report of cellbench diagnose; the files stay in your browser")),
+    h("pre.code", { style: "white-space:pre-wrap;margin:10px 0" },
+      "curl -o run-ID.bdf.csv URL/api/v1/runs/ID/export.bdf.csv\ncellbench diagnose --params config/cells/p45b-thesis.json run-ID.bdf.csv --json d.json --report r.html"),
+    drop, out));
   const show = async (files) => {
     out.replaceChildren();
     for (const f of files) {
@@ -114,26 +264,53 @@ export function diagnosisView(app, runId) {
   drop.addEventListener("dragover", (e) => { e.preventDefault(); drop.classList.add("over"); });
   drop.addEventListener("dragleave", () => drop.classList.remove("over"));
   drop.addEventListener("drop", (e) => { e.preventDefault(); drop.classList.remove("over"); show([...e.dataTransfer.files]); });
-  return () => {};
+  return () => { stopped = true; polls.forEach((p) => p.stop()); if (charts) charts.destroy(); };
+}
+
+function describe(j) {
+  const s = j.source || {};
+  if (s.kind === "run") return `run ${s.run_id} (${s.program}, ${s.cell})`;
+  if (s.kind === "upload") return `${s.name || "uploaded recording"} (${fmt((s.bytes || 0) / 1e6, 1)} MB)`;
+  return "?";
+}
+
+const metrics = (m) => `V ${fmt(m?.voltage_rms_v, 1, 1e3)} mV · T ${fmt(m?.temperature_rms_c, 2)} °C · heat flux ${fmt(m?.heat_flux_rms_w, 3)} W`;
+
+function rmsTable(d) {
+  const row = (label, m) => h("tr", null, h("td", null, label), h("td.num", null, fmt(m?.voltage_rms_v, 2, 1e3)),
+    h("td.num", null, fmt(m?.temperature_rms_c, 3)), h("td.num", null, fmt(m?.heat_flux_rms_w, 3)));
+  return h("table", { style: "margin-top:12px;max-width:760px" },
+    h("thead", null, h("tr", null, h("th", null, "RMS error (simulated − measured)"), h("th.num", null, "voltage mV"),
+      h("th.num", null, "surface °C"), h("th.num", null, "heat flux W"))),
+    h("tbody", null, row("baseline (the parameter set)", d.baseline),
+      row(`improved (${(d.accepted || []).join(" + ") || "nothing accepted"})`, d.improved)));
+}
+
+// The findings and the "where" table of a cellbench.diagnosis/1 report.
+function diagnosisCard(d, title) {
+  const maxShare = Math.max(1e-9, ...(d.where || []).map((w) => w.share_of_voltage_error || 0));
+  return h("div.card", null, h("h2", null, title),
+    h("p", null, h("b", null, "Baseline RMS error: "), metrics(d.baseline || {})),
+    h("h2", null, "Where the voltage error sits (residuals by operating condition)"),
+    (d.where || []).length ? h("table", { id: "diag-where" },
+      h("thead", null, h("tr", null, h("th", null, "condition"), h("th.num", null, "share of squared error"), h("th.num", null, "share of time"),
+        h("th.num", null, "RMS mV"), h("th.num", null, "bias mV"), h("th"))),
+      h("tbody", null, d.where.map((w) => h("tr", null, h("td", null, w.condition),
+        h("td.num", null, fmt(w.share_of_voltage_error, 1, 100) + " %"), h("td.num", null, fmt(w.time_share, 1, 100) + " %"),
+        h("td.num", null, fmt(w.voltage_rms_v, 2, 1e3)), h("td.num", null, fmt(w.voltage_bias_v, 2, 1e3)),
+        h("td", { style: "width:30%" }, h("div.bar", { style: `width:${(100 * (w.share_of_voltage_error || 0)) / maxShare}%` }))))))
+      : h("div.empty", null, "no condition stands out"),
+    h("h2", { style: "margin-top:16px" }, "Findings (strongest first)"),
+    h("div", { id: "diag-findings" }, (d.findings || []).length ? d.findings.map((f) => h("div.finding" + (f.significant ? ".sig" : ""), null,
+      h("h3", null, f.effect, " ", pill(f.significant ? "significant" : "not significant", f.significant ? "ok" : ""), h("span.muted.small", null, ` score ${fmt(f.score, 2)}`)),
+      h("div", null, f.explanation),
+      f.improved ? h("div.small.muted", { style: "margin-top:4px" }, "with it: ", metrics(f.improved)) : null))
+      : h("div.empty", null, "no candidate was tried")));
 }
 
 function renderDiagnosis(name, text) {
   let d;
   try { d = JSON.parse(text); } catch (e) { return h("div.note.warn", null, `${name}: not JSON (${e.message})`); }
   if (d.schema !== "cellbench.diagnosis/1") return h("div.note.warn", null, `${name}: expected "schema": "cellbench.diagnosis/1", got ${JSON.stringify(d.schema)}`);
-  const b = d.baseline || {};
-  const metrics = (m) => `V ${fmt(m?.voltage_rms_v, 1, 1e3)} mV · T ${fmt(m?.temperature_rms_c, 2)} °C · heat flux ${fmt(m?.heat_flux_rms_w, 3)} W`;
-  const maxShare = Math.max(1e-9, ...(d.where || []).map((w) => w.share_of_voltage_error || 0));
-  return h("div.card", null, h("h2", null, `${name}: diagnosis`),
-    h("p", null, h("b", null, "Baseline RMS error: "), metrics(b)),
-    h("h2", null, "Where the voltage error sits"),
-    (d.where || []).length ? h("table", null, h("tbody", null, d.where.map((w) => h("tr", null, h("td", null, w.condition),
-      h("td.num", null, fmt(w.share_of_voltage_error, 1, 100) + " %"),
-      h("td", { style: "width:40%" }, h("div.bar", { style: `width:${(100 * (w.share_of_voltage_error || 0)) / maxShare}%` }))))))
-      : h("div.empty", null, "no condition stands out"),
-    h("h2", { style: "margin-top:16px" }, "Findings (strongest first)"),
-    (d.findings || []).map((f) => h("div.finding" + (f.significant ? ".sig" : ""), null,
-      h("h3", null, f.effect, " ", pill(f.significant ? "significant" : "not significant", f.significant ? "ok" : ""), h("span.muted.small", null, ` score ${fmt(f.score, 2)}`)),
-      h("div", null, f.explanation),
-      f.improved ? h("div.small.muted", { style: "margin-top:4px" }, "with it: ", metrics(f.improved)) : null)));
+  return diagnosisCard(d, `${name}: diagnosis`);
 }

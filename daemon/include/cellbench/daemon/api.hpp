@@ -42,6 +42,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -91,6 +92,18 @@ struct StartRequest {
     std::string cell;
     nlohmann::json body;
 };
+
+// POST /runs/{id}/diagnose body {"params": NAME, "effects": [...]} and POST /diagnose?params=NAME&effects=a,b.
+// NAME: a parameter set under config/cells/ (a cell name stands for the cell's parameter set), or "run" = the
+// run's own fitted parameter set. effects: candidate effect ids (INTERFACES.md), empty = the whole catalogue.
+// The server checks the shape (non-empty plain name, effects strings); the backend checks the names.
+struct DiagnoseRequest {
+    std::string params;
+    std::vector<std::string> effects;
+    nlohmann::json body;  // the request object (empty object for an upload)
+};
+// The largest recording POST /diagnose accepts (HttpServerOptions::max_upload_bytes defaults to it).
+inline constexpr std::size_t kMaxUploadBytes = 64 * 1024 * 1024;
 
 // A BDF CSV export being streamed. Pull-based so the server can write each chunk asynchronously with
 // backpressure (a slow client never makes the backend buffer a whole run in memory).
@@ -190,6 +203,45 @@ public:
     virtual nlohmann::json stop_run(RunId id) = 0;
     virtual nlohmann::json pause_run(RunId id) = 0;
     virtual nlohmann::json resume_run(RunId id) = 0;
+
+    // -- Diagnosis jobs (an addition to INTERFACES.md; the dashboard's Diagnosis page). `estimator::diagnose`
+    // takes seconds to minutes of CPU: the backend runs it on its own worker thread, one job at a time, and
+    // answers at once. Job:
+    //   {"id": 4, "state": "running" | "done" | "failed", "progress": 0.0..1.0, "stage": "round 1 candidates 3/10",
+    //    "position": 0,                 // while running: jobs ahead of it in the queue (0 = it is being worked on)
+    //    "source": {"kind": "run", "run_id": 3, "program": "hppc", "cell": "p45b"}
+    //            | {"kind": "upload", "bytes": N, "name": "file name given with ?name= or empty"},
+    //    "params": "p45b" (as asked), "params_used": "p45b-thesis" (the file, or "run 3"), "effects": [...],
+    //    "created_unix_s": 1.7e9, "finished_unix_s": null | 1.7e9, "wall_s": null | 12.5,
+    //    "error": "why it failed",                        // failed only
+    //    "diagnosis": {cellbench.diagnosis/1},            // done only (INTERFACES.md, `diagnose --json`)
+    //    "traces": estimator::traces_to_json(...),        // done only: decimated measured/simulated time series
+    //    "improved_params": {cellbench.params/1} | null}  // done only: base + accepted extensions (null: none)
+    // POST /runs/{id}/diagnose -> 202 Job. NotFound: unknown run; Conflict: the run is still active or the
+    // queue is full; BadRequest: unknown parameter set or effect, no fitted set for "run".
+    virtual nlohmann::json diagnose_run(RunId id, const DiagnoseRequest& request) {
+        (void)request;
+        throw NotFound("diagnosis is not available for run " + std::to_string(id));
+    }
+    // POST /diagnose?params=NAME -> 202 Job; `csv` is a BDF CSV recording (INTERFACES.md). BadRequest for a
+    // recording that does not parse (header and first rows are checked at once; a later bad row fails the job).
+    virtual nlohmann::json diagnose_recording(const DiagnoseRequest& request, std::string csv) {
+        (void)request;
+        (void)csv;
+        throw NotFound("diagnosis of uploaded recordings is not available");
+    }
+    // GET /diagnoses/{job} -> Job. NotFound: unknown or expired (the last few finished jobs are kept).
+    virtual nlohmann::json diagnosis(std::int64_t job) { throw NotFound("no diagnosis job " + std::to_string(job)); }
+    // GET /diagnoses -> {"diagnoses": [Job without diagnosis/traces/improved_params, ...]} newest first.
+    virtual nlohmann::json list_diagnoses() { return {{"diagnoses", nlohmann::json::array()}}; }
+    // GET /cells -> what POST /runs and the diagnosis can name under config/:
+    //   {"cells": [{"name": "p45b", "description": "...", "params": "p45b-thesis" | null}],
+    //    "parameter_sets": [{"name": "p45b-thesis", "cell": "Molicel INR-21700-P45B ...", "capacity_ah": 4.0}],
+    //    "programs": ["cc", "hppc", ...]}
+    virtual nlohmann::json cells() {
+        return {{"cells", nlohmann::json::array()}, {"parameter_sets", nlohmann::json::array()},
+                {"programs", nlohmann::json::array()}};
+    }
 
     // GET /metrics: the backend's Prometheus text exposition (format 0.0.4), one "# HELP"/"# TYPE" pair
     // per family, e.g. `cellbench_cell_voltage_volts 3.712`. The server appends its own HTTP counters.

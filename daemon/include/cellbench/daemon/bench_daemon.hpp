@@ -89,6 +89,12 @@ public:
     nlohmann::json stop_run(RunId id) override;
     nlohmann::json pause_run(RunId id) override;
     nlohmann::json resume_run(RunId id) override;
+    // Diagnosis jobs (diagnose_jobs.hpp: one worker thread, one job at a time, a short queue, the last 8 kept).
+    nlohmann::json diagnose_run(RunId id, const DiagnoseRequest& request) override;
+    nlohmann::json diagnose_recording(const DiagnoseRequest& request, std::string csv) override;
+    nlohmann::json diagnosis(std::int64_t job) override;
+    nlohmann::json list_diagnoses() override;
+    nlohmann::json cells() override;
     std::string metrics_text() override;
 
     // Runs fn on the daemon's io_context (cellbenchd's watchdog: a probe that runs proves the loop is alive).

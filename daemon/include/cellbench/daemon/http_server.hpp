@@ -33,6 +33,9 @@ struct HttpServerOptions {
 
     std::size_t max_header_bytes = 8 * 1024;   // larger request headers -> 431
     std::size_t max_body_bytes = 64 * 1024;    // larger request bodies -> 413 (API bodies are tiny)
+    // POST /api/v1/diagnose carries a whole recording: its own limit (larger -> 413). Its bearer token is
+    // checked on the header, before the body is read.
+    std::size_t max_upload_bytes = kMaxUploadBytes;
     std::size_t max_connections = 512;         // beyond this, new connections are closed at once
     // A request must arrive completely within this time after the previous response (or the connection
     // opening); it is also the keep-alive idle limit. Bounds slow-header ("slowloris") clients.

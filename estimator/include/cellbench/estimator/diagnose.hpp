@@ -17,8 +17,11 @@
 //    K-1 of the K held-out blocks, and (c) its BIC improves by more than bic_threshold.
 // 4. Combinations: after accepting the strongest significant finding, the remaining candidates are fitted
 //    again on top of it (a recording may hide two effects), up to max_accepted.
+#include <atomic>
+#include <cstddef>
 #include <functional>
 #include <optional>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -47,6 +50,15 @@ struct DiagnoseOptions {
     double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface
     // Progress of diagnose() (baseline, round r candidate k of n, final simulation); empty = none.
     Progress progress;
+    // Set by another thread to give up: diagnose() stops after the candidate fits under way and throws
+    // DiagnoseCancelled (cellbenchd's shutdown). nullptr = never.
+    const std::atomic<bool>* cancel = nullptr;
+};
+
+// Thrown by diagnose() when DiagnoseOptions::cancel was set.
+class DiagnoseCancelled : public std::runtime_error {
+public:
+    DiagnoseCancelled() : std::runtime_error("diagnosis cancelled") {}
 };
 
 struct QuantityRms {
@@ -101,5 +113,32 @@ const std::vector<std::string>& effect_catalogue();
 
 // Copy of rec merged into intervals of at least step_s (mean current, values at the interval end).
 Recording merge_intervals(const Recording& rec, double step_s);
+
+// Rows to plot: the span of t is cut into max(1, max_points / (2 * series.size())) equal time buckets and
+// each bucket keeps the rows of the minimum and the maximum of every series (NaN skipped), so spikes survive.
+// Ascending, without duplicates, at most max_points (>= 2 * series.size()) rows. Series shorter than t are
+// read as far as they go.
+std::vector<std::size_t> decimate_rows(const std::vector<double>& t, const std::vector<const std::vector<double>*>& series,
+                                       std::size_t max_points);
+
+// The traces of a diagnosis for plotting (the dashboard's Diagnosis page, `diagnose --report`): measured
+// against simulated, at the rows decimate_rows keeps of measured voltage, the voltage errors and measured
+// surface temperature. Errors are simulated minus measured.
+struct DiagnosisTraces {
+    std::size_t rows = 0;                  // rows of the recording
+    std::vector<double> time_s;            // test time of each kept row
+    std::vector<double> voltage_measured_v, voltage_baseline_v, voltage_improved_v;   // improved: empty when
+    std::vector<double> voltage_error_baseline_v, voltage_error_improved_v;           // nothing was accepted
+    std::vector<double> surface_measured_c, surface_baseline_c, surface_improved_c;   // empty: no surface column
+};
+DiagnosisTraces diagnosis_traces(const Diagnosis& d, const Recording& rec, std::size_t max_points = 2000);
+
+// {"rows": N, "points": n, "time_s": [...],
+//  "voltage_v": {"measured": [...], "baseline": [...], "improved": [...]},
+//  "voltage_error_v": {"baseline": [...], "improved": [...]},
+//  "surface_c": {"measured": [...], "baseline": [...], "improved": [...]}}
+// "improved" members only when the diagnosis accepted an effect; "surface_c" only when the recording measures
+// surface temperature; NaN (no value) is null.
+nlohmann::json traces_to_json(const DiagnosisTraces& t);
 
 }  // namespace cellbench::estimator

@@ -51,7 +51,7 @@ constexpr double kShortGraceS = 30.0;  // the 3 s wall floor at this scale
 class FaultBench {
 public:
     explicit FaultBench(const std::string& tag, const std::function<void(daemon::BenchConfig&)>& tweak = {},
-                        double chamber_setpoint_c = 30.0)
+                        double chamber_setpoint_c = 30.0, double equilibrium_hold_s = 0.0)
         : tmp_("faults-" + tag), dir_(tmp_.path) {
         fs::create_directories(dir_ / "cells");
         fs::create_directories(dir_ / "programs");
@@ -61,7 +61,11 @@ public:
         std::ofstream(dir_ / "programs/hold.json") << R"({
           "schema": "cellbench.bench-program/1", "name": "hold",
           "segments": [
-            {"type": "chamber_setpoint", "setpoint_c": )" << chamber_setpoint_c << R"(},
+            {"type": "chamber_setpoint", "setpoint_c": )" << chamber_setpoint_c << R"(},)"
+                                          << (equilibrium_hold_s > 0.0
+                                                  ? R"({"type": "wait_equilibrium", "tolerance_c": 20, "timeout_s": 3000, "hold_s": )" +
+                                                        std::to_string(equilibrium_hold_s) + "},"
+                                                  : std::string()) << R"(
             {"type": "cycler", "name": "hold", "steps": [
               {"type": "rest", "time_s": 2},
               {"type": "cc_discharge", "current_a": 2.0, "cutoff_voltage_v": 2.9, "time_s": 3000},
@@ -181,14 +185,21 @@ TEST(DaemonFaults, NewareConnectionDroppedReconnectsAndTheRunContinues) {
 TEST(DaemonFaults, NewareUnreachableWhenARunStartsTheStartIsSentWhenItIsBack) {
     // The start command cannot leave the daemon (no connection): the tester cannot have acted on it, so it is
     // sent again while the loss grace lasts instead of aborting the run.
-    FaultBench b("neware-refuse-start");
+    // The program waits 30 bench s (3 s wall) for thermal equilibrium before its cycler segment; the tester
+    // becomes unreachable during that wait (a run cannot be started while the cycler is offline).
+    FaultBench b("neware-refuse-start", {}, 30.0, 30.0);
     ASSERT_TRUE(eventually([&] { return test::instruments_connected(b.d()); }, 30s)) << b.d().status().dump();
+    b.start_run();
     b.neware().set_refuse_connections(true);
     b.neware().drop_connections();
-    b.start_run();
-    ASSERT_TRUE(b.wait_for("fault", "neware")) << DUMP(b);
-    // Longer than the client's request timeout: the first start expired unsent.
-    std::this_thread::sleep_for(3s);
+    ASSERT_TRUE(b.wait_for("fault", "neware", "", 30s)) << DUMP(b);
+    ASSERT_TRUE(eventually([&] {
+        for (const auto& e : b.find("fault", "neware"))
+            if (e["message"].get<std::string>().find("start not sent") != std::string::npos) return true;
+        return false;
+    }, 30s)) << "the start was never attempted while the tester was unreachable: " << DUMP(b);
+    // Longer than the client's request timeout: starts keep expiring unsent.
+    std::this_thread::sleep_for(2s);
     EXPECT_EQ(b.state(), "running") << b.error() << " " << DUMP(b);
     EXPECT_GT(b.plant_current_a(), -0.5) << "nothing can have started the tester's program yet";
     b.neware().set_refuse_connections(false);

@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cellbench/core/recording.hpp"
+#include "json_fields.hpp"
 
 namespace cellbench::protocol {
 
@@ -17,9 +18,12 @@ using nlohmann::json;
 
 constexpr std::size_t kMaxReadRegisters = 125;  // Modbus limit for functions 3 and 4
 
-[[noreturn]] void fail(const std::string& source, const std::string& path, const std::string& what) {
-    throw InputError(source + ": " + path + ": " + what);
-}
+// The shared JSON field readers (json_fields.hpp): errors read "SOURCE: JSON.PATH: what was expected".
+using json_fields::fail;
+using json_fields::finite_number;
+using json_fields::member;
+using json_fields::string_value;
+using json_fields::unsigned_value;
 
 const char* table_name(RegisterTable t) { return t == RegisterTable::holding ? "holding" : "input"; }
 
@@ -32,36 +36,6 @@ const char* type_name(RegisterType t) {
         case RegisterType::float32: return "float32";
     }
     return "?";
-}
-
-const json& member(const json& j, const std::string& key, const std::string& source, const std::string& path) {
-    if (!j.is_object()) fail(source, path, "expected an object");
-    auto it = j.find(key);
-    if (it == j.end()) fail(source, path + "." + key, "missing (required)");
-    return *it;
-}
-
-std::uint64_t unsigned_value(const json& j, std::uint64_t max, const std::string& source, const std::string& path) {
-    if (j.is_number_unsigned()) {
-        const auto v = j.get<std::uint64_t>();
-        if (v <= max) return v;
-    } else if (j.is_number_integer()) {
-        const auto v = j.get<std::int64_t>();
-        if (v >= 0 && static_cast<std::uint64_t>(v) <= max) return static_cast<std::uint64_t>(v);
-    }
-    fail(source, path, "expected an integer 0.." + std::to_string(max));
-}
-
-double finite_number(const json& j, const std::string& source, const std::string& path) {
-    if (!j.is_number()) fail(source, path, "expected a number, got " + std::string(j.type_name()));
-    const double v = j.get<double>();
-    if (!std::isfinite(v)) fail(source, path, "expected a finite number");
-    return v;
-}
-
-std::string string_value(const json& j, const std::string& source, const std::string& path) {
-    if (!j.is_string()) fail(source, path, "expected a string, got " + std::string(j.type_name()));
-    return j.get<std::string>();
 }
 
 RegisterTable table_of(const json& j, const std::string& source, const std::string& path) {

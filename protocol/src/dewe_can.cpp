@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <bit>
-#include <cctype>
 #include <cstdio>
 #include <cmath>
 #include <cstring>
@@ -10,6 +9,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cellbench/core/recording.hpp"
+#include "json_fields.hpp"
 
 namespace cellbench::protocol {
 
@@ -183,8 +183,16 @@ namespace {
 
 using nlohmann::json;
 
-[[noreturn]] void fail(const std::string& source, const std::string& path, const std::string& what) {
-    throw InputError(source + ": " + path + ": " + what);
+// The shared JSON field readers (json_fields.hpp): errors read "SOURCE: JSON.PATH: what was expected".
+using json_fields::bool_value;
+using json_fields::fail;
+using json_fields::finite_number;
+using json_fields::member;
+using json_fields::string_value;
+
+// Every integer of the layout may also be a string: CAN identifiers are written "0x310" in every data sheet.
+std::uint64_t unsigned_value(const json& j, std::uint64_t max, const std::string& source, const std::string& path) {
+    return json_fields::unsigned_value(j, max, source, path, json_fields::IntegerText::accepted);
 }
 
 std::string hex_id(std::uint32_t id) {
@@ -207,50 +215,6 @@ void check_id(std::uint32_t id, bool extended, const std::string& source, const 
     if (id > (extended ? kCanEffMask : kCanSffMask))
         fail(source, path + ".can_id",
              extended ? "expected a 29-bit identifier" : "expected an 11-bit identifier (set \"extended\": true for 29 bits)");
-}
-
-const json& member(const json& j, const std::string& key, const std::string& source, const std::string& path) {
-    if (!j.is_object()) fail(source, path, "expected an object");
-    auto it = j.find(key);
-    if (it == j.end()) fail(source, path + "." + key, "missing (required)");
-    return *it;
-}
-
-std::uint64_t unsigned_value(const json& j, std::uint64_t max, const std::string& source, const std::string& path) {
-    if (j.is_number_unsigned()) {
-        const auto v = j.get<std::uint64_t>();
-        if (v <= max) return v;
-    } else if (j.is_number_integer()) {
-        const auto v = j.get<std::int64_t>();
-        if (v >= 0 && static_cast<std::uint64_t>(v) <= max) return static_cast<std::uint64_t>(v);
-    } else if (j.is_string()) {  // "0x310" or "784"
-        const std::string s = j.get<std::string>();
-        const bool hex = s.size() > 2 && s[0] == '0' && (s[1] == 'x' || s[1] == 'X');
-        const std::string digits = hex ? s.substr(2) : s;
-        if (!digits.empty() && digits.size() <= 16 &&
-            std::all_of(digits.begin(), digits.end(), [&](char c) { return hex ? std::isxdigit(static_cast<unsigned char>(c)) != 0 : (c >= '0' && c <= '9'); })) {
-            const std::uint64_t v = std::stoull(digits, nullptr, hex ? 16 : 10);
-            if (v <= max) return v;
-        }
-    }
-    fail(source, path, "expected an integer 0.." + std::to_string(max) + " (a number or a string such as \"0x310\")");
-}
-
-double finite_number(const json& j, const std::string& source, const std::string& path) {
-    if (!j.is_number()) fail(source, path, "expected a number, got " + std::string(j.type_name()));
-    const double v = j.get<double>();
-    if (!std::isfinite(v)) fail(source, path, "expected a finite number");
-    return v;
-}
-
-std::string string_value(const json& j, const std::string& source, const std::string& path) {
-    if (!j.is_string()) fail(source, path, "expected a string, got " + std::string(j.type_name()));
-    return j.get<std::string>();
-}
-
-bool bool_value(const json& j, const std::string& source, const std::string& path) {
-    if (!j.is_boolean()) fail(source, path, "expected true or false");
-    return j.get<bool>();
 }
 
 ByteOrder byte_order_of(const json& j, const std::string& source, const std::string& path) {

@@ -7,11 +7,11 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
-#include <sstream>
 #include <type_traits>
 
 #include <boost/property_tree/ptree.hpp>
-#include <boost/property_tree/xml_parser.hpp>
+
+#include "neware_xml.hpp"
 
 namespace cellbench::protocol::neware {
 namespace {
@@ -156,15 +156,7 @@ struct Document {
 
 Document parse_document(std::string_view frame) {
     Document doc;
-    std::istringstream in(normalise(frame));
-    try {
-        pt::read_xml(in, doc.tree, pt::xml_parser::no_comments);
-    } catch (const pt::xml_parser_error& e) {
-        throw ProtocolError(std::string("malformed XML: ") + e.message() + " (line " + std::to_string(e.line()) +
-                            ")");
-    } catch (const std::exception& e) {
-        throw ProtocolError(std::string("malformed XML: ") + e.what());
-    }
+    doc.tree = xml::read_document(frame, "");
     for (const auto& [key, child] : doc.tree) {
         if (key == "<xmlcomment>") continue;
         if (key != "bts" || doc.bts != nullptr)
@@ -308,16 +300,7 @@ std::string entry_where(const Document& doc, std::string_view tag, std::size_t i
 // Encoding helpers
 
 void append_escaped(std::string& out, std::string_view text) {
-    for (const char c : text) {
-        switch (c) {
-            case '&': out += "&amp;"; break;
-            case '<': out += "&lt;"; break;
-            case '>': out += "&gt;"; break;
-            case '"': out += "&quot;"; break;
-            case '\'': out += "&apos;"; break;
-            default: out += c;
-        }
-    }
+    xml::append_escaped(out, text, xml::Escape::apostrophe);
 }
 
 void attr(std::string& out, std::string_view name, std::string_view value) {

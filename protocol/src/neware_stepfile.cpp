@@ -28,6 +28,8 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/protocol/neware_bts.hpp"
+#include "json_fields.hpp"
+#include "neware_xml.hpp"
 
 #include <algorithm>
 #include <array>
@@ -35,10 +37,8 @@
 #include <charconv>
 #include <cmath>
 #include <set>
-#include <sstream>
 
 #include <boost/property_tree/ptree.hpp>
-#include <boost/property_tree/xml_parser.hpp>
 #include <nlohmann/json.hpp>
 
 namespace cellbench::protocol {
@@ -199,28 +199,24 @@ std::optional<Problem> find_problem(const StepProgram& p) {
 }
 
 // ---------------------------------------------------------------------------------------------------------
-// JSON helpers (errors name the JSON path).
-
-[[noreturn]] void json_fail(const std::string& source, const std::string& path, const std::string& what) {
-    throw InputError(source + ": " + path + ": " + what);
-}
+// JSON helpers (errors name the JSON path, worded by json_fields::fail like the other JSON files).
 
 std::optional<double> json_number(const json& obj, const char* key, const std::string& source,
                                   const std::string& path) {
     const auto it = obj.find(key);
     if (it == obj.end() || it->is_null()) return std::nullopt;
-    if (!it->is_number()) json_fail(source, path + "." + key, "expected a number");
+    if (!it->is_number()) json_fields::fail(source, path + "." + key, "expected a number");
     const double v = it->get<double>();
-    if (!std::isfinite(v)) json_fail(source, path + "." + key, "expected a finite number");
+    if (!std::isfinite(v)) json_fields::fail(source, path + "." + key, "expected a finite number");
     return v;
 }
 
 int json_int(const json& obj, const char* key, const std::string& source, const std::string& path) {
     const auto it = obj.find(key);
     if (it == obj.end() || it->is_null()) return 0;
-    if (!it->is_number_integer()) json_fail(source, path + "." + key, "expected an integer");
+    if (!it->is_number_integer()) json_fields::fail(source, path + "." + key, "expected an integer");
     const auto v = it->get<long long>();
-    if (v < 0 || v > 1'000'000'000) json_fail(source, path + "." + key, "expected a non-negative integer");
+    if (v < 0 || v > 1'000'000'000) json_fields::fail(source, path + "." + key, "expected a non-negative integer");
     return static_cast<int>(v);
 }
 
@@ -433,49 +429,49 @@ nlohmann::json StepProgram::to_json() const {
 }
 
 StepProgram StepProgram::from_json(const nlohmann::json& j, const std::string& source) {
-    if (!j.is_object()) json_fail(source, "(root)", "expected an object");
+    if (!j.is_object()) json_fields::fail(source, "(root)", "expected an object");
     static const std::set<std::string> kTopKeys{"schema", "name", "description", "steps"};
     for (const auto& [key, value] : j.items())
-        if (!kTopKeys.count(key)) json_fail(source, key, "unknown key (expected schema, name, description, steps)");
+        if (!kTopKeys.count(key)) json_fields::fail(source, key, "unknown key (expected schema, name, description, steps)");
     StepProgram p;
     if (const auto it = j.find("schema"); it != j.end()) {
         if (!it->is_string() || it->get<std::string>() != kProgramSchema)
-            json_fail(source, "schema", std::string("expected \"") + kProgramSchema + "\"");
+            json_fields::fail(source, "schema", std::string("expected \"") + kProgramSchema + "\"");
     }
     if (const auto it = j.find("name"); it != j.end()) {
-        if (!it->is_string()) json_fail(source, "name", "expected a string");
+        if (!it->is_string()) json_fields::fail(source, "name", "expected a string");
         p.name = it->get<std::string>();
     }
     if (const auto it = j.find("description"); it != j.end()) {
-        if (!it->is_string()) json_fail(source, "description", "expected a string");
+        if (!it->is_string()) json_fields::fail(source, "description", "expected a string");
         p.description = it->get<std::string>();
     }
     const auto steps_it = j.find("steps");
-    if (steps_it == j.end()) json_fail(source, "steps", "missing (expected an array of steps)");
-    if (!steps_it->is_array()) json_fail(source, "steps", "expected an array of steps");
+    if (steps_it == j.end()) json_fields::fail(source, "steps", "missing (expected an array of steps)");
+    if (!steps_it->is_array()) json_fields::fail(source, "steps", "expected an array of steps");
     static const std::set<std::string> kStepKeys{"id",           "type",     "current_a",        "voltage_v",
                                                  "time_s",       "cutoff_voltage_v", "cutoff_current_a",
                                                  "cutoff_capacity_ah", "start_step", "count", "note"};
     std::size_t index = 0;
     for (const auto& sj : *steps_it) {
         const std::string path = "steps[" + std::to_string(index) + "]";
-        if (!sj.is_object()) json_fail(source, path, "expected an object");
+        if (!sj.is_object()) json_fields::fail(source, path, "expected an object");
         for (const auto& [key, value] : sj.items())
-            if (!kStepKeys.count(key)) json_fail(source, path + "." + key, "unknown key");
+            if (!kStepKeys.count(key)) json_fields::fail(source, path + "." + key, "unknown key");
         Step s;
         const auto type_it = sj.find("type");
         if (type_it == sj.end() || !type_it->is_string())
-            json_fail(source, path + ".type",
+            json_fields::fail(source, path + ".type",
                       "expected one of rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cycle, end");
         const auto type = step_type_from_string(type_it->get<std::string>());
         if (!type)
-            json_fail(source, path + ".type",
+            json_fields::fail(source, path + ".type",
                       "unknown step type \"" + type_it->get<std::string>() +
                           "\" (expected rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cycle, end)");
         s.type = *type;
         if (const auto it = sj.find("id"); it != sj.end()) {
             if (!it->is_number_integer() || it->get<long long>() != static_cast<long long>(index + 1))
-                json_fail(source, path + ".id", "expected " + std::to_string(index + 1) + " (steps are numbered in order)");
+                json_fields::fail(source, path + ".id", "expected " + std::to_string(index + 1) + " (steps are numbered in order)");
         }
         s.current_a = json_number(sj, "current_a", source, path);
         s.voltage_v = json_number(sj, "voltage_v", source, path);
@@ -489,16 +485,16 @@ StepProgram StepProgram::from_json(const nlohmann::json& j, const std::string& s
                 try {
                     s.cutoff_capacity_ah = CapacityExpression::parse(it->get<std::string>());
                 } catch (const InputError& e) {
-                    json_fail(source, path + ".cutoff_capacity_ah", e.what());
+                    json_fields::fail(source, path + ".cutoff_capacity_ah", e.what());
                 }
             } else {
-                json_fail(source, path + ".cutoff_capacity_ah", "expected a number (Ah) or an expression string");
+                json_fields::fail(source, path + ".cutoff_capacity_ah", "expected a number (Ah) or an expression string");
             }
         }
         s.start_step = json_int(sj, "start_step", source, path);
         s.count = json_int(sj, "count", source, path);
         if (const auto it = sj.find("note"); it != sj.end()) {
-            if (!it->is_string()) json_fail(source, path + ".note", "expected a string");
+            if (!it->is_string()) json_fields::fail(source, path + ".note", "expected a string");
             s.note = it->get<std::string>();
         }
         p.steps.push_back(std::move(s));
@@ -515,18 +511,7 @@ std::string compile_step_file(const StepProgram& program) {
     program.validate();
     auto escaped = [](std::string_view text) {
         std::string out;
-        for (const char c : text) {
-            switch (c) {
-                case '&': out += "&amp;"; break;
-                case '<': out += "&lt;"; break;
-                case '>': out += "&gt;"; break;
-                case '"': out += "&quot;"; break;
-                case '\n': out += "&#10;"; break;
-                case '\r': out += "&#13;"; break;
-                case '\t': out += "&#9;"; break;
-                default: out += c;
-            }
-        }
+        neware::xml::append_escaped(out, text, neware::xml::Escape::whitespace);
         return out;
     };
     std::string out = "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n";
@@ -556,17 +541,7 @@ std::string compile_step_file(const StepProgram& program) {
 
 StepProgram parse_step_file(std::string_view xml) {
     using neware::ProtocolError;
-    pt::ptree tree;
-    {
-        std::istringstream in(neware::normalize_vendor_xml(xml));
-        try {
-            pt::read_xml(in, tree, pt::xml_parser::no_comments);
-        } catch (const pt::xml_parser_error& e) {
-            throw ProtocolError("step file: malformed XML: " + e.message() + " (line " + std::to_string(e.line()) + ")");
-        } catch (const std::exception& e) {
-            throw ProtocolError(std::string("step file: malformed XML: ") + e.what());
-        }
-    }
+    const pt::ptree tree = neware::xml::read_document(xml, "step file: ");
     const pt::ptree* root = nullptr;
     for (const auto& [key, child] : tree) {
         if (key == "<xmlcomment>") continue;

@@ -11,43 +11,21 @@
 
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
+#include "config_test_support.hpp"
 
 using namespace cellbench;
 using namespace cellbench::daemon;
+using namespace cellbench::testing;
 using nlohmann::json;
 namespace fs = std::filesystem;
 
 namespace {
-
-const fs::path kConfigDir = fs::path(CELLBENCH_SOURCE_DIR) / "config";
-
-json read_json(const fs::path& p) {
-    std::ifstream in(p);
-    return json::parse(in);
-}
 
 CellConfig p45b() { return load_cell_config(kConfigDir / "cells" / "p45b.json"); }
 BenchConfig sim_bench() { return load_bench_config(kConfigDir / "bench.sim.json"); }
 
 const protocol::StepProgram& cycler_of(const Program& p, std::size_t segment) {
     return std::get<CyclerSegment>(p.segments.at(segment)).program;
-}
-
-// The issues of a ConfigError, or fails the test.
-std::vector<ConfigIssue> issues_of(const std::function<void()>& f) {
-    try {
-        f();
-    } catch (const ConfigError& e) {
-        return e.issues();
-    }
-    ADD_FAILURE() << "expected a ConfigError";
-    return {};
-}
-
-bool has_issue(const std::vector<ConfigIssue>& issues, const std::string& path, const std::string& words = "") {
-    for (const auto& i : issues)
-        if (i.path == path && i.message.find(words) != std::string::npos) return true;
-    return false;
 }
 
 std::string dump(const std::vector<ConfigIssue>& issues) {

@@ -2,44 +2,23 @@
 // every field read, every problem reported at once with its JSON path.
 #include <gtest/gtest.h>
 
-#include <fstream>
 #include <functional>
 
 #include <nlohmann/json.hpp>
 
 #include "cellbench/daemon/config.hpp"
+#include "config_test_support.hpp"
 
 using namespace cellbench;
 using namespace cellbench::daemon;
+using namespace cellbench::testing;
 using nlohmann::json;
-namespace fs = std::filesystem;
 
 namespace {
 
-const fs::path kConfigDir = fs::path(CELLBENCH_SOURCE_DIR) / "config";
-
-json sim_document() {
-    std::ifstream in(kConfigDir / "bench.sim.json");
-    return json::parse(in);
-}
+json sim_document() { return read_json(kConfigDir / "bench.sim.json"); }
 
 BenchConfig parse(const json& j) { return parse_bench_config_text(j.dump(), "bench.json", kConfigDir); }
-
-std::vector<ConfigIssue> issues_of(const json& j) {
-    try {
-        parse(j);
-    } catch (const ConfigError& e) {
-        return e.issues();
-    }
-    ADD_FAILURE() << "expected a ConfigError";
-    return {};
-}
-
-bool has_issue(const std::vector<ConfigIssue>& issues, const std::string& path, const std::string& words = "") {
-    for (const auto& i : issues)
-        if (i.path == path && i.message.find(words) != std::string::npos) return true;
-    return false;
-}
 
 }  // namespace
 
@@ -87,7 +66,7 @@ TEST(FaultPolicyConfig, EveryProblemIsReportedAtOnce) {
         {"chamber", {{"exception_response", "ignore"}, {"setpoint_not_reached", true}, {"retries", -1}}},
         {"daq", {{"grace_s", 1.0}, {"loss_interval", 3}}},
         {"dewe", {}}};
-    const auto issues = issues_of(j);
+    const auto issues = issues_of([&] { parse(j); });
     EXPECT_TRUE(has_issue(issues, "$.fault_policy.cycler.grace_s", "number > 0"));
     EXPECT_TRUE(has_issue(issues, "$.fault_policy.cycler", "reconnect_initial_ms <= reconnect_max_ms"));
     EXPECT_TRUE(has_issue(issues, "$.fault_policy.chamber.exception_response", "\"reconnect\" or \"abort\""));

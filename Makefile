@@ -14,7 +14,7 @@ DEBS := cmake g++ make pkg-config \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
         python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver clang libclang-rt-dev
 
-.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz soak
+.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz fuzz-configure soak
 
 all: build
 
@@ -70,9 +70,14 @@ run: build
 	echo "API $$url/api/v1 (token $$tok), database $$db, daemon log $(OUT)/cellbenchd.log"; \
 	kill -TERM $$pid; wait $$pid; trap - EXIT; echo "cellbenchd stopped (SIGTERM)"
 
-test: build
-	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) --timeout 600
-	@$(MAKE) --no-print-directory fuzz
+# The fuzz targets compile (one job, clang, $(FUZZ_BUILD).build.log) while the tests run: the HIL tests leave
+# CPU idle waiting on the simulated bench, and the fuzz build no longer adds its two minutes at the end.
+test: build fuzz-configure
+	@( cmake --build $(FUZZ_BUILD) -j1 > $(FUZZ_BUILD).build.log 2>&1 ) & fuzz_build=$$!; \
+	  ( cd $(BUILD) && ctest --output-on-failure -j$(JOBS) --timeout 600 ); tests=$$?; \
+	  wait $$fuzz_build || { tail -40 $(FUZZ_BUILD).build.log; echo "fuzz build failed: $(FUZZ_BUILD).build.log"; exit 1; }; \
+	  exit $$tests
+	cd $(FUZZ_BUILD) && ctest --output-on-failure -j$(JOBS) -L fuzz
 
 # libFuzzer targets (tests/fuzz/: instrument frames, recordings, configs, HTTP requests) under ASan + UBSan, in
 # a clang build of just the code they test; each runs FUZZ_SECONDS from its seed corpus, a crash fails.
@@ -80,9 +85,11 @@ test: build
 FUZZ_BUILD   ?= $(BUILD)-fuzz
 FUZZ_SECONDS ?= 5
 FUZZ_OPT     ?= -O0
-fuzz: deps
+fuzz-configure: deps
 	@cmake -S . -B $(FUZZ_BUILD) -DCELLBENCH_FUZZ_ONLY=ON -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=Debug \
 	  -DCELLBENCH_FUZZ_SECONDS=$(FUZZ_SECONDS) -DCELLBENCH_FUZZ_OPT=$(FUZZ_OPT) > $(FUZZ_BUILD).configure.log 2>&1 || (cat $(FUZZ_BUILD).configure.log; exit 1)
+
+fuzz: fuzz-configure
 	cmake --build $(FUZZ_BUILD) -j$(JOBS)
 	cd $(FUZZ_BUILD) && ctest --output-on-failure -j$(JOBS) -L fuzz
 

@@ -449,6 +449,11 @@ struct BenchDaemon::Impl {
     void bench_event(EventLevel level, const std::string& kind, const std::string& message, json detail = nullptr,
                      std::optional<RunId> run = std::nullopt) {
         if (!store) return;
+        store_event(event_record(run, level, kind, message, std::move(detail)));
+    }
+
+    static EventRecord event_record(std::optional<RunId> run, EventLevel level, const std::string& kind,
+                                    const std::string& message, json detail) {
         EventRecord e;
         e.run_id = run;
         e.unix_s = unix_now_s();
@@ -456,6 +461,11 @@ struct BenchDaemon::Impl {
         e.kind = kind;
         e.message = message;
         e.detail = std::move(detail);
+        return e;
+    }
+
+    // An event the store refuses (full, locked) is logged, never thrown into the caller's path.
+    void store_event(const EventRecord& e) {
         try {
             store->record_event(e);
         } catch (const std::exception& ex) {
@@ -490,13 +500,7 @@ struct BenchDaemon::Impl {
     void record_run_event(std::optional<RunId> run, EventLevel level, const std::string& kind, const std::string& message,
                           json detail) {
         if (!store) return;
-        EventRecord e;
-        e.run_id = run;
-        e.unix_s = unix_now_s();
-        e.level = level;
-        e.kind = kind;
-        e.message = message;
-        e.detail = std::move(detail);
+        EventRecord e = event_record(run, level, kind, message, std::move(detail));
         if (run) {
             if (auto c = current(); c && c->id == *run) {
                 e.t_s = c->rel(now_s());
@@ -504,11 +508,7 @@ struct BenchDaemon::Impl {
                 if (c->open_step) e.step = c->open_step->index;
             }
         }
-        try {
-            store->record_event(e);
-        } catch (const std::exception& ex) {
-            spdlog::warn("cannot record event: {}", ex.what());
-        }
+        store_event(e);
     }
 
     void fault(const std::string& key, const std::string& kind, const std::string& message, bool fatal, json extra = nullptr) {

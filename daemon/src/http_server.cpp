@@ -449,10 +449,8 @@ private:
         return std::nullopt;
     }
 
-    // POST /runs/{id}/diagnose {"params": NAME, "effects": [...]?}
-    Reply diagnose_run(RunId id) {
-        const std::string example = R"(expected a JSON object like {"params": "p45b-thesis"} or {"params": "run"})";
-        nlohmann::json body;
+    // The request body as a JSON object into `body`, else the 400 reply saying what was expected (`example`).
+    std::optional<Reply> json_object_body(const std::string& example, nlohmann::json& body) {
         try {
             body = nlohmann::json::parse(req_.body());
         } catch (const nlohmann::json::parse_error& e) {
@@ -461,6 +459,14 @@ private:
                                              : "invalid JSON at byte " + std::to_string(e.byte) + ": " + example);
         }
         if (!body.is_object()) return error(http::status::bad_request, "request body: " + example);
+        return std::nullopt;
+    }
+
+    // POST /runs/{id}/diagnose {"params": NAME, "effects": [...]?}
+    Reply diagnose_run(RunId id) {
+        const std::string example = R"(expected a JSON object like {"params": "p45b-thesis"} or {"params": "run"})";
+        nlohmann::json body;
+        if (auto bad = json_object_body(example, body)) return std::move(*bad);
         DiagnoseRequest dr;
         const auto p = body.find("params");
         if (p == body.end() || !p->is_string())
@@ -521,14 +527,7 @@ private:
     Reply start_run() {
         const std::string example = R"(expected a JSON object like {"program": "hppc", "cell": "p45b"})";
         nlohmann::json body;
-        try {
-            body = nlohmann::json::parse(req_.body());
-        } catch (const nlohmann::json::parse_error& e) {
-            return error(http::status::bad_request,
-                         req_.body().empty() ? "empty request body: " + example
-                                             : "invalid JSON at byte " + std::to_string(e.byte) + ": " + example);
-        }
-        if (!body.is_object()) return error(http::status::bad_request, "request body: " + example);
+        if (auto bad = json_object_body(example, body)) return std::move(*bad);
         StartRequest sr;
         for (const auto& [key, out] : {std::pair<const char*, std::string*>{"program", &sr.program},
                                        std::pair<const char*, std::string*>{"cell", &sr.cell}}) {

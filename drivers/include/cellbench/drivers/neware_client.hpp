@@ -88,10 +88,10 @@ struct NewareEvent {
 struct NewareCommandResult {
     bool ok = false;
     std::string error;  // empty when ok
+    std::vector<protocol::neware::ChannelResult> channels;
     // The command never left this client (not connected, or the tester busy with other requests until the
     // timeout): the tester cannot have acted on it, so sending it again is safe. After a lost answer it may have.
     bool never_sent = false;
-    std::vector<protocol::neware::ChannelResult> channels;
 };
 
 class NewareClient {

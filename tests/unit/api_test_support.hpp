@@ -23,6 +23,8 @@
 #include <utility>
 #include <vector>
 
+#include <gtest/gtest.h>
+
 #include <boost/asio/executor_work_guard.hpp>
 #include <boost/asio/io_context.hpp>
 #include <boost/beast/core.hpp>
@@ -373,5 +375,34 @@ inline Response request(std::uint16_t port, http::verb method, const std::string
 }
 
 inline json body_json(const Response& r) { return json::parse(r.body()); }
+
+// A request as a client sends it, for the socket-free handler (http_handler.hpp): host, the bearer token
+// when one is given, the body with its content type.
+inline http::request<http::string_body> handler_request(http::verb method, const std::string& target,
+                                                        const std::string& body = "", const std::string& token = "",
+                                                        const char* content_type = "application/json") {
+    http::request<http::string_body> r{method, target, 11};
+    r.set(http::field::host, "127.0.0.1");
+    if (!token.empty()) r.set(http::field::authorization, "Bearer " + token);
+    if (!body.empty()) {
+        r.set(http::field::content_type, content_type);
+        r.body() = body;
+    }
+    r.prepare_payload();
+    return r;
+}
+
+// Every error is JSON {"error": "..."} with a non-empty message, with this status.
+inline ::testing::AssertionResult is_json_error(const Response& r, unsigned status) {
+    if (r.result_int() != status)
+        return ::testing::AssertionFailure() << "status " << r.result_int() << ", expected " << status << ": " << r.body();
+    if (r[http::field::content_type] != "application/json")
+        return ::testing::AssertionFailure() << "content type " << r[http::field::content_type];
+    const auto j = json::parse(r.body(), nullptr, false);
+    if (j.is_discarded()) return ::testing::AssertionFailure() << "not JSON: " << r.body();
+    if (!j.is_object() || !j.contains("error") || !j["error"].is_string() || j["error"].get<std::string>().empty())
+        return ::testing::AssertionFailure() << "no error message: " << r.body();
+    return ::testing::AssertionSuccess();
+}
 
 }  // namespace cellbench::testing

@@ -26,22 +26,6 @@ HttpServerOptions with_token() {
     return o;
 }
 
-// Every error is JSON {"error": "..."} with a non-empty message.
-::testing::AssertionResult is_json_error(const Response& r, unsigned status) {
-    if (r.result_int() != status)
-        return ::testing::AssertionFailure() << "status " << r.result_int() << ", expected " << status << ": " << r.body();
-    if (r[http::field::content_type] != "application/json")
-        return ::testing::AssertionFailure() << "content type " << r[http::field::content_type];
-    try {
-        const auto j = json::parse(r.body());
-        if (!j.is_object() || !j.contains("error") || !j["error"].is_string() || j["error"].get<std::string>().empty())
-            return ::testing::AssertionFailure() << "no error message: " << r.body();
-    } catch (const std::exception& e) {
-        return ::testing::AssertionFailure() << "not JSON: " << r.body();
-    }
-    return ::testing::AssertionSuccess();
-}
-
 std::string error_of(const Response& r) { return body_json(r).at("error").get<std::string>(); }
 
 }  // namespace

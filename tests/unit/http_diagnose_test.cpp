@@ -49,15 +49,7 @@ public:
 
 HttpRequest req(verb method, const std::string& target, const std::string& body = "", bool auth = false,
                 const char* type = "application/json") {
-    HttpRequest r{method, target, 11};
-    r.set(http::field::host, "127.0.0.1");
-    if (auth) r.set(http::field::authorization, "Bearer " + kToken);
-    if (!body.empty()) {
-        r.set(http::field::content_type, type);
-        r.body() = body;
-    }
-    r.prepare_payload();
-    return r;
+    return handler_request(method, target, body, auth ? kToken : "", type);
 }
 
 HttpServerOptions opts() {
@@ -66,17 +58,6 @@ HttpServerOptions opts() {
     return o;
 }
 
-// A JSON error body with this status.
-::testing::AssertionResult json_error(const HttpResponse& r, unsigned status) {
-    if (r.result_int() != status)
-        return ::testing::AssertionFailure() << "status " << r.result_int() << ", expected " << status << ": " << r.body();
-    const auto j = json::parse(r.body(), nullptr, false);
-    if (!j.is_object() || !j.contains("error") || !j["error"].is_string() || j["error"].get<std::string>().empty())
-        return ::testing::AssertionFailure() << "not a JSON error: " << r.body();
-    if (r[http::field::content_type] != "application/json")
-        return ::testing::AssertionFailure() << "content type " << r[http::field::content_type];
-    return ::testing::AssertionSuccess();
-}
 
 }  // namespace
 
@@ -84,12 +65,12 @@ TEST(HttpDiagnose, RunDiagnosisNeedsTheToken) {
     DiagnoseBackend be;
     const std::string body = R"({"params": "p45b-thesis"})";
     auto r = handle_http_request(req(verb::post, "/api/v1/runs/1/diagnose", body), be, opts());
-    EXPECT_TRUE(json_error(r, 401));
+    EXPECT_TRUE(is_json_error(r, 401));
     EXPECT_FALSE(r[http::field::www_authenticate].empty());
     HttpRequest wrong = req(verb::post, "/api/v1/runs/1/diagnose", body);
     wrong.set(http::field::authorization, "Bearer not-the-token");
-    EXPECT_TRUE(json_error(handle_http_request(wrong, be, opts()), 401));
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::post, "/api/v1/runs/1/diagnose", body, true), be, HttpServerOptions{}), 403));
+    EXPECT_TRUE(is_json_error(handle_http_request(wrong, be, opts()), 401));
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::post, "/api/v1/runs/1/diagnose", body, true), be, HttpServerOptions{}), 403));
     EXPECT_EQ(be.run_calls, 0);
 
     r = handle_http_request(req(verb::post, "/api/v1/runs/1/diagnose", body, true), be, opts());
@@ -100,7 +81,7 @@ TEST(HttpDiagnose, RunDiagnosisNeedsTheToken) {
     EXPECT_EQ(be.last->params, "p45b-thesis");
     EXPECT_TRUE(be.last->effects.empty());
     // GET is not the way to start one.
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::get, "/api/v1/runs/1/diagnose"), be, opts()), 405));
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::get, "/api/v1/runs/1/diagnose"), be, opts()), 405));
 }
 
 TEST(HttpDiagnose, RunDiagnosisValidatesTheRunAndTheBody) {
@@ -108,9 +89,9 @@ TEST(HttpDiagnose, RunDiagnosisValidatesTheRunAndTheBody) {
     const auto post = [&](const std::string& target, const std::string& body) {
         return handle_http_request(req(verb::post, target, body, true), be, opts());
     };
-    EXPECT_TRUE(json_error(post("/api/v1/runs/99/diagnose", R"({"params": "p45b-thesis"})"), 404));
-    EXPECT_TRUE(json_error(post("/api/v1/runs/abc/diagnose", R"({"params": "p45b-thesis"})"), 404));
-    EXPECT_TRUE(json_error(post("/api/v1/runs/1/diagnose", R"({"params": "nope"})"), 400));
+    EXPECT_TRUE(is_json_error(post("/api/v1/runs/99/diagnose", R"({"params": "p45b-thesis"})"), 404));
+    EXPECT_TRUE(is_json_error(post("/api/v1/runs/abc/diagnose", R"({"params": "p45b-thesis"})"), 404));
+    EXPECT_TRUE(is_json_error(post("/api/v1/runs/1/diagnose", R"({"params": "nope"})"), 400));
     const int calls = be.run_calls;
     for (const std::string& bad : {std::string(""), std::string("{"), std::string("[1]"), std::string("{}"),
                                   std::string(R"({"params": 3})"), std::string(R"({"params": ""})"),
@@ -118,7 +99,7 @@ TEST(HttpDiagnose, RunDiagnosisValidatesTheRunAndTheBody) {
                                   std::string(R"({"params": "p45b-thesis", "effects": "ocv_hysteresis"})"),
                                   std::string(R"({"params": "p45b-thesis", "effects": [1]})"),
                                   std::string(R"({"params": "p45b-thesis", "effects": ["a/b"]})")})
-        EXPECT_TRUE(json_error(post("/api/v1/runs/1/diagnose", bad), 400)) << bad;
+        EXPECT_TRUE(is_json_error(post("/api/v1/runs/1/diagnose", bad), 400)) << bad;
     EXPECT_EQ(be.run_calls, calls) << "malformed bodies never reach the backend";
 
     const auto r = post("/api/v1/runs/1/diagnose", R"({"params": "run", "effects": ["ocv_hysteresis", "extra_rc"]})");
@@ -133,17 +114,17 @@ TEST(HttpDiagnose, UploadValidatesTokenParamsAndBody) {
     const auto post = [&](const std::string& target, const std::string& body, bool auth = true) {
         return handle_http_request(req(verb::post, target, body, auth, "text/csv"), be, opts());
     };
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose?params=p45b-thesis", kCsv, false), 401));
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose", kCsv), 400)) << "params missing";
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose?params=", kCsv), 400));
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose?params=..%2Fx", kCsv), 400));
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose?params=run", kCsv), 400)) << "an upload has no fitted set";
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose?params=%zz", kCsv), 400));
-    EXPECT_TRUE(json_error(post("/api/v1/diagnose?params=p45b-thesis", ""), 400)) << "empty body";
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::get, "/api/v1/diagnose"), be, opts()), 405));
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose?params=p45b-thesis", kCsv, false), 401));
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose", kCsv), 400)) << "params missing";
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose?params=", kCsv), 400));
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose?params=..%2Fx", kCsv), 400));
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose?params=run", kCsv), 400)) << "an upload has no fitted set";
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose?params=%zz", kCsv), 400));
+    EXPECT_TRUE(is_json_error(post("/api/v1/diagnose?params=p45b-thesis", ""), 400)) << "empty body";
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::get, "/api/v1/diagnose"), be, opts()), 405));
     HttpServerOptions small = opts();
     small.max_upload_bytes = 16;
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::post, "/api/v1/diagnose?params=p45b-thesis", kCsv, true, "text/csv"), be, small), 413));
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::post, "/api/v1/diagnose?params=p45b-thesis", kCsv, true, "text/csv"), be, small), 413));
     EXPECT_EQ(be.upload_calls, 0);
 
     const auto r = post("/api/v1/diagnose?params=p45b-thesis&effects=extra_rc,ocv_hysteresis&name=drive.bdf.csv", kCsv);
@@ -161,9 +142,9 @@ TEST(HttpDiagnose, JobsAndCellsAreReadsWithoutToken) {
     auto r = handle_http_request(req(verb::get, "/api/v1/diagnoses/7"), be, opts());
     ASSERT_EQ(r.result_int(), 200u) << r.body();
     EXPECT_EQ(json::parse(r.body())["state"], "done");
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::get, "/api/v1/diagnoses/8"), be, opts()), 404));
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::get, "/api/v1/diagnoses/x"), be, opts()), 404));
-    EXPECT_TRUE(json_error(handle_http_request(req(verb::post, "/api/v1/diagnoses/7", "{}", true), be, opts()), 405));
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::get, "/api/v1/diagnoses/8"), be, opts()), 404));
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::get, "/api/v1/diagnoses/x"), be, opts()), 404));
+    EXPECT_TRUE(is_json_error(handle_http_request(req(verb::post, "/api/v1/diagnoses/7", "{}", true), be, opts()), 405));
     r = handle_http_request(req(verb::get, "/api/v1/diagnoses"), be, opts());
     ASSERT_EQ(r.result_int(), 200u);
     EXPECT_TRUE(json::parse(r.body())["diagnoses"].is_array());

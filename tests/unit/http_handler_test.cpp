@@ -18,15 +18,7 @@ namespace {
 const std::string kToken = "handler-token";
 
 HttpRequest req(verb method, const std::string& target, const std::string& body = "", bool auth = false) {
-    HttpRequest r{method, target, 11};
-    r.set(http::field::host, "127.0.0.1");
-    if (auth) r.set(http::field::authorization, "Bearer " + kToken);
-    if (!body.empty()) {
-        r.set(http::field::content_type, "application/json");
-        r.body() = body;
-    }
-    r.prepare_payload();
-    return r;
+    return handler_request(method, target, body, auth ? kToken : "");
 }
 
 HttpServerOptions opts() {

@@ -31,16 +31,6 @@ nlohmann::json rc_json(const Rc2Params<double>& p) {
 
 nlohmann::json num_or_null(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
 
-// Row where SOC is 1: the end of the last CCCV charge before the first pulse set, else the start of the
-// recording (an HPPC recording starts fully charged, as Table 2.12's pulse part does).
-std::size_t full_charge_row(const RecordingSegments& seg) {
-    const std::size_t limit = seg.pulse_sets.empty() ? SIZE_MAX : seg.pulse_sets.front().rest_begin;
-    std::size_t anchor = 0;
-    for (const auto& ph : seg.phases)
-        if (ph.direction > 0 && ph.cv_tail && ph.end <= limit && ph.kind == PhaseKind::Charge) anchor = ph.end - 1;
-    return anchor;
-}
-
 }  // namespace
 
 std::vector<double> cumulative_charge_ah(const Recording& rec) {
@@ -96,8 +86,80 @@ ParameterSet assemble_parameter_set(const std::vector<PulseSetFit>& fits, const 
     return p;
 }
 
+namespace {
+
+// Row of a recording where SOC is 1: the end of the last CCCV charge before the first pulse (a current phase of
+// at most pulse_max_s) or, without pulses, before the first discharge; else the first row (a characterization
+// recording starts fully charged, as Table 2.12's pulse part and the USABC manual's test do).
+std::size_t anchor_row(const RecordingSegments& seg) {
+    std::size_t first_activity = SIZE_MAX;
+    for (const auto& ph : seg.phases)
+        if (ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse) {
+            first_activity = ph.begin;
+            break;
+        }
+    if (first_activity == SIZE_MAX)
+        for (const auto& ph : seg.phases)
+            if (ph.direction < 0) {
+                first_activity = ph.begin;
+                break;
+            }
+    std::size_t anchor = 0;
+    for (const auto& ph : seg.phases)
+        if (ph.direction > 0 && ph.cv_tail && ph.end <= first_activity && ph.kind == PhaseKind::Charge) anchor = ph.end - 1;
+    return anchor;
+}
+
+// A recording of a characterization test (SOC anchored at its full charge): pulse sets, or pulses between
+// several long rests.
+bool is_characterization(const RecordingSegments& seg) {
+    if (!seg.pulse_sets.empty()) return true;
+    std::size_t pulses = 0;
+    for (const auto& ph : seg.phases)
+        pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
+    return pulses >= 2 && seg.long_rests.size() >= 3;
+}
+
+// Starting values when no pulse set of the thesis' layout was found: OCV from the rests, R0 from the voltage
+// steps at current steps, polarization of typical proportions.
+ParameterSet generic_start(const std::vector<Recording>& recs, const std::vector<OcvPoint>& ocv, double cap,
+                           const CharacterizationOptions& options) {
+    std::vector<double> r0s;
+    for (const auto& rec : recs)
+        for (std::size_t k = 1; k < rec.size(); ++k) {
+            const double di = rec.current_a[k] - rec.current_a[k - 1];
+            if (std::abs(di) > 0.5 && std::abs(rec.current_a[k - 1]) < 0.05) {
+                const double r = (rec.voltage_v[k] - rec.voltage_v[k - 1]) / di;
+                if (std::isfinite(r) && r > 0) r0s.push_back(r);
+            }
+        }
+    double r0 = 0.05 / std::max(cap, 0.1);
+    if (!r0s.empty()) {
+        std::nth_element(r0s.begin(), r0s.begin() + static_cast<std::ptrdiff_t>(r0s.size() / 2), r0s.end());
+        r0 = r0s[r0s.size() / 2];
+    }
+    ParameterSet p;
+    p.cell = options.cell;
+    p.capacity_ah = cap;
+    for (const auto& pt : ocv) p.soc.push_back(pt.soc), p.ocv_v.push_back(pt.ocv_v);
+    for (auto* t : {&p.discharge, &p.charge})
+        for (std::size_t k = 0; k < p.soc.size(); ++k) {
+            t->r0_ohm.push_back(r0);
+            t->r1_ohm.push_back(0.3 * r0);
+            t->c1_f.push_back(3.0 / (0.3 * r0));
+            t->r2_ohm.push_back(0.4 * r0);
+            t->c2_f.push_back(60.0 / (0.4 * r0));
+        }
+    p.thermal.c_th_j_per_k = 1.0;
+    p.thermal.r_th_k_per_w = 1.0;
+    p.thermal.area_m2 = options.area_m2;
+    return p;
+}
+
+}  // namespace
+
 Characterization characterize(const std::vector<Recording>& recordings, const CharacterizationOptions& options) {
-    // Progress: segmenting up to 5 %, pulse sets to 85 % (most of the time), the thermal fits the rest.
+    // Progress: segmenting up to 5 %, pulse sets to 30 %, the global fit to 85 %, the thermal fits the rest.
     ProgressReporter progress(options.progress);
     progress(0.0, "segmenting");
     Characterization out;
@@ -108,42 +170,68 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
         segs.push_back(segment_recording(rec));
         throughput.push_back(cumulative_charge_ah(rec));
     }
+    std::vector<bool> characterization(recordings.size());
+    for (std::size_t r = 0; r < recordings.size(); ++r) characterization[r] = is_characterization(segs[r]);
+    if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; }))
+        throw InputError("characterization: no recording holds pulses between rests (an HPPC test): nothing to "
+                         "identify the resistances from");
 
-    // Capacity: the pilot discharge if any recording has one.
+    // Capacity: the pilot discharge if any recording has one; else a characterization test's own throughput from
+    // its full charge to the cut-off; else a full CC discharge handed in beside it; else the given value.
     for (std::size_t r = 0; r < recordings.size() && !std::isfinite(out.capacity.capacity_ah); ++r)
-        if (segs[r].pilot_discharge) {
+        if (segs[r].pilot_discharge)
             out.capacity = {-segs[r].pilot_discharge->charge_ah, "pilot discharge", recordings[r].source};
-        }
+    double v_floor = 1e9;  // the lowest voltage any recording reaches: the cut-off
+    for (const auto& rec : recordings)
+        for (double v : rec.voltage_v)
+            if (std::isfinite(v)) v_floor = std::min(v_floor, v);
     if (!std::isfinite(out.capacity.capacity_ah)) {
-        // An HPPC that runs from full charge to the cut-off has discharged the whole (pulse-interrupted) capacity.
         for (std::size_t r = 0; r < recordings.size(); ++r) {
-            if (segs[r].pulse_sets.empty() || segs[r].cc_discharges.empty()) continue;
+            if (!characterization[r] || segs[r].cc_discharges.empty()) continue;
             const auto& last = segs[r].cc_discharges.back();
-            if (last.voltage_end_v > 3.05) continue;
-            const std::size_t anchor = full_charge_row(segs[r]);
+            if (last.voltage_end_v > v_floor + 0.1) continue;
+            const std::size_t anchor = anchor_row(segs[r]);
             const auto& q = throughput[r];
-            out.capacity = {q[anchor] - q[last.end - 1], "HPPC throughput from full charge to cut-off",
+            out.capacity = {q[anchor] - q[last.end - 1], "throughput from full charge to the cut-off",
                             recordings[r].source};
-            out.warnings.push_back("no pilot discharge found: capacity taken from the HPPC's own throughput");
+            out.warnings.push_back("no pilot discharge found: capacity taken from " + recordings[r].source +
+                                   "'s own throughput from full charge to the cut-off");
             break;
         }
     }
     if (!std::isfinite(out.capacity.capacity_ah)) {
+        // A full CC discharge on its own: starts rested near the top, ends at the cut-off. Lowest rate wins.
+        double best_rate = 1e300;
+        for (std::size_t r = 0; r < recordings.size(); ++r) {
+            if (characterization[r]) continue;
+            for (const auto& ph : segs[r].cc_discharges) {
+                if (ph.voltage_end_v > v_floor + 0.1 || ph.duration_s < 1800) continue;
+                const bool rested_start = ph.begin == 0 || segs[r].phases[ph.index - 1].is_rest();
+                if (!rested_start || std::abs(ph.mean_current_a) >= best_rate) continue;
+                best_rate = std::abs(ph.mean_current_a);
+                out.capacity = {-ph.charge_ah, "full CC discharge at " + std::to_string(best_rate) + " A",
+                                recordings[r].source};
+            }
+        }
+    }
+    if (!std::isfinite(out.capacity.capacity_ah)) {
         if (options.fallback_capacity_ah <= 0)
-            throw InputError("characterization: no recording measures the capacity (no pilot discharge and no HPPC "
-                             "down to the cut-off)");
-        out.capacity = {options.fallback_capacity_ah, "fallback", "options"};
-        out.warnings.push_back("capacity not measured: using the given fallback");
+            throw InputError("characterization: no recording measures the capacity (no pilot discharge, no test "
+                             "from full charge to the cut-off, no full CC discharge): give it with --capacity-ah "
+                             "or in the cell config");
+        out.capacity = {options.fallback_capacity_ah, "given", options.fallback_capacity_source};
+        out.warnings.push_back("capacity not measured: using " + options.fallback_capacity_source);
     }
     const double cap = out.capacity.capacity_ah;
+    if (!(cap > 0) || !std::isfinite(cap)) throw InputError("characterization: the measured capacity is not positive");
 
-    // OCV points and pulse sets, SOC by Coulomb counting from the full charge.
+    // OCV points and SOC by Coulomb counting from the full charge, for the characterization tests.
     std::vector<std::vector<double>> soc_of_row(recordings.size());
     for (std::size_t r = 0; r < recordings.size(); ++r) {
-        if (segs[r].pulse_sets.empty()) continue;
+        if (!characterization[r]) continue;
         const auto& rec = recordings[r];
         const auto& q = throughput[r];
-        const std::size_t anchor = full_charge_row(segs[r]);
+        const std::size_t anchor = anchor_row(segs[r]);
         auto& soc = soc_of_row[r];
         soc.resize(rec.size());
         for (std::size_t k = 0; k < rec.size(); ++k) soc[k] = 1.0 + (q[k] - q[anchor]) / cap;
@@ -163,9 +251,12 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
         ocv.push_back(pt);
     }
     out.ocv_points = ocv;
+    if (ocv.size() < 2) throw InputError("characterization: fewer than two long rests (OCV points) found");
     std::vector<double> ocv_soc, ocv_v;
     for (const auto& pt : ocv) ocv_soc.push_back(pt.soc), ocv_v.push_back(pt.ocv_v);
 
+    // The thesis' per-pulse-set fits, where the recordings have its pulse sets (the reported comparison, and
+    // the global fit's starting point).
     struct Job {
         std::size_t r;
         const PulseSet* ps;
@@ -174,22 +265,19 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
     };
     std::vector<Job> jobs;
     for (std::size_t r = 0; r < recordings.size(); ++r) {
+        if (!characterization[r]) continue;
         for (const auto& ps : segs[r].pulse_sets) {
             const double s = soc_of_row[r][ps.pulse_begin > 0 ? ps.pulse_begin - 1 : 0];
             PulseFitOptions po;
-            if (ocv_soc.size() >= 2) {
-                const double h = 0.01;
-                po.docv_dah_v_per_ah =
-                    (interp_extrap(ocv_soc, ocv_v, s + h) - interp_extrap(ocv_soc, ocv_v, s - h)) / (2 * h) / cap;
-            }
+            const double h = 0.01;
+            po.docv_dah_v_per_ah =
+                (interp_extrap(ocv_soc, ocv_v, s + h) - interp_extrap(ocv_soc, ocv_v, s - h)) / (2 * h) / cap;
             // Extend the joint fit over the SOC step and the long rest after it, when the recording has them.
             const std::size_t idx = static_cast<std::size_t>(&ps - segs[r].pulse_sets.data());
             for (const auto& step : segs[r].soc_steps) {
                 if (step.pulse_set_index != idx || !step.followed_by_long_rest) continue;
                 for (const auto& lr : segs[r].long_rests)
                     if (lr.begin >= step.end && lr.begin <= step.end + 1) {
-                        // The first minutes of the rest hold the relaxation on the time scales a drive
-                        // profile excites; its end holds the relaxed OCV at the same SOC.
                         std::size_t e = lr.begin;
                         while (e < lr.end && recordings[r].time_s[e] - recordings[r].time_s[lr.begin] < kExtendedRestS)
                             ++e;
@@ -200,7 +288,6 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
             jobs.push_back({r, &ps, po, s});
         }
     }
-    // Pulse sets are independent: fit them on every core, keep the results in time order.
     std::vector<PulseSetFit> fits(jobs.size());
     std::atomic<std::size_t> next{0}, done{0};
     progress(0.05, "pulse sets 0/" + std::to_string(jobs.size()));
@@ -209,7 +296,7 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
             fits[j] = fit_pulse_set(recordings[jobs[j].r], *jobs[j].ps, jobs[j].po);
             fits[j].soc = jobs[j].soc;
             const std::size_t k = ++done;
-            progress(0.05 + 0.80 * static_cast<double>(k) / static_cast<double>(jobs.size()),
+            progress(0.05 + 0.25 * static_cast<double>(k) / static_cast<double>(jobs.size()),
                      "pulse sets " + std::to_string(k) + "/" + std::to_string(jobs.size()));
         }
     };
@@ -222,20 +309,74 @@ Characterization characterize(const std::vector<Recording>& recordings, const Ch
         for (auto& t : pool) t.join();
     }
     for (auto& f : fits) out.pulse_fits.push_back(std::move(f));
-    if (out.pulse_fits.empty()) throw InputError("characterization: no HPPC pulse set found in the recordings");
 
-    // Electrical tables first (the thermal fits need the model's heat generation), then the thermal part.
     ThermalCharacterization placeholder;
     placeholder.c_th_j_per_k = 1.0;
     placeholder.r_th_k_per_w = 1.0;
-    const ParameterSet electrical = assemble_parameter_set(out.pulse_fits, out.ocv_points, cap, placeholder, options);
+    ParameterSet electrical;
+    if (!out.pulse_fits.empty()) {
+        try {
+            out.per_pulse_set_params = assemble_parameter_set(out.pulse_fits, out.ocv_points, cap, placeholder, options);
+        } catch (const InputError& e) {
+            out.warnings.push_back(std::string("per-pulse-set tables not assembled: ") + e.what());
+        }
+    }
+    if (options.global_fit || !out.per_pulse_set_params) {
+        const ParameterSet start =
+            out.per_pulse_set_params ? *out.per_pulse_set_params : generic_start(recordings, out.ocv_points, cap, options);
+        std::vector<const Recording*> ptrs;
+        std::vector<std::vector<std::pair<std::size_t, std::size_t>>> rests;
+        for (std::size_t r = 0; r < recordings.size(); ++r) {
+            ptrs.push_back(&recordings[r]);
+            rests.emplace_back();
+            for (const auto& lr : segs[r].long_rests) rests.back().emplace_back(lr.begin, lr.end);
+        }
+        GlobalFitOptions go = options.global;
+        if (!std::isfinite(go.knot_spacing)) {
+            // Knots as far apart as the test's rest points (its SOC levels), between 5 % and 12.5 %: closer knots
+            // than the levels let OCV and resistance trade off along the SOC-step discharges between them.
+            std::vector<double> gaps;
+            for (std::size_t k = 1; k < ocv_soc.size(); ++k)
+                if (ocv_soc[k] - ocv_soc[k - 1] > 0.02) gaps.push_back(ocv_soc[k] - ocv_soc[k - 1]);
+            double g = 0.1;
+            if (!gaps.empty()) {
+                std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
+                g = gaps[gaps.size() / 2];
+            }
+            go.knot_spacing = std::clamp(std::round(g / 0.025) * 0.025, 0.05, 0.125);
+        }
+        go.progress = [&](double f, std::string_view stage) { progress(0.30 + 0.55 * f, stage); };
+        out.global = fit_global(ptrs, soc_of_row, rests, cap, start, go);
+        electrical = out.global->params;
+        electrical.cell = options.cell;
+        electrical.thermal.c_th_j_per_k = 1.0;
+        electrical.thermal.r_th_k_per_w = 1.0;
+        electrical.thermal.area_m2 = options.area_m2;
+        for (const auto& n : out.global->notes) out.warnings.push_back("global fit: " + n);
+        if (const auto flagged = out.global->flagged_count())
+            out.warnings.push_back("global fit: " + std::to_string(flagged) +
+                                   " table values flagged (implausible, uncertain or unidentified): see the summary");
+    } else {
+        electrical = *out.per_pulse_set_params;
+    }
+
     progress(0.85, "thermal parameters");
     out.thermal = fit_thermal_parameters(recordings, segs, soc_of_row, electrical, options);
     if (!std::isfinite(out.thermal.c_th_j_per_k) || !std::isfinite(out.thermal.r_th_k_per_w))
-        throw InputError("characterization: no recording measures the thermal parameters (surface temperature and "
-                         "heat flux during rests)");
+        throw InputError("characterization: no recording measures the thermal parameters (surface temperature, "
+                         "with heat flux or ambient)");
     for (const auto& n : out.thermal.notes) out.warnings.push_back(n);
-    out.params = assemble_parameter_set(out.pulse_fits, out.ocv_points, cap, out.thermal, options);
+    out.params = electrical;
+    out.params.thermal.c_th_j_per_k = out.thermal.c_th_j_per_k;
+    out.params.thermal.r_th_k_per_w = out.thermal.r_th_k_per_w;
+    out.params.thermal.area_m2 = options.area_m2;
+    out.params.thermal.ehc_soc = out.thermal.ehc_soc;
+    out.params.thermal.ehc_v_per_k = out.thermal.ehc_v_per_k;
+    out.params.validate("fitted parameter set");
+    if (out.per_pulse_set_params) {
+        out.per_pulse_set_params->thermal = out.params.thermal;
+        out.per_pulse_set_params->validate("per-pulse-set parameter set");
+    }
     progress(1.0, "done");
     return out;
 }
@@ -285,6 +426,7 @@ nlohmann::json Characterization::summary_json() const {
     j["thermal"]["c_th_j_per_k"] = thermal.c_th_j_per_k;
     j["thermal"]["r_th_k_per_w"] = thermal.r_th_k_per_w;
     j["thermal"]["r_th_method"] = thermal.r_th_method;
+    j["global"] = global ? global->to_json() : nlohmann::json(nullptr);
     j["warnings"] = warnings;
     return j;
 }

@@ -153,8 +153,33 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
             cth_source = recordings[r].source;
         }
     }
+    if (!std::isfinite(best_cth.c_th_j_per_k) && options.fallback_c_th_j_per_k <= 0) {
+        // No heat flux sensor: C_th and R_th together from the surface temperature alone, the first-order model
+        // driven by the measured heat generation (the ambient from its column, else the first reading).
+        std::vector<const Recording*> recs;
+        std::vector<std::vector<double>> rec_socs;
+        for (std::size_t r = 0; r < recordings.size(); ++r)
+            if (recordings[r].has_surface()) recs.push_back(&recordings[r]), rec_socs.push_back(socs[r]);
+        if (recs.empty()) return out;
+        const auto data = measured_heat_data(recs, electrical, rec_socs);
+        double best_r = kNaN;
+        auto rms_at = [&](double c) {
+            best_r = golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 0.2, 100.0, 30);
+            return measured_heat_temperature_rms(data, c, best_r);
+        };
+        const double c_th = golden_minimum(rms_at, 2.0, 5000.0, 30);
+        const double rms = rms_at(c_th);
+        out.c_th_j_per_k = c_th;
+        out.r_th_k_per_w = best_r;
+        out.r_th_method = "fitted with C_th from the surface temperature alone (no heat flux sensor): the first-order "
+                          "model driven by the measured heat I*(V - OCV) reproduces it";
+        out.details["temperature_only_fit"] = {{"c_th_j_per_k", c_th}, {"r_th_k_per_w", best_r},
+                                               {"temperature_rms_c", num(rms)}};
+        out.notes.push_back("no heat flux measured: C_th and R_th identified together from the surface temperature "
+                            "(temperature RMS " + std::to_string(rms) + " degC); dU/dT left out");
+        return out;
+    }
     if (!std::isfinite(best_cth.c_th_j_per_k)) {
-        if (options.fallback_c_th_j_per_k <= 0) return out;
         best_cth.c_th_j_per_k = options.fallback_c_th_j_per_k;
         out.notes.push_back("thermal capacity not measured (no rests with temperature and heat flux): fallback used");
     }

@@ -5,6 +5,7 @@
 // resistance). The same pieces serve the daemon's online fitting: it feeds fit_pulse_set() one pulse set at
 // a time and calls assemble_parameter_set() at the end of the run.
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -12,6 +13,7 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/params.hpp"
+#include "cellbench/estimator/global_fit.hpp"
 #include "cellbench/estimator/progress.hpp"
 #include "cellbench/estimator/pulse_fit.hpp"
 #include "cellbench/estimator/segment.hpp"
@@ -22,9 +24,14 @@ struct CharacterizationOptions {
     std::string cell = "Molicel INR-21700-P45B";
     double area_m2 = 5.311e-3;  // total surface of a 21700 cell: pi*d*L + 2*pi*(d/2)^2
     // Used only where no recording measures them.
-    double fallback_capacity_ah = 0.0;
+    double fallback_capacity_ah = 0.0;  // `fit --capacity-ah`, or the cell config's capacity
+    std::string fallback_capacity_source = "given capacity";
     double fallback_c_th_j_per_k = 0.0;
     double fallback_r_th_k_per_w = 0.0;
+    // The global identification (global_fit.hpp) gives the tables; false: the per-pulse-set assembly as before
+    // (kept as the reported comparison either way).
+    bool global_fit = true;
+    GlobalFitOptions global;
     // Progress of characterize() (segmenting, pulse set k of n, thermal parameters); empty = none.
     Progress progress;
 };
@@ -57,6 +64,8 @@ struct Characterization {
     CapacityMeasurement capacity;
     std::vector<OcvPoint> ocv_points;
     std::vector<PulseSetFit> pulse_fits;
+    std::optional<ParameterSet> per_pulse_set_params;  // the per-pulse-set assembly (comparison)
+    std::optional<GlobalFitResult> global;
     ThermalCharacterization thermal;
     std::vector<std::string> warnings;
 

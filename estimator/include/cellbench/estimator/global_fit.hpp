@@ -1,0 +1,102 @@
+#pragma once
+// One global identification of the electrical model from every characterization recording at once.
+//
+// The per-pulse-set fits (pulse_fit.hpp) see 70-100 s of data each and cannot tell a slow pair's time constant,
+// the OCV between rest points, or a temperature or current dependence; fitted independently per SOC level they
+// jump between neighbours. Here every stretch of every recording between two long rests (a "window": pulse sets,
+// SOC-step discharges, pilot and full discharges, charges) is simulated with the exact ZOH model of
+// electrical.hpp, and all windows are fitted together in one non-linear least-squares problem (Ceres):
+//
+//  - Parameters are values at SOC knots (uniform grid, `knot_spacing`) interpolated linearly, exactly as
+//    ParameterSet::rc_at and ocv_at interpolate them, so the fitted tables ARE the model that was fitted:
+//    per direction log R0, log R1, log tau1, log R2, log(tau2/tau1 - 1) (so 0 < tau1 < tau2 by construction,
+//    never by swapping), and OCV per knot.
+//  - Smoothness: a penalty on the second differences of every log-parameter along SOC (and a weak one on the
+//    OCV), its weight chosen by cross-validation over windows (fit on half the windows, predict the others).
+//  - Temperature dependence (Arrhenius on R0, R1, R2, as CellModel applies resistance_temperature) when the
+//    recordings span more than `min_temperature_span_k` of measured cell temperature, and current dependence
+//    of the polarization (asinh/Butler-Volmer, as CellModel applies resistance_current) when their currents
+//    span a ratio above `min_current_ratio`: both identified from characterization data alone.
+//  - A window that does not start rested on a known SOC (e.g. a CC discharge recorded on its own) gets its own
+//    initial SOC as a parameter.
+//  - Uncertainty of every value from the Jacobian at the optimum (ceres::Covariance), scaled by the residual
+//    variance and inflated for the residuals' lag-1 autocorrelation; values outside physical bounds, with an
+//    uncertainty above the value itself, or without data near their knot are flagged.
+//
+// Pure computation: no I/O.
+#include <cstddef>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/params.hpp"
+#include "cellbench/estimator/progress.hpp"
+
+namespace cellbench::estimator {
+
+struct GlobalFitOptions {
+    double knot_spacing = kNaN;  // SOC spacing of the table breakpoints (NaN: characterize() takes the test's SOC levels)
+    std::vector<double> smoothness_candidates = {30.0, 300.0, 3000.0, 30000.0};  // cross-validated
+    double smoothness = kNaN;                // given: no cross-validation
+    double ocv_smoothness = 0.05;            // relative weight of the OCV's second-difference penalty
+    double voltage_noise_v = 1e-3;           // residual scale (only the relative weights depend on it)
+    bool temperature_dependence = true;
+    bool current_dependence = true;
+    double min_temperature_span_k = 5.0;
+    double min_current_ratio = 2.5;
+    double long_rest_s = 600.0;              // windows break at rests at least this long
+    int max_iterations = 80;
+    bool compute_uncertainty = true;
+    Progress progress;
+};
+
+// A stretch of one recording fitted as one simulation from a rested state.
+struct GlobalWindow {
+    std::size_t recording = 0;
+    std::size_t begin = 0, end = 0;  // rows [begin, end)
+    bool rested_start = true;        // starts at the end of a long rest (RC voltages ~ 0, SOC known)
+    std::string kind;                // "pulses", "discharge", "charge", "mixed"
+    // Filled by the fit:
+    double soc_min = kNaN, soc_max = kNaN;
+    double soc_offset = 0.0;         // fitted initial-SOC correction (windows without a rested start)
+    double rms_v = kNaN;
+    std::size_t residuals = 0;
+};
+
+// One fitted table value with its uncertainty and flags ("implausible", "uncertain", "unidentified").
+struct FittedValue {
+    double value = kNaN, sd = kNaN;
+    std::vector<std::string> flags;
+};
+
+struct GlobalFitResult {
+    ParameterSet params;  // electrical part (soc, ocv_v, discharge, charge, reference temperature, extensions)
+    // Per knot, per direction: r0_ohm, r1_ohm, c1_f, r2_ohm, c2_f, tau1_s, tau2_s; and ocv_v.
+    std::vector<std::vector<FittedValue>> discharge, charge;  // [knot][quantity]
+    std::vector<FittedValue> ocv;
+    FittedValue activation_energy_j_per_mol, exchange_current_a;
+    double reference_current_a = kNaN;
+    bool temperature_dependence = false, current_dependence = false;
+    double smoothness = kNaN;
+    std::vector<std::pair<double, double>> cross_validation;  // (weight, held-out RMS V)
+    std::vector<GlobalWindow> windows;
+    double rms_v = kNaN;
+    double residual_autocorrelation = kNaN;
+    std::vector<std::string> notes;
+
+    static constexpr const char* kQuantities[7] = {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s"};
+    [[nodiscard]] nlohmann::json to_json() const;
+    [[nodiscard]] std::size_t flagged_count() const;
+};
+
+// soc_of_row: per recording, the Coulomb-counted SOC of every row (empty: the recording's windows get a fitted
+// initial SOC from `initial` below). `initial` provides starting values (and the OCV / SOC of unanchored
+// windows); its grid need not match. long_rest_ranges: per recording, the long rests [begin, end).
+GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
+                           const std::vector<std::vector<double>>& soc_of_row,
+                           const std::vector<std::vector<std::pair<std::size_t, std::size_t>>>& long_rest_ranges,
+                           double capacity_ah, const ParameterSet& initial, const GlobalFitOptions& options = {});
+
+}  // namespace cellbench::estimator

@@ -1,0 +1,770 @@
+#include "cellbench/estimator/global_fit.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <memory>
+#include <numeric>
+#include <thread>
+
+#include <ceres/ceres.h>
+#include <Eigen/Dense>
+
+#include "cellbench/estimator/electrical.hpp"
+
+namespace cellbench::estimator {
+
+namespace {
+
+constexpr double kGasConstantJPerMolK = 8.314462618;
+constexpr int kKnotSize = 11;        // 5 log-parameters per direction + OCV
+constexpr int kOcv = 10;
+constexpr double kEaScale = 1e4;
+constexpr double kOcvCurvatureScaleV = 0.01;
+
+// Physical plausibility (any Li-ion cell from coin to large pouch): outside these a value is flagged.
+constexpr double kRMinOhm = 2e-5, kRMaxOhm = 1.0;
+constexpr double kTau1MinS = 0.05, kTau1MaxS = 60.0, kTau2MinS = 1.0, kTau2MaxS = 5000.0;
+
+double scalar(double x) { return x; }
+template <typename J>
+double scalar(const J& x) { return x.a; }
+
+// asinh(x)/x for x >= 0 (ceres' Jet has no asinh), 1 at x = 0.
+template <typename T>
+T asinh_ratio(const T& x) {
+    using std::log;
+    using std::sqrt;
+    if (scalar(x) < 1e-4) return T(1.0) - x * x / 6.0;
+    return log(x + sqrt(x * x + 1.0)) / x;
+}
+
+// One tick of a window: the merged rows (t0, t1] with the mean current held, and the voltage measured at t1.
+struct Tick {
+    double dt_s = 0, current_a = 0;
+    double soc_start = 0, soc_end = 0;  // Coulomb-counted (before a window's fitted offset)
+    double temperature_c = 0;
+    double voltage_v = kNaN;            // NaN: no residual
+};
+
+struct WindowData {
+    std::vector<Tick> ticks;
+    int knot_lo = 0, knot_hi = 0;  // table indices the window touches
+    bool fit_offset = false;
+    std::size_t residuals = 0;
+};
+
+// The knot grid and the model options shared by every cost function.
+struct Grid {
+    double s0 = 0, ds = 0.05;
+    int n = 0;  // knots
+    double t_ref_k = 298.15;
+    double i_ref_a = 1.0;
+    bool temperature = false, current = false;
+    double sigma_v = 1e-3;
+    [[nodiscard]] double soc(int j) const { return s0 + ds * j; }
+};
+
+template <typename T>
+struct KnotValues {
+    T r0d, r1d, c1d, r2d, c2d, r0c, r1c, c1c, r2c, c2c, ocv;
+};
+
+template <typename T>
+KnotValues<T> knot_values(const T* p) {
+    using std::exp;
+    const T t1d = exp(p[2]), t2d = t1d * (1.0 + exp(p[4]));
+    const T t1c = exp(p[7]), t2c = t1c * (1.0 + exp(p[9]));
+    const T r1d = exp(p[1]), r2d = exp(p[3]), r1c = exp(p[6]), r2c = exp(p[8]);
+    return {exp(p[0]), r1d, t1d / r1d, r2d, t2d / r2d, exp(p[5]), r1c, t1c / r1c, r2c, t2c / r2c, p[kOcv]};
+}
+
+// Simulates one window; writes (V_model - V_measured) / sigma for every tick with a measured voltage.
+// knots[j] for j in [knot_lo, knot_hi] (absolute table indices), global = {Ea/1e4, log I0}.
+template <typename T>
+void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv, const T* ea_scaled,
+                     const T* log_i0, const T* offset,
+                     T* residuals, double* model_v = nullptr) {
+    using std::exp;
+    const int lo = w.knot_lo, hi = w.knot_hi;
+    // Linear interpolation inside [lo, hi] with hold outside (R, C) or linear extrapolation (OCV) at the
+    // table's ends, as ParameterSet does (the window's knot range covers its SOC unless it is a table end).
+    auto locate = [&](const T& soc, int& i, T& w_) {
+        const double s = scalar(soc);
+        int k = static_cast<int>(std::floor((s - g.s0) / g.ds));
+        k = std::clamp(k, lo, std::max(lo, hi - 1));
+        i = k;
+        w_ = (soc - g.soc(k)) / g.ds;
+    };
+    const T ea = *ea_scaled * kEaScale;
+    const T i0 = exp(*log_i0);
+    const T ref_ratio = asinh_ratio(T(g.i_ref_a) / (2.0 * i0));
+    T v1d(0.0), v2d(0.0), v1c(0.0), v2c(0.0);
+    std::size_t r = 0;
+    const T off = offset ? *offset : T(0.0);
+    for (std::size_t k = 0; k < w.ticks.size(); ++k) {
+        const Tick& tk = w.ticks[k];
+        const double i = tk.current_a;
+        T soc0 = tk.soc_start + off, soc1 = tk.soc_end + off;
+        int idx;
+        T wt;
+        locate(soc0, idx, wt);
+        T wr = wt;  // hold outside the table for R and C
+        if (scalar(wr) < 0) wr = T(0.0);
+        if (scalar(wr) > 1) wr = T(1.0);
+        if (lo == hi) wr = T(0.0);
+        const auto& a = kv[idx - lo];
+        const auto& b = kv[std::min(idx + 1, hi) - lo];
+        auto lerp = [&](const T& x, const T& y) { return x + wr * (y - x); };
+        T f_t(1.0), f_i(1.0);
+        if (g.temperature) f_t = exp(ea / kGasConstantJPerMolK * (1.0 / (tk.temperature_c + kZeroCelsiusK) - 1.0 / g.t_ref_k));
+        if (g.current) f_i = asinh_ratio(T(std::abs(i)) / (2.0 * i0)) / ref_ratio;
+        const T r0d = lerp(a.r0d, b.r0d) * f_t, r0c = lerp(a.r0c, b.r0c) * f_t;
+        if (tk.dt_s > 0) {
+            const T fr = f_t * f_i;  // C held: tau scales with R
+            const T r1d = lerp(a.r1d, b.r1d) * fr, r2d = lerp(a.r2d, b.r2d) * fr;
+            const T r1c = lerp(a.r1c, b.r1c) * fr, r2c = lerp(a.r2c, b.r2c) * fr;
+            const T t1d = r1d * lerp(a.c1d, b.c1d), t2d = r2d * lerp(a.c2d, b.c2d);
+            const T t1c = r1c * lerp(a.c1c, b.c1c), t2c = r2c * lerp(a.c2c, b.c2c);
+            const T id(discharge_part(i)), ic(charge_part(i));
+            v1d = rc_zoh_step(v1d, r1d, t1d, id, tk.dt_s);
+            v2d = rc_zoh_step(v2d, r2d, t2d, id, tk.dt_s);
+            v1c = rc_zoh_step(v1c, r1c, t1c, ic, tk.dt_s);
+            v2c = rc_zoh_step(v2c, r2c, t2c, ic, tk.dt_s);
+        }
+        int jo;
+        T wo;
+        locate(soc1, jo, wo);
+        if (lo == hi) wo = T(0.0);
+        const T ocv = kv[jo - lo].ocv + wo * (kv[std::min(jo + 1, hi) - lo].ocv - kv[jo - lo].ocv);
+        const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
+        if (model_v) model_v[k] = scalar(v);
+        if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
+    }
+}
+
+struct WindowCost {
+    const Grid* grid;
+    const WindowData* w;
+    template <typename T>
+    bool operator()(T const* const* p, T* residuals) const {
+        const int nk = w->knot_hi - w->knot_lo + 1;
+        std::vector<KnotValues<T>> kv;
+        kv.reserve(nk);
+        for (int j = 0; j < nk; ++j) kv.push_back(knot_values(p[j]));
+        simulate_window(*grid, *w, kv.data(), p[nk], p[nk + 1], w->fit_offset ? p[nk + 2] : nullptr, residuals);
+        return true;
+    }
+};
+
+// Second differences of the ten log-parameters (and the OCV) over three neighbouring knots, plus a weak first
+// difference that flattens knots no data reach.
+struct SmoothCost {
+    double weight, ocv_weight;
+    template <typename T>
+    bool operator()(const T* a, const T* b, const T* c, T* r) const {
+        for (int q = 0; q < 10; ++q) r[q] = weight * (a[q] - 2.0 * b[q] + c[q]);
+        r[10] = ocv_weight * (a[kOcv] - 2.0 * b[kOcv] + c[kOcv]) / kOcvCurvatureScaleV;
+        for (int q = 0; q < 10; ++q) r[11 + q] = 0.1 * weight * (c[q] - a[q]);
+        return true;
+    }
+};
+
+struct Builder {
+    Grid grid;
+    std::vector<WindowData> windows;
+    std::vector<std::array<double, kKnotSize>> knots;
+    double ea = 0.0, log_i0 = 0.0;  // Ea / 1e4 J/mol, log I0 (each its own block, held when not identified)
+    std::vector<double> offsets;  // one per window (used when fit_offset)
+    std::vector<std::unique_ptr<ceres::CostFunction>> window_costs;
+    std::vector<std::unique_ptr<ceres::CostFunction>> smooth_costs;
+    double smooth_weight = 1.0;
+
+    std::vector<double*> blocks_of(std::size_t w) {
+        std::vector<double*> b;
+        for (int j = windows[w].knot_lo; j <= windows[w].knot_hi; ++j) b.push_back(knots[j].data());
+        b.push_back(&ea);
+        b.push_back(&log_i0);
+        if (windows[w].fit_offset) b.push_back(&offsets[w]);
+        return b;
+    }
+
+    void make_costs() {
+        for (std::size_t w = 0; w < windows.size(); ++w) {
+            auto* c = new ceres::DynamicAutoDiffCostFunction<WindowCost, 12>(new WindowCost{&grid, &windows[w]});
+            for (int j = windows[w].knot_lo; j <= windows[w].knot_hi; ++j) c->AddParameterBlock(kKnotSize);
+            c->AddParameterBlock(1);
+            c->AddParameterBlock(1);
+            if (windows[w].fit_offset) c->AddParameterBlock(1);
+            c->SetNumResiduals(static_cast<int>(windows[w].residuals));
+            window_costs.emplace_back(c);
+        }
+    }
+
+    void make_smooth(double weight, double ocv_rel) {
+        smooth_costs.clear();
+        smooth_weight = weight;
+        for (int j = 1; j + 1 < grid.n; ++j)
+            smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<SmoothCost, 21, kKnotSize, kKnotSize, kKnotSize>(
+                new SmoothCost{std::sqrt(weight), std::sqrt(weight * ocv_rel)}));
+    }
+
+    // A problem over the windows in `use` (+ smoothness), parameters in this builder's arrays.
+    std::unique_ptr<ceres::Problem> problem(const std::vector<bool>& use) {
+        ceres::Problem::Options po;
+        po.cost_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+        auto p = std::make_unique<ceres::Problem>(po);
+        for (auto& k : knots) p->AddParameterBlock(k.data(), kKnotSize);
+        p->AddParameterBlock(&ea, 1);
+        p->AddParameterBlock(&log_i0, 1);
+        for (std::size_t w = 0; w < windows.size(); ++w)
+            if (use[w]) p->AddResidualBlock(window_costs[w].get(), nullptr, blocks_of(w));
+        for (int j = 1; j + 1 < grid.n; ++j)
+            p->AddResidualBlock(smooth_costs[j - 1].get(), nullptr, knots[j - 1].data(), knots[j].data(),
+                                knots[j + 1].data());
+        for (auto& k : knots) {
+            for (int q : {0, 1, 3, 5, 6, 8}) {
+                p->SetParameterLowerBound(k.data(), q, std::log(kRMinOhm * 0.5));
+                p->SetParameterUpperBound(k.data(), q, std::log(kRMaxOhm * 2));
+            }
+            for (int q : {2, 7}) {
+                p->SetParameterLowerBound(k.data(), q, std::log(kTau1MinS * 0.5));
+                p->SetParameterUpperBound(k.data(), q, std::log(kTau1MaxS * 2));
+            }
+            for (int q : {4, 9}) {
+                p->SetParameterLowerBound(k.data(), q, std::log(0.5));
+                p->SetParameterUpperBound(k.data(), q, std::log(5000.0));
+            }
+            p->SetParameterLowerBound(k.data(), kOcv, 0.5);
+            p->SetParameterUpperBound(k.data(), kOcv, 6.0);
+        }
+        if (grid.temperature) {
+            p->SetParameterLowerBound(&ea, 0, -2.0);
+            p->SetParameterUpperBound(&ea, 0, 15.0);
+        } else {
+            p->SetParameterBlockConstant(&ea);
+        }
+        if (grid.current) {
+            p->SetParameterLowerBound(&log_i0, 0, std::log(0.02 * grid.i_ref_a));
+            p->SetParameterUpperBound(&log_i0, 0, std::log(1000.0 * grid.i_ref_a));
+        } else {
+            p->SetParameterBlockConstant(&log_i0);
+        }
+        for (std::size_t w = 0; w < windows.size(); ++w)
+            if (use[w] && windows[w].fit_offset) {
+                p->SetParameterLowerBound(&offsets[w], 0, -0.3);
+                p->SetParameterUpperBound(&offsets[w], 0, 0.3);
+            }
+        return p;
+    }
+
+    double solve(ceres::Problem& p, int iterations) {
+        ceres::Solver::Options o;
+        o.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+        o.max_num_iterations = iterations;
+        o.num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+        o.function_tolerance = 1e-8;
+        o.parameter_tolerance = 1e-9;
+        o.logging_type = ceres::SILENT;
+        ceres::Solver::Summary s;
+        ceres::Solve(o, &p, &s);
+        return s.final_cost;
+    }
+
+    // Sum of squared normalized residuals and count over the windows in `which`.
+    std::pair<double, std::size_t> window_sse(const std::vector<std::size_t>& which) {
+        double sse = 0;
+        std::size_t n = 0;
+        for (std::size_t w : which) {
+            auto blocks = blocks_of(w);
+            std::vector<double> res(windows[w].residuals);
+            window_costs[w]->Evaluate(blocks.data(), res.data(), nullptr);
+            for (double r : res) sse += r * r;
+            n += res.size();
+        }
+        return {sse, n};
+    }
+};
+
+// Merges rows into ticks: a row joins the open tick while its current stays within the tick's mean (5 % or
+// 50 mA) and the tick is shorter than a fifth of the time since the current last changed (capped at 30 s), so
+// every transient keeps its fine sampling and long steady stretches cost few ticks. Exact under ZOH apart from
+// the SOC-dependence frozen over a tick.
+std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_t end, const std::vector<double>& soc,
+                             double t_ref_c) {
+    std::vector<Tick> ticks;
+    auto temp_at = [&](std::size_t k) {
+        if (rec.has_surface() && std::isfinite(rec.surface_c[k])) return rec.surface_c[k];
+        if (rec.has_ambient() && std::isfinite(rec.ambient_c[k])) return rec.ambient_c[k];
+        return t_ref_c;
+    };
+    Tick first;
+    first.soc_start = first.soc_end = soc[begin];
+    first.temperature_c = temp_at(begin);
+    first.current_a = rec.current_a[begin];
+    first.voltage_v = rec.voltage_v[begin];
+    ticks.push_back(first);
+    double t_change = rec.time_s[begin];
+    std::size_t k = begin + 1;
+    while (k < end) {
+        Tick tk;
+        tk.soc_start = soc[k - 1];
+        tk.temperature_c = temp_at(k - 1);
+        const double t0 = rec.time_s[k - 1];
+        double q = 0, span = 0;
+        std::size_t j = k;
+        const double i_first = rec.current_a[k];
+        if (std::abs(i_first - ticks.back().current_a) > std::max(0.05, 0.05 * std::abs(i_first))) t_change = t0;
+        for (; j < end; ++j) {
+            const double dt = rec.time_s[j] - rec.time_s[j - 1];
+            const double mean = span > 0 ? q / span : i_first;
+            if (j > k) {
+                if (std::abs(rec.current_a[j] - mean) > std::max(0.05, 0.05 * std::abs(mean))) break;
+                const double limit = std::min(30.0, 0.2 * (rec.time_s[j] - t_change));
+                if (span + dt > limit) break;
+                if (!std::isfinite(rec.voltage_v[j - 1])) {}  // a gap in voltage does not matter inside a tick
+            }
+            q += rec.current_a[j] * dt;
+            span += dt;
+        }
+        tk.dt_s = span;
+        tk.current_a = span > 0 ? q / span : rec.current_a[j - 1];
+        tk.soc_end = soc[j - 1];
+        tk.voltage_v = rec.voltage_v[j - 1];
+        ticks.push_back(tk);
+        k = j;
+    }
+    return ticks;
+}
+
+std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& initial, double capacity_ah) {
+    std::vector<double> soc(rec.size());
+    const double ohmic = ohmic_drop_v(initial.rc_at(0.5, -1), initial.rc_at(0.5, +1), rec.current_a[0]);
+    double s = initial.soc_from_ocv(rec.voltage_v[0] - ohmic);
+    soc[0] = s;
+    for (std::size_t k = 1; k < rec.size(); ++k) {
+        s += rec.current_a[k] * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0 / capacity_ah;
+        soc[k] = s;
+    }
+    return soc;
+}
+
+double median(std::vector<double> v) {
+    if (v.empty()) return kNaN;
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+}
+
+nlohmann::json num(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
+
+nlohmann::json value_json(const FittedValue& v) {
+    nlohmann::json j = {{"value", num(v.value)}, {"sd", num(v.sd)}};
+    if (!v.flags.empty()) j["flags"] = v.flags;
+    return j;
+}
+
+}  // namespace
+
+std::size_t GlobalFitResult::flagged_count() const {
+    std::size_t n = 0;
+    for (const auto* t : {&discharge, &charge})
+        for (const auto& k : *t)
+            for (const auto& v : k) n += !v.flags.empty();
+    for (const auto& v : ocv) n += !v.flags.empty();
+    return n;
+}
+
+nlohmann::json GlobalFitResult::to_json() const {
+    nlohmann::json j;
+    j["method"] = "global: every window between long rests simulated with the exact ZOH model, all fitted together; "
+                  "values at SOC knots, smoothness weight by cross-validation over windows";
+    j["smoothness"] = num(smoothness);
+    j["cross_validation"] = nlohmann::json::array();
+    for (const auto& [w, rms] : cross_validation) j["cross_validation"].push_back({{"weight", w}, {"held_out_rms_v", num(rms)}});
+    j["rms_v"] = num(rms_v);
+    j["residual_lag1_autocorrelation"] = num(residual_autocorrelation);
+    j["knots"] = nlohmann::json::array();
+    for (std::size_t k = 0; k < params.soc.size(); ++k) {
+        nlohmann::json e = {{"soc", params.soc[k]}};
+        e["ocv_v"] = ocv[k].value;
+        e["ocv_v_sd"] = num(ocv[k].sd);
+        nlohmann::json flags = nlohmann::json::object();
+        if (!ocv[k].flags.empty()) flags["ocv_v"] = ocv[k].flags;
+        for (int d = 0; d < 2; ++d) {
+            const auto& t = d ? charge[k] : discharge[k];
+            nlohmann::json dj;
+            for (int q = 0; q < 7; ++q) {
+                dj[kQuantities[q]] = num(t[q].value);
+                dj[std::string(kQuantities[q]) + "_sd"] = num(t[q].sd);
+                if (!t[q].flags.empty()) dj["flags"][kQuantities[q]] = t[q].flags;
+            }
+            e[d ? "charge" : "discharge"] = dj;
+        }
+        if (!flags.empty()) e["flags"] = flags;
+        j["knots"].push_back(e);
+    }
+    j["resistance_temperature"] = temperature_dependence
+                                      ? nlohmann::json{{"activation_energy_j_per_mol", value_json(activation_energy_j_per_mol)}}
+                                      : nlohmann::json(nullptr);
+    j["resistance_current"] = current_dependence
+                                  ? nlohmann::json{{"exchange_current_a", value_json(exchange_current_a)},
+                                                   {"reference_current_a", reference_current_a}}
+                                  : nlohmann::json(nullptr);
+    j["windows"] = nlohmann::json::array();
+    for (const auto& w : windows)
+        j["windows"].push_back({{"recording", w.recording}, {"begin", w.begin}, {"end", w.end}, {"kind", w.kind},
+                                {"soc_min", num(w.soc_min)}, {"soc_max", num(w.soc_max)},
+                                {"soc_offset", w.soc_offset}, {"rms_v", num(w.rms_v)}, {"residuals", w.residuals}});
+    j["notes"] = notes;
+    return j;
+}
+
+GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
+                           const std::vector<std::vector<double>>& soc_of_row,
+                           const std::vector<std::vector<std::pair<std::size_t, std::size_t>>>& long_rest_ranges,
+                           double capacity_ah, const ParameterSet& initial, const GlobalFitOptions& options) {
+    ProgressReporter progress(options.progress);
+    progress(0.0, "global fit: windows");
+    GlobalFitResult out;
+    if (!(capacity_ah > 0)) throw InputError("global fit: capacity must be positive");
+
+    // SOC of every row (Coulomb counting; unanchored recordings from their first rested voltage).
+    std::vector<std::vector<double>> socs(recordings.size());
+    std::vector<bool> anchored(recordings.size());
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        anchored[r] = r < soc_of_row.size() && soc_of_row[r].size() == recordings[r]->size();
+        socs[r] = anchored[r] ? soc_of_row[r] : soc_from_rest(*recordings[r], initial, capacity_ah);
+    }
+
+    // Reference temperature: median measured cell temperature of the windows with pulses (else all rows).
+    std::vector<double> temps;
+    for (const auto* rec : recordings)
+        for (std::size_t k = 0; k < rec->size(); k += 10)
+            if (rec->has_surface() && std::isfinite(rec->surface_c[k])) temps.push_back(rec->surface_c[k]);
+    const double t_ref_c = temps.empty() ? initial.reference_temperature_c : median(temps);
+
+    // Windows: from the end of one long rest to the end of the next.
+    Builder b;
+    struct Raw {
+        std::size_t r, begin, end;
+        bool rested;
+    };
+    std::vector<Raw> raw;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        const auto& rec = *recordings[r];
+        auto rests = r < long_rest_ranges.size() ? long_rest_ranges[r] : std::vector<std::pair<std::size_t, std::size_t>>{};
+        std::sort(rests.begin(), rests.end());
+        std::size_t start = 0;
+        bool rested = false;
+        if (!rests.empty() && rests.front().first == 0) {
+            start = rests.front().second - 1;
+            rested = true;
+            rests.erase(rests.begin());
+        }
+        for (const auto& [rb, re] : rests) {
+            raw.push_back({r, start, re, rested});
+            start = re - 1;
+            rested = true;
+        }
+        if (start + 2 < rec.size()) raw.push_back({r, start, rec.size(), rested});
+    }
+    double i_min = 1e300, i_max = 0;
+    std::vector<double> pulse_currents;
+    double charge_as = 0;
+    for (const auto& w : raw) {
+        const auto& rec = *recordings[w.r];
+        double moved = 0;
+        for (std::size_t k = w.begin + 1; k < w.end; ++k) {
+            const double i = rec.current_a[k], dt = rec.time_s[k] - rec.time_s[k - 1];
+            moved += std::abs(i) * dt;
+            if (i > 0.05) charge_as += i * dt;
+            if (std::abs(i) > 0.1) {
+                i_min = std::min(i_min, std::abs(i));
+                i_max = std::max(i_max, std::abs(i));
+                pulse_currents.push_back(std::abs(i));
+            }
+        }
+        if (moved < 1.0) continue;  // nothing happens in it
+        WindowData wd;
+        wd.fit_offset = !(anchored[w.r] && w.rested);
+        wd.ticks = make_ticks(rec, w.begin, w.end, socs[w.r], t_ref_c);
+        for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
+        if (wd.residuals < 5) continue;
+        GlobalWindow gw;
+        gw.recording = w.r;
+        gw.begin = w.begin;
+        gw.end = w.end;
+        gw.rested_start = w.rested;
+        double dis = 0, chg = 0, run = 0;
+        std::size_t pulses = 0;
+        gw.soc_min = 1e9, gw.soc_max = -1e9;
+        for (const auto& t : wd.ticks) {
+            gw.soc_min = std::min({gw.soc_min, t.soc_start, t.soc_end});
+            gw.soc_max = std::max({gw.soc_max, t.soc_start, t.soc_end});
+            (t.current_a < 0 ? dis : chg) += std::abs(t.current_a) * t.dt_s;
+            if (std::abs(t.current_a) > 0.05) {
+                run += t.dt_s;
+            } else {
+                pulses += run > 0 && run <= 60.0;  // a current phase of at most a minute between rests
+                run = 0;
+            }
+        }
+        gw.kind = pulses > 0 ? "pulses" : (chg > 3 * dis ? "charge" : (dis > 3 * chg ? "discharge" : "mixed"));
+        gw.residuals = wd.residuals;
+        b.windows.push_back(std::move(wd));
+        out.windows.push_back(gw);
+    }
+    if (b.windows.empty()) throw InputError("global fit: no current in any recording between its rests");
+
+    // Knot grid over the SOC the windows visit.
+    double s_lo = 1e9, s_hi = -1e9;
+    for (const auto& w : out.windows) s_lo = std::min(s_lo, w.soc_min), s_hi = std::max(s_hi, w.soc_max);
+    s_lo = std::clamp(s_lo, 0.0, 1.0), s_hi = std::clamp(s_hi, 0.0, 1.0);
+    const double ds = std::isfinite(options.knot_spacing) ? options.knot_spacing : 0.1;
+    int j_lo = static_cast<int>(std::floor(s_lo / ds + 1e-9)), j_hi = static_cast<int>(std::ceil(s_hi / ds - 1e-9));
+    j_hi = std::max(j_hi, j_lo + 2);
+    b.grid.s0 = j_lo * ds;
+    b.grid.ds = ds;
+    b.grid.n = j_hi - j_lo + 1;
+    b.grid.t_ref_k = t_ref_c + kZeroCelsiusK;
+    b.grid.sigma_v = options.voltage_noise_v;
+    b.grid.i_ref_a = pulse_currents.empty() ? 1.0 : median(pulse_currents);
+    double t_min = 1e9, t_max = -1e9;
+    for (const auto& w : b.windows)
+        for (const auto& t : w.ticks) t_min = std::min(t_min, t.temperature_c), t_max = std::max(t_max, t.temperature_c);
+    b.grid.temperature = options.temperature_dependence && t_max - t_min > options.min_temperature_span_k;
+    b.grid.current = options.current_dependence && i_max > options.min_current_ratio * i_min && i_min < 1e299;
+    out.temperature_dependence = b.grid.temperature;
+    out.current_dependence = b.grid.current;
+    out.reference_current_a = b.grid.i_ref_a;
+    for (std::size_t w = 0; w < b.windows.size(); ++w) {
+        auto& wd = b.windows[w];
+        if (wd.fit_offset) {
+            wd.knot_lo = 0, wd.knot_hi = b.grid.n - 1;
+        } else {
+            wd.knot_lo = std::clamp(static_cast<int>(std::floor((out.windows[w].soc_min - b.grid.s0) / ds)), 0, b.grid.n - 1);
+            wd.knot_hi = std::clamp(static_cast<int>(std::ceil((out.windows[w].soc_max - b.grid.s0) / ds)), 0, b.grid.n - 1);
+        }
+    }
+
+    // Starting values from the initial parameter set.
+    b.knots.resize(b.grid.n);
+    for (int j = 0; j < b.grid.n; ++j) {
+        const double s = b.grid.soc(j);
+        auto& k = b.knots[j];
+        for (int d = 0; d < 2; ++d) {
+            auto p = initial.rc_at(s, d ? +1 : -1);
+            const double r0 = std::clamp(p.r0_ohm, kRMinOhm, kRMaxOhm), r1 = std::clamp(p.r1_ohm, kRMinOhm, kRMaxOhm);
+            const double r2 = std::clamp(p.r2_ohm, kRMinOhm, kRMaxOhm);
+            const double t1 = std::clamp(p.tau1_s, 0.2, 20.0);
+            const double t2 = std::clamp(p.tau2_s, 3 * t1, 2000.0);
+            double* a = k.data() + 5 * d;
+            a[0] = std::log(r0), a[1] = std::log(r1), a[2] = std::log(t1), a[3] = std::log(r2),
+            a[4] = std::log(t2 / t1 - 1.0);
+        }
+        k[kOcv] = initial.ocv_at(s);
+    }
+    b.ea = b.grid.temperature ? 3.0 : 0.0;
+    b.log_i0 = std::log(b.grid.current ? 2.0 * b.grid.i_ref_a : 1e6);
+    b.offsets.assign(b.windows.size(), 0.0);
+    b.make_costs();
+    const auto start_knots = b.knots;
+    const double start_ea = b.ea, start_log_i0 = b.log_i0;
+
+    // Cross-validation of the smoothness weight: windows of pulses alternate between two folds by SOC.
+    std::vector<std::size_t> cv_windows;
+    for (std::size_t w = 0; w < b.windows.size(); ++w)
+        if (out.windows[w].kind == "pulses" && !b.windows[w].fit_offset) cv_windows.push_back(w);
+    std::sort(cv_windows.begin(), cv_windows.end(),
+              [&](std::size_t a, std::size_t c) { return out.windows[a].soc_min < out.windows[c].soc_min; });
+    const std::size_t n_candidates = options.smoothness_candidates.size();
+    double chosen = options.smoothness;
+    if (!std::isfinite(chosen)) {
+        if (cv_windows.size() >= 4 && n_candidates > 1) {
+            double best = 1e300;
+            for (std::size_t c = 0; c < n_candidates; ++c) {
+                const double weight = options.smoothness_candidates[c];
+                b.make_smooth(weight, options.ocv_smoothness);
+                double sse = 0;
+                std::size_t n = 0;
+                for (int fold = 0; fold < 2; ++fold) {
+                    progress(0.05 + 0.6 * (2.0 * c + fold) / (2.0 * n_candidates),
+                             "global fit: cross-validation " + std::to_string(2 * c + fold + 1) + "/" +
+                                 std::to_string(2 * n_candidates));
+                    std::vector<bool> use(b.windows.size(), true);
+                    std::vector<std::size_t> held;
+                    for (std::size_t i = 0; i < cv_windows.size(); ++i)
+                        if (static_cast<int>(i % 2) == fold) use[cv_windows[i]] = false, held.push_back(cv_windows[i]);
+                    b.knots = start_knots;
+                    b.ea = start_ea, b.log_i0 = start_log_i0;
+                    std::fill(b.offsets.begin(), b.offsets.end(), 0.0);
+                    auto p = b.problem(use);
+                    b.solve(*p, options.max_iterations / 2);
+                    const auto [s, m] = b.window_sse(held);
+                    sse += s, n += m;
+                }
+                const double rms = std::sqrt(sse / std::max<std::size_t>(n, 1)) * b.grid.sigma_v;
+                out.cross_validation.emplace_back(weight, rms);
+                if (rms < best) best = rms, chosen = weight;
+            }
+        } else {
+            chosen = options.smoothness_candidates.empty() ? 30.0 : options.smoothness_candidates[n_candidates / 2];
+            out.notes.push_back("fewer than four pulse windows: smoothness weight not cross-validated");
+        }
+    }
+    out.smoothness = chosen;
+
+    // The fit on every window.
+    progress(0.7, "global fit: all windows");
+    b.make_smooth(chosen, options.ocv_smoothness);
+    b.knots = start_knots;
+    b.ea = start_ea, b.log_i0 = start_log_i0;
+    std::fill(b.offsets.begin(), b.offsets.end(), 0.0);
+    std::vector<bool> all(b.windows.size(), true);
+    auto problem = b.problem(all);
+    b.solve(*problem, options.max_iterations);
+
+    // Residual statistics.
+    double sse = 0, lag = 0, var = 0;
+    std::size_t n_res = 0;
+    for (std::size_t w = 0; w < b.windows.size(); ++w) {
+        const auto [s, m] = b.window_sse({w});
+        out.windows[w].rms_v = std::sqrt(s / std::max<std::size_t>(m, 1)) * b.grid.sigma_v;
+        out.windows[w].soc_offset = b.offsets[w];
+        sse += s, n_res += m;
+        auto blocks = b.blocks_of(w);
+        std::vector<double> res(b.windows[w].residuals);
+        b.window_costs[w]->Evaluate(blocks.data(), res.data(), nullptr);
+        for (std::size_t i = 1; i < res.size(); ++i) lag += res[i] * res[i - 1], var += res[i] * res[i];
+    }
+    out.rms_v = std::sqrt(sse / std::max<std::size_t>(n_res, 1)) * b.grid.sigma_v;
+    const double rho = var > 0 ? std::clamp(lag / var, 0.0, 0.99) : 0.0;
+    out.residual_autocorrelation = var > 0 ? lag / var : kNaN;
+
+    // Uncertainty: (J'J)^-1 of the whole problem (smoothness included, as a prior), scaled by the residual
+    // variance and inflated by (1 + rho) / (1 - rho) for correlated residuals.
+    const int n_par = b.grid.n * kKnotSize + 2;
+    Eigen::MatrixXd cov = Eigen::MatrixXd::Constant(n_par, n_par, kNaN);
+    if (options.compute_uncertainty) {
+        progress(0.9, "global fit: uncertainty");
+        ceres::Problem::EvaluateOptions eo;
+        for (auto& k : b.knots) eo.parameter_blocks.push_back(k.data());
+        eo.parameter_blocks.push_back(&b.ea);
+        eo.parameter_blocks.push_back(&b.log_i0);
+        double cost = 0;
+        ceres::CRSMatrix jac;
+        problem->Evaluate(eo, &cost, nullptr, nullptr, &jac);
+        Eigen::MatrixXd jtj = Eigen::MatrixXd::Zero(n_par, n_par);
+        for (int row = 0; row < jac.num_rows; ++row)
+            for (int a = jac.rows[row]; a < jac.rows[row + 1]; ++a)
+                for (int c = jac.rows[row]; c < jac.rows[row + 1]; ++c)
+                    jtj(jac.cols[a], jac.cols[c]) += jac.values[a] * jac.values[c];
+        Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> es(jtj);
+        const auto& ev = es.eigenvalues();
+        const double tol = std::max(ev.maxCoeff(), 0.0) * 1e-12;
+        Eigen::VectorXd inv = ev.unaryExpr([&](double x) { return x > tol ? 1.0 / x : 0.0; });
+        cov = es.eigenvectors() * inv.asDiagonal() * es.eigenvectors().transpose();
+        const double dof = std::max<double>(static_cast<double>(n_res) - n_par, 1.0);
+        const double s2 = sse / dof * (1 + rho) / (1 - rho);
+        cov *= s2;
+        // Held blocks (constant global) have zero columns: NaN for them.
+        if (!b.grid.temperature) cov(n_par - 2, n_par - 2) = kNaN;
+        if (!b.grid.current) cov(n_par - 1, n_par - 1) = kNaN;
+    }
+    auto var_of = [&](int a, int c, double wa, double wc) {  // variance of wa*x_a + wc*x_c
+        return wa * wa * cov(a, a) + wc * wc * cov(c, c) + 2 * wa * wc * cov(a, c);
+    };
+
+    // Which knots have data of each direction nearby.
+    std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
+    for (std::size_t w = 0; w < b.windows.size(); ++w)
+        for (const auto& t : b.windows[w].ticks) {
+            const double s = t.soc_start + b.offsets[w];
+            const int j = static_cast<int>(std::round((s - b.grid.s0) / ds));
+            for (int jj : {j - 1, j, j + 1}) {
+                if (jj < 0 || jj >= b.grid.n || std::abs(s - b.grid.soc(jj)) > ds) continue;
+                support[jj][t.current_a < 0 ? 0 : 1] += std::abs(t.current_a) * t.dt_s;
+                support[jj][2] += 1;
+            }
+        }
+
+    // Parameter set and reported values.
+    ParameterSet& p = out.params;
+    p.capacity_ah = capacity_ah;
+    p.reference_temperature_c = t_ref_c;
+    const bool no_charge = charge_as < 1.0;
+    if (no_charge) out.notes.push_back("no charging current in the recordings: the charge direction is not identified "
+                                       "and takes the discharge values");
+    out.discharge.resize(b.grid.n);
+    out.charge.resize(b.grid.n);
+    for (int j = 0; j < b.grid.n; ++j) {
+        const auto& k = b.knots[j];
+        p.soc.push_back(b.grid.soc(j));
+        p.ocv_v.push_back(k[kOcv]);
+        const int base = j * kKnotSize;
+        FittedValue ocv{k[kOcv], std::sqrt(cov(base + kOcv, base + kOcv)), {}};
+        if (support[j][2] == 0) ocv.flags.push_back("unidentified");
+        if (!(ocv.value > 1.0 && ocv.value < 5.0)) ocv.flags.push_back("implausible");
+        out.ocv.push_back(ocv);
+        for (int d = 0; d < 2; ++d) {
+            const int src = (d == 1 && no_charge) ? 0 : d;
+            const double* a = k.data() + 5 * src;
+            const int o = base + 5 * src;
+            const double r0 = std::exp(a[0]), r1 = std::exp(a[1]), t1 = std::exp(a[2]), r2 = std::exp(a[3]);
+            const double t2 = t1 * (1 + std::exp(a[4]));
+            const double g4 = std::exp(a[4]) / (1 + std::exp(a[4]));  // d log tau2 / d a4
+            std::vector<FittedValue> v(7);
+            v[0] = {r0, r0 * std::sqrt(cov(o, o)), {}};
+            v[1] = {r1, r1 * std::sqrt(cov(o + 1, o + 1)), {}};
+            v[2] = {t1 / r1, t1 / r1 * std::sqrt(var_of(o + 2, o + 1, 1, -1)), {}};
+            v[3] = {r2, r2 * std::sqrt(cov(o + 3, o + 3)), {}};
+            const double var_lt2 = cov(o + 2, o + 2) + g4 * g4 * cov(o + 4, o + 4) + 2 * g4 * cov(o + 2, o + 4);
+            const double var_lc2 = var_lt2 + cov(o + 3, o + 3) - 2 * (cov(o + 2, o + 3) + g4 * cov(o + 4, o + 3));
+            v[4] = {t2 / r2, t2 / r2 * std::sqrt(std::max(var_lc2, 0.0)), {}};
+            v[5] = {t1, t1 * std::sqrt(cov(o + 2, o + 2)), {}};
+            v[6] = {t2, t2 * std::sqrt(std::max(var_lt2, 0.0)), {}};
+            const bool r_ok[7] = {r0 >= kRMinOhm && r0 <= kRMaxOhm, r1 >= kRMinOhm && r1 <= kRMaxOhm, true,
+                                  r2 >= kRMinOhm && r2 <= kRMaxOhm, true,
+                                  t1 >= kTau1MinS && t1 <= kTau1MaxS, t2 >= kTau2MinS && t2 <= kTau2MaxS};
+            const bool unidentified = (d == 1 && no_charge) || support[j][src] < 1.0;
+            for (int q = 0; q < 7; ++q) {
+                if (!r_ok[q]) v[q].flags.push_back("implausible");
+                if (std::isfinite(v[q].sd) && v[q].sd > v[q].value) v[q].flags.push_back("uncertain");
+                if (unidentified) v[q].flags.push_back("unidentified");
+            }
+            RcTable& t = d ? p.charge : p.discharge;
+            t.r0_ohm.push_back(r0), t.r1_ohm.push_back(r1), t.c1_f.push_back(t1 / r1), t.r2_ohm.push_back(r2),
+                t.c2_f.push_back(t2 / r2);
+            (d ? out.charge : out.discharge)[j] = std::move(v);
+        }
+    }
+    for (std::size_t j = 1; j < p.ocv_v.size(); ++j)
+        if (p.ocv_v[j] <= p.ocv_v[j - 1]) {
+            out.ocv[j].flags.push_back("implausible");
+            out.notes.push_back("fitted OCV not increasing at SOC " + std::to_string(p.soc[j]));
+        }
+    const int g0 = n_par - 2, g1 = n_par - 1;
+    if (b.grid.temperature) {
+        const double ea = b.ea * kEaScale;
+        out.activation_energy_j_per_mol = {ea, kEaScale * std::sqrt(cov(g0, g0)), {}};
+        if (ea < 0 || ea > 120e3) out.activation_energy_j_per_mol.flags.push_back("implausible");
+        if (ea > 0) p.extensions.resistance_temperature = ResistanceTemperatureExt{ea};
+    } else {
+        out.notes.push_back("the recordings' cell temperature spans less than " +
+                            std::to_string(options.min_temperature_span_k) +
+                            " K: temperature dependence of the resistances not identified");
+    }
+    if (b.grid.current) {
+        const double i0 = std::exp(b.log_i0);
+        out.exchange_current_a = {i0, i0 * std::sqrt(cov(g1, g1)), {}};
+        if (out.exchange_current_a.sd > i0) out.exchange_current_a.flags.push_back("uncertain");
+        if (i0 < 50.0 * b.grid.i_ref_a)  // above that the polarization is linear over the currents seen
+            p.extensions.resistance_current = ResistanceCurrentExt{i0, b.grid.i_ref_a};
+    } else {
+        out.notes.push_back("the recordings' currents span a ratio below " + std::to_string(options.min_current_ratio) +
+                            ": current dependence of the polarization not identified");
+    }
+    progress(1.0, "global fit: done");
+    return out;
+}
+
+}  // namespace cellbench::estimator

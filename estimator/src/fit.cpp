@@ -6,6 +6,7 @@
 #include <map>
 #include <thread>
 
+#include "cellbench/estimator/merge.hpp"
 #include "cellbench/estimator/thermal_characterization.hpp"
 
 namespace cellbench::estimator {
@@ -120,6 +121,59 @@ bool is_characterization(const RecordingSegments& seg) {
     return pulses >= 2 && seg.long_rests.size() >= 3;
 }
 
+double median_interval_s(const Recording& rec) {
+    std::vector<double> dt;
+    for (std::size_t k = 1; k < rec.size(); k += std::max<std::size_t>(1, rec.size() / 5000))
+        dt.push_back(rec.time_s[k] - rec.time_s[k - 1]);
+    if (dt.empty()) return kNaN;
+    std::nth_element(dt.begin(), dt.begin() + static_cast<std::ptrdiff_t>(dt.size() / 2), dt.end());
+    return dt[dt.size() / 2];
+}
+
+// Overlapping recordings of one test (the cycler's export of the whole test and a finer recording of part of
+// it): the finer one is spliced into the coarser one, as `cellbench import --neware X --bdf Y` does, so the
+// finest data serve once, the coarser only where they alone hold data, and any arrangement of the same files
+// gives the same recordings. Recognized by their current steps (at least 3, 80 % matched on one offset).
+std::vector<Recording> merge_overlapping(const std::vector<Recording>& in, std::vector<std::string>& notes) {
+    std::vector<Recording> recs = in;
+    // Deterministic whatever the order the files came in: longest first.
+    std::stable_sort(recs.begin(), recs.end(), [](const Recording& a, const Recording& b) {
+        const double da = a.time_s.back() - a.time_s.front(), db = b.time_s.back() - b.time_s.front();
+        return da != db ? da > db : a.size() > b.size();
+    });
+    bool merged = true;
+    while (merged) {
+        merged = false;
+        for (std::size_t i = 0; i < recs.size() && !merged; ++i)
+            for (std::size_t j = 0; j < recs.size() && !merged; ++j) {
+                if (i == j) continue;
+                const Recording& coarse = recs[i];
+                const Recording& fine = recs[j];
+                const double d_coarse = coarse.time_s.back() - coarse.time_s.front();
+                const double d_fine = fine.time_s.back() - fine.time_s.front();
+                if (d_fine > d_coarse || !(median_interval_s(fine) < median_interval_s(coarse))) continue;
+                CurrentAlignment al;
+                try {
+                    al = align_by_current(coarse, fine, d_coarse);
+                } catch (const InputError&) {
+                    continue;
+                }
+                if (al.edges_b < 3 || al.matched_edges * 5 < al.edges_b * 4) continue;
+                notes.push_back(fine.source + " and " + coarse.source + " record the same test (" +
+                                std::to_string(al.matched_edges) + " of " + std::to_string(al.edges_b) +
+                                " current steps at offset " + std::to_string(al.offset_s) +
+                                " s): spliced, the finer rows serve once");
+                Recording spliced = splice_recordings(coarse, fine, al.offset_s);
+                spliced.source = coarse.source + " + " + fine.source;
+                recs[i] = std::move(spliced);
+                recs.erase(recs.begin() + static_cast<std::ptrdiff_t>(j));
+                merged = true;
+            }
+    }
+    // The remaining order: characterization-like recordings first does not matter; keep a stable content order.
+    return recs;
+}
+
 // Starting values when no pulse set of the thesis' layout was found: OCV from the rests, R0 from the voltage
 // steps at current steps, polarization of typical proportions.
 ParameterSet generic_start(const std::vector<Recording>& recs, const std::vector<OcvPoint>& ocv, double cap,
@@ -158,11 +212,14 @@ ParameterSet generic_start(const std::vector<Recording>& recs, const std::vector
 
 }  // namespace
 
-Characterization characterize(const std::vector<Recording>& recordings, const CharacterizationOptions& options) {
+Characterization characterize(const std::vector<Recording>& given, const CharacterizationOptions& options) {
     // Progress: segmenting up to 5 %, pulse sets to 30 %, the global fit to 85 %, the thermal fits the rest.
     ProgressReporter progress(options.progress);
     progress(0.0, "segmenting");
     Characterization out;
+    for (const auto& rec : given)
+        if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");
+    const std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
     std::vector<RecordingSegments> segs;
     std::vector<std::vector<double>> throughput;
     for (const auto& rec : recordings) {

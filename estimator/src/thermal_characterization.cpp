@@ -164,10 +164,13 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         const auto data = measured_heat_data(recs, electrical, rec_socs);
         double best_r = kNaN;
         auto rms_at = [&](double c) {
-            best_r = golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 0.2, 100.0, 30);
+            best_r = golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 1.0, 40.0, 30);
             return measured_heat_temperature_rms(data, c, best_r);
         };
-        const double c_th = golden_minimum(rms_at, 2.0, 5000.0, 30);
+        // Weakly heated recordings cannot separate C_th from R_th: C_th is held within what a Li-ion cell of this
+        // capacity can have (about 1 kJ/(kg K) at 150-250 Wh/kg and ~3.6 V: 15-25 J/K per Ah; bounds x0.4..x2).
+        const double cap = electrical.capacity_ah;
+        const double c_th = golden_minimum(rms_at, 6.0 * cap, 50.0 * cap, 30);
         const double rms = rms_at(c_th);
         out.c_th_j_per_k = c_th;
         out.r_th_k_per_w = best_r;

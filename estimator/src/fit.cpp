@@ -400,7 +400,11 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
                 std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
                 g = gaps[gaps.size() / 2];
             }
-            go.knot_spacing = std::clamp(std::round(g / 0.025) * 0.025, 0.05, 0.125);
+            // the nearest spacing that divides [0, 1] into whole steps
+            double best = 0.1;
+            for (double c : {0.05, 1.0 / 15, 0.1, 0.125})
+                if (std::abs(std::log(c / g)) < std::abs(std::log(best / g))) best = c;
+            go.knot_spacing = best;
         }
         go.progress = [&](double f, std::string_view stage) { progress(0.30 + 0.55 * f, stage); };
         out.global = fit_global(ptrs, soc_of_row, rests, cap, start, go);

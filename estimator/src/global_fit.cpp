@@ -44,12 +44,14 @@ struct Tick {
     double soc_start = 0, soc_end = 0;  // Coulomb-counted (before a window's fitted offset)
     double temperature_c = 0;
     double voltage_v = kNaN;            // NaN: no residual
+    double weight = 1.0;                // of its residual
 };
 
 struct WindowData {
     std::vector<Tick> ticks;
     int knot_lo = 0, knot_hi = 0;  // table indices the window touches
     bool fit_offset = false;
+    bool low_rate = false;  // mean |I| of its current below C/5
     std::size_t residuals = 0;
 };
 
@@ -100,11 +102,14 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
     const T ref_ratio = asinh_ratio(T(g.i_ref_a) / (2.0 * i0));
     T v1d(0.0), v2d(0.0), v1c(0.0), v2c(0.0);
     std::size_t r = 0;
-    const T off = offset ? *offset : T(0.0);
+    // offset = {initial-SOC correction, log of the window's capacity scale}: SOC = s0 + off + g (s - s0)
+    const T off = offset ? offset[0] : T(0.0);
+    const T gain = offset ? exp(offset[1]) : T(1.0);
+    const double s_first = w.ticks.empty() ? 0.0 : w.ticks.front().soc_start;
     for (std::size_t k = 0; k < w.ticks.size(); ++k) {
         const Tick& tk = w.ticks[k];
         const double i = tk.current_a;
-        T soc0 = tk.soc_start + off, soc1 = tk.soc_end + off;
+        T soc0 = s_first + off + gain * (tk.soc_start - s_first), soc1 = s_first + off + gain * (tk.soc_end - s_first);
         int idx;
         T wt;
         locate(soc0, idx, wt);
@@ -138,7 +143,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         const T ocv = kv[jo - lo].ocv + wo * (kv[std::min(jo + 1, hi) - lo].ocv - kv[jo - lo].ocv);
         const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
         if (model_v) model_v[k] = scalar(v);
-        if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
+        if (std::isfinite(tk.voltage_v)) residuals[r++] = tk.weight * (v - tk.voltage_v) / g.sigma_v;
     }
 }
 
@@ -174,7 +179,7 @@ struct Builder {
     std::vector<WindowData> windows;
     std::vector<std::array<double, kKnotSize>> knots;
     double ea = 0.0, log_i0 = 0.0;  // Ea / 1e4 J/mol, log I0 (each its own block, held when not identified)
-    std::vector<double> offsets;  // one per window (used when fit_offset)
+    std::vector<std::array<double, 2>> offsets;  // per window (used when fit_offset): SOC offset, log capacity scale
     std::vector<std::unique_ptr<ceres::CostFunction>> window_costs;
     std::vector<std::unique_ptr<ceres::CostFunction>> smooth_costs;
     double smooth_weight = 1.0;
@@ -184,7 +189,7 @@ struct Builder {
         for (int j = windows[w].knot_lo; j <= windows[w].knot_hi; ++j) b.push_back(knots[j].data());
         b.push_back(&ea);
         b.push_back(&log_i0);
-        if (windows[w].fit_offset) b.push_back(&offsets[w]);
+        if (windows[w].fit_offset) b.push_back(offsets[w].data());
         return b;
     }
 
@@ -194,7 +199,7 @@ struct Builder {
             for (int j = windows[w].knot_lo; j <= windows[w].knot_hi; ++j) c->AddParameterBlock(kKnotSize);
             c->AddParameterBlock(1);
             c->AddParameterBlock(1);
-            if (windows[w].fit_offset) c->AddParameterBlock(1);
+            if (windows[w].fit_offset) c->AddParameterBlock(2);
             c->SetNumResiduals(static_cast<int>(windows[w].residuals));
             window_costs.emplace_back(c);
         }
@@ -238,7 +243,7 @@ struct Builder {
             p->SetParameterUpperBound(k.data(), kOcv, 6.0);
         }
         if (grid.temperature) {
-            p->SetParameterLowerBound(&ea, 0, -2.0);
+            p->SetParameterLowerBound(&ea, 0, 0.0);
             p->SetParameterUpperBound(&ea, 0, 15.0);
         } else {
             p->SetParameterBlockConstant(&ea);
@@ -251,8 +256,14 @@ struct Builder {
         }
         for (std::size_t w = 0; w < windows.size(); ++w)
             if (use[w] && windows[w].fit_offset) {
-                p->SetParameterLowerBound(&offsets[w], 0, -0.3);
-                p->SetParameterUpperBound(&offsets[w], 0, 0.3);
+                p->SetParameterLowerBound(offsets[w].data(), 0, -0.3);
+                p->SetParameterUpperBound(offsets[w].data(), 0, 0.3);
+                // Only a slow discharge (below C/5, typically an OCV test from another day) gets its own charge
+                // scale: at higher rates what looks like less capacity is polarization, which the model must
+                // explain itself.
+                const double g = windows[w].low_rate ? 0.2 : 1e-9;
+                p->SetParameterLowerBound(offsets[w].data(), 1, -g);
+                p->SetParameterUpperBound(offsets[w].data(), 1, g);
             }
         return p;
     }
@@ -413,7 +424,7 @@ nlohmann::json GlobalFitResult::to_json() const {
     for (const auto& w : windows)
         j["windows"].push_back({{"recording", w.recording}, {"begin", w.begin}, {"end", w.end}, {"kind", w.kind},
                                 {"soc_min", num(w.soc_min)}, {"soc_max", num(w.soc_max)},
-                                {"soc_offset", w.soc_offset}, {"rms_v", num(w.rms_v)}, {"residuals", w.residuals}});
+                                {"soc_offset", w.soc_offset}, {"capacity_scale", w.capacity_scale}, {"rms_v", num(w.rms_v)}, {"residuals", w.residuals}});
     j["notes"] = notes;
     return j;
 }
@@ -454,7 +465,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         auto rests = r < long_rest_ranges.size() ? long_rest_ranges[r] : std::vector<std::pair<std::size_t, std::size_t>>{};
         std::sort(rests.begin(), rests.end());
         std::size_t start = 0;
-        bool rested = false;
+        // A recording that starts at rest starts rested (a test begins from equilibrium).
+        bool rested = rec.size() > 1 && std::abs(rec.current_a[0]) < 0.05 && std::abs(rec.current_a[1]) < 0.05 &&
+                      r < soc_of_row.size() && !soc_of_row[r].empty() && std::abs(soc_of_row[r][0] - 1.0) < 1e-9;
         if (!rests.empty() && rests.front().first == 0) {
             start = rests.front().second - 1;
             rested = true;
@@ -486,6 +499,15 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         if (moved < 1.0) continue;  // nothing happens in it
         WindowData wd;
         wd.fit_offset = !(anchored[w.r] && w.rested);
+        {
+            double q = 0, span = 0;
+            for (std::size_t k = w.begin + 1; k < w.end; ++k)
+                if (std::abs(rec.current_a[k]) > 0.05) {
+                    const double dt = rec.time_s[k] - rec.time_s[k - 1];
+                    q += std::abs(rec.current_a[k]) * dt, span += dt;
+                }
+            wd.low_rate = span > 0 && q / span < 0.2 * capacity_ah;
+        }
         wd.ticks = make_ticks(rec, w.begin, w.end, socs[w.r], t_ref_c);
         for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
         if (wd.residuals < 5) continue;
@@ -521,7 +543,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     s_lo = std::clamp(s_lo, 0.0, 1.0), s_hi = std::clamp(s_hi, 0.0, 1.0);
     const double ds = std::isfinite(options.knot_spacing) ? options.knot_spacing : 0.1;
     int j_lo = static_cast<int>(std::floor(s_lo / ds + 1e-9)), j_hi = static_cast<int>(std::ceil(s_hi / ds - 1e-9));
-    j_hi = std::max(j_hi, j_lo + 2);
+    const int j_max = static_cast<int>(std::floor(1.0 / ds + 1e-9));
+    j_hi = std::min(std::max(j_hi, j_lo + 2), j_max);
+    j_lo = std::max(0, std::min(j_lo, j_hi - 2));
     b.grid.s0 = j_lo * ds;
     b.grid.ds = ds;
     b.grid.n = j_hi - j_lo + 1;
@@ -565,7 +589,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     }
     b.ea = b.grid.temperature ? 3.0 : 0.0;
     b.log_i0 = std::log(b.grid.current ? 2.0 * b.grid.i_ref_a : 1e6);
-    b.offsets.assign(b.windows.size(), 0.0);
+    b.offsets.assign(b.windows.size(), {0.0, 0.0});
     b.make_costs();
     const auto start_knots = b.knots;
     const double start_ea = b.ea, start_log_i0 = b.log_i0;
@@ -596,9 +620,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                         if (static_cast<int>(i % 2) == fold) use[cv_windows[i]] = false, held.push_back(cv_windows[i]);
                     b.knots = start_knots;
                     b.ea = start_ea, b.log_i0 = start_log_i0;
-                    std::fill(b.offsets.begin(), b.offsets.end(), 0.0);
+                    std::fill(b.offsets.begin(), b.offsets.end(), std::array<double, 2>{0.0, 0.0});
                     auto p = b.problem(use);
-                    b.solve(*p, options.max_iterations / 2);
+                    b.solve(*p, options.max_iterations);
                     const auto [s, m] = b.window_sse(held);
                     sse += s, n += m;
                 }
@@ -618,7 +642,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     b.make_smooth(chosen, options.ocv_smoothness);
     b.knots = start_knots;
     b.ea = start_ea, b.log_i0 = start_log_i0;
-    std::fill(b.offsets.begin(), b.offsets.end(), 0.0);
+    std::fill(b.offsets.begin(), b.offsets.end(), std::array<double, 2>{0.0, 0.0});
     std::vector<bool> all(b.windows.size(), true);
     auto problem = b.problem(all);
     b.solve(*problem, options.max_iterations);
@@ -629,7 +653,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     for (std::size_t w = 0; w < b.windows.size(); ++w) {
         const auto [s, m] = b.window_sse({w});
         out.windows[w].rms_v = std::sqrt(s / std::max<std::size_t>(m, 1)) * b.grid.sigma_v;
-        out.windows[w].soc_offset = b.offsets[w];
+        out.windows[w].soc_offset = b.offsets[w][0];
+        out.windows[w].capacity_scale = std::exp(b.offsets[w][1]);
         sse += s, n_res += m;
         auto blocks = b.blocks_of(w);
         std::vector<double> res(b.windows[w].residuals);
@@ -678,7 +703,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
     for (std::size_t w = 0; w < b.windows.size(); ++w)
         for (const auto& t : b.windows[w].ticks) {
-            const double s = t.soc_start + b.offsets[w];
+            const double s0 = b.windows[w].ticks.front().soc_start;
+            const double s = s0 + b.offsets[w][0] + std::exp(b.offsets[w][1]) * (t.soc_start - s0);
             const int j = static_cast<int>(std::round((s - b.grid.s0) / ds));
             for (int jj : {j - 1, j, j + 1}) {
                 if (jj < 0 || jj >= b.grid.n || std::abs(s - b.grid.soc(jj)) > ds) continue;
@@ -747,6 +773,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double ea = b.ea * kEaScale;
         out.activation_energy_j_per_mol = {ea, kEaScale * std::sqrt(cov(g0, g0)), {}};
         if (ea < 0 || ea > 120e3) out.activation_energy_j_per_mol.flags.push_back("implausible");
+        if (ea < 1000) out.activation_energy_j_per_mol.flags.push_back("at_bound");
         if (ea > 0) p.extensions.resistance_temperature = ResistanceTemperatureExt{ea};
     } else {
         out.notes.push_back("the recordings' cell temperature spans less than " +

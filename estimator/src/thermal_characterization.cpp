@@ -51,7 +51,7 @@ double measured_heat_temperature_rms(const ThermalFitData& d, double c_th, doubl
 constexpr double kThermalStepS = 1.0;
 
 ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, const ParameterSet& p,
-                                  const std::vector<std::vector<double>>& soc_of_rec) {
+                                  const std::vector<std::vector<double>>& soc_of_rec, bool ambient_from_start = false) {
     ThermalFitData d;
     for (std::size_t r = 0; r < recs.size(); ++r) {
         const auto& rec = *recs[r];
@@ -87,7 +87,7 @@ ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, con
             d.heat_irr_w.push_back(heat / span);
             d.ehc_v_per_k.push_back(p.ehc_at(soc[k]));
             d.surface_c.push_back(rec.surface_c[k]);
-            d.ambient_c.push_back(rec.has_ambient() && std::isfinite(rec.ambient_c[k]) ? rec.ambient_c[k] : ambient);
+            d.ambient_c.push_back(!ambient_from_start && rec.has_ambient() && std::isfinite(rec.ambient_c[k]) ? rec.ambient_c[k] : ambient);
             span = charge = heat = 0;
         }
     }
@@ -158,10 +158,24 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         // driven by the measured heat generation (the ambient from its column, else the first reading).
         std::vector<const Recording*> recs;
         std::vector<std::vector<double>> rec_socs;
-        for (std::size_t r = 0; r < recordings.size(); ++r)
-            if (recordings[r].has_surface()) recs.push_back(&recordings[r]), rec_socs.push_back(socs[r]);
+        // Recordings that heat the cell by more than 2 K carry the information (all of them if none does); the
+        // ambient is each recording's first (rested) reading: a surface sensor's offset against the chamber's
+        // own sensor would otherwise pass for heat.
+        for (int pass = 0; pass < 2 && recs.empty(); ++pass)
+            for (std::size_t r = 0; r < recordings.size(); ++r) {
+                const auto& rec = recordings[r];
+                if (!rec.has_surface()) continue;
+                double first = kNaN, hi = -1e300;
+                for (double v : rec.surface_c)
+                    if (std::isfinite(v)) {
+                        if (!std::isfinite(first)) first = v;
+                        hi = std::max(hi, v);
+                    }
+                if (pass == 0 && hi - first < 2.0) continue;
+                recs.push_back(&rec), rec_socs.push_back(socs[r]);
+            }
         if (recs.empty()) return out;
-        const auto data = measured_heat_data(recs, electrical, rec_socs);
+        const auto data = measured_heat_data(recs, electrical, rec_socs, true);
         double best_r = kNaN;
         auto rms_at = [&](double c) {
             best_r = golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 1.0, 40.0, 30);

@@ -45,6 +45,16 @@ int run_cli(int argc, char** argv) {
     fit_cmd->add_option("-o,--output", fit.output, "Output parameter set (cellbench.params/1 JSON)")->required();
     fit_cmd->add_option("--json", fit.summary_json, "Also write a summary JSON of every fit and its uncertainty");
     fit_cmd->add_option("--cell", fit.cell_name, "Cell name stored in the parameter set")->capture_default_str();
+    fit_cmd->add_option("--capacity-ah", fit.capacity_ah,
+                        "Capacity (Ah) used when no recording measures it (no pilot discharge, no test to the cut-off)")
+        ->check(CLI::PositiveNumber);
+    fit_cmd->add_option("--smoothness", fit.smoothness,
+                        "Weight of the smoothness penalty along SOC (default: chosen by cross-validation)")
+        ->check(CLI::PositiveNumber);
+    fit_cmd->add_option("--knot-spacing", fit.knot_spacing, "SOC spacing of the fitted tables (default: the test's SOC levels)")
+        ->check(CLI::Range(0.02, 0.25));
+    fit_cmd->add_flag("--per-pulse-set", fit.per_pulse_set,
+                      "Tables from independent per-pulse-set fits (thesis method) instead of the global identification");
 
     SimulateOptions sim;
     auto* sim_cmd = app.add_subcommand("simulate", "Simulate the model on a recording's current and report the errors");

@@ -63,6 +63,11 @@ int run_fit(const FitOptions& o) {
     }
     estimator::CharacterizationOptions co;
     co.cell = o.cell_name;
+    co.fallback_capacity_ah = o.capacity_ah;
+    co.fallback_capacity_source = "--capacity-ah";
+    co.global.smoothness = o.smoothness;
+    co.global.knot_spacing = o.knot_spacing;
+    co.global_fit = !o.per_pulse_set;
     ProgressLine progress("fit");  // on a terminal only
     co.progress = progress.callback();
     const auto c = estimator::characterize(recs, co);

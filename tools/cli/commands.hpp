@@ -3,6 +3,7 @@
 // InputError escaping from them is reported by the caller as one clear line and status 1.
 #include <memory>
 #include <optional>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -29,6 +30,10 @@ struct FitOptions {
     long long run_id = -1;
     std::string output, summary_json;
     std::string cell_name = "Molicel INR-21700-P45B";
+    double capacity_ah = 0.0;        // used when no recording measures the capacity
+    double smoothness = std::numeric_limits<double>::quiet_NaN();   // NaN: cross-validated
+    double knot_spacing = std::numeric_limits<double>::quiet_NaN(); // NaN: the test's SOC levels
+    bool per_pulse_set = false;      // the thesis' per-pulse-set tables instead of the global fit
 };
 int run_fit(const FitOptions& o);
 

@@ -38,7 +38,7 @@ namespace cellbench::estimator {
 
 struct GlobalFitOptions {
     double knot_spacing = kNaN;  // SOC spacing of the table breakpoints (NaN: characterize() takes the test's SOC levels)
-    std::vector<double> smoothness_candidates = {30.0, 300.0, 3000.0, 30000.0};  // cross-validated
+    std::vector<double> smoothness_candidates = {100.0, 300.0, 1000.0, 3000.0};  // cross-validated
     double smoothness = kNaN;                // given: no cross-validation
     double ocv_smoothness = 0.05;            // relative weight of the OCV's second-difference penalty
     double voltage_noise_v = 1e-3;           // residual scale (only the relative weights depend on it)
@@ -61,6 +61,7 @@ struct GlobalWindow {
     // Filled by the fit:
     double soc_min = kNaN, soc_max = kNaN;
     double soc_offset = 0.0;         // fitted initial-SOC correction (windows without a rested start)
+    double capacity_scale = 1.0;     // fitted ratio of the window's charge scale (its own rate, its own day)
     double rms_v = kNaN;
     std::size_t residuals = 0;
 };

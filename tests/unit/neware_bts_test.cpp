@@ -487,7 +487,7 @@ TEST(NewareBtsDownload, ResponseRowsRoundTripWithTestTimeInMilliseconds) {
     const std::string frame = encode_response(r);
     EXPECT_NE(frame.find("testtime=\"26005300\""), std::string::npos) << frame;
     const auto back = std::get<DownloadResponse>(parse_response(frame));
-    EXPECT_EQ(back.channel, ch(1));
+    EXPECT_TRUE(back.channel.same_channel(ch(1)));  // the real server's <download> carries no ip
     EXPECT_EQ(back.testid, 3);
     ASSERT_EQ(back.records.size(), 3u);
     for (std::size_t i = 0; i < 3; ++i) {

@@ -22,14 +22,14 @@ namespace {
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 const fs::path kConfig = fs::path(CELLBENCH_SOURCE_DIR) / "config";
 
-struct Run {
+struct CliRun {
     int status;
     std::string output;  // stdout and stderr
 };
 
-Run run(const std::string& command) {
+CliRun run(const std::string& command) {
     FILE* p = popen(("timeout 60 " + command + " 2>&1").c_str(), "r");
-    Run r{-1, {}};
+    CliRun r{-1, {}};
     if (!p) return r;
     char buf[4096];
     while (fgets(buf, sizeof buf, p)) r.output += buf;
@@ -56,7 +56,7 @@ fs::path temp_dir() {
 TEST(NewareStepsCli, HppcStepFileReparsesToTheSameProgram) {
     const fs::path dir = temp_dir();
     const fs::path out = dir / "hppc.xml";
-    const Run r = run(kBin.string() + " steps --program hppc --cell p45b --config " + (kConfig / "bench.sim.json").string() +
+    const CliRun r = run(kBin.string() + " steps --program hppc --cell p45b --config " + (kConfig / "bench.sim.json").string() +
                       " -o " + out.string());
     ASSERT_EQ(r.status, 0) << r.output;
     EXPECT_NE(r.output.find("capacity limit 0.1*C4 - C8 + C10"), std::string::npos) << r.output;  // says how eq. 2.4 is written
@@ -86,7 +86,7 @@ TEST(NewareStepsCli, HppcStepFileReparsesToTheSameProgram) {
 
 TEST(NewareStepsCli, UnknownProgramIsOneClearError) {
     const fs::path dir = temp_dir();
-    const Run r = run(kBin.string() + " steps --program no_such_program --cell p45b --config " +
+    const CliRun r = run(kBin.string() + " steps --program no_such_program --cell p45b --config " +
                       (kConfig / "bench.sim.json").string() + " -o " + (dir / "x.xml").string());
     EXPECT_EQ(r.status, 1) << r.output;
     EXPECT_NE(r.output.find("no_such_program"), std::string::npos) << r.output;
@@ -99,7 +99,7 @@ TEST(NewareStepsCli, ImportSaysWhichNewareLayoutItRead) {
     const fs::path dir = temp_dir();
     std::ofstream(dir / "cumulative.csv") << "Record ID,Step Type,Cumulative Time,Current(A),Voltage(V)\n"
                                              "1,Rest,00:00:00,0,4.1\n2,CC DChg,00:00:01.500,-4.5,4.0\n3,CC DChg,00:01:01,-4.5,3.9\n";
-    const Run r = run(kBin.string() + " import --neware " + (dir / "cumulative.csv").string() + " -o " +
+    const CliRun r = run(kBin.string() + " import --neware " + (dir / "cumulative.csv").string() + " -o " +
                       (dir / "out.bdf.csv").string());
     ASSERT_EQ(r.status, 0) << r.output;
     EXPECT_NE(r.output.find("Cumulative Time"), std::string::npos) << r.output;

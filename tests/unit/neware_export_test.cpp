@@ -150,7 +150,7 @@ TEST(NewareExport, DateFormats) {
 
 TEST(NewareExport, BadInputIsAnErrorWithLineAndColumn) {
     EXPECT_EQ(error_of("Step Type,Total Time,Current(A),Voltage(V)\nRest,00:61:00,0,4\n"),
-              "rw_neware.csv:2: column \"Total Time\": expected a duration h:mm:ss[.fff] or seconds, got \"00:61:00\"");
+              "rw_neware.csv:2: column \"Total Time\": expected a duration hh:mm:ss, h:mm:ss.fff or seconds, got \"00:61:00\"");
     EXPECT_EQ(error_of("Step Type,Time(s),Current(A),Voltage(V)\nRest,0,0,4\nRest,1,zero,4\n"),
               "rw_neware.csv:3: column \"Current(A)\": expected a number, got \"zero\"");
     EXPECT_EQ(error_of("Step Type,Time(s),Current(A),Voltage(V)\nRest,0,,4\n"),
@@ -159,7 +159,7 @@ TEST(NewareExport, BadInputIsAnErrorWithLineAndColumn) {
     std::string msg = error_of("Step Type,Time(s),Voltage(V)\nRest,0,4\n");
     EXPECT_EQ(msg.rfind("rw_neware.csv:1: missing required column \"Current(A)\"", 0), 0u) << msg;
     msg = error_of("Step Type,Time,Current(A),Voltage(V)\nRest,00:00:00,0,4\n");
-    EXPECT_EQ(msg.rfind("rw_neware.csv:1: no time column: expected \"Time(s)\" or \"Total Time\"", 0), 0u) << msg;
+    EXPECT_EQ(msg.rfind("rw_neware.csv:1: no time column: expected \"Time(s)\", \"Total Time\", \"Cumulative Time\"", 0), 0u) << msg;
     msg = error_of("");
     EXPECT_EQ(msg.rfind("rw_neware.csv:1: empty file", 0), 0u) << msg;
     EXPECT_EQ(error_of(kRwHeader), "rw_neware.csv:1: header only: expected data rows after the header");

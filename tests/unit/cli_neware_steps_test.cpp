@@ -107,3 +107,29 @@ TEST(NewareStepsCli, ImportSaysWhichNewareLayoutItRead) {
     EXPECT_NE(bdf.find("\n61,"), std::string::npos) << bdf;
     fs::remove_all(dir);
 }
+
+TEST(NewareStepsCli, EveryProgramUnderConfigCompilesToAStepFileThatReadsBack) {
+    const auto bench = daemon::load_bench_config(kConfig / "bench.sim.json");
+    const auto cell = daemon::load_cell_config(daemon::cell_file(bench.config_dir, "p45b"));
+    const auto names = daemon::list_programs(bench.config_dir);
+    EXPECT_GE(names.size(), 5u);
+    for (const auto& name : names) {
+        const auto program = daemon::load_program(daemon::program_file(bench.config_dir, name), cell, {}, &bench);
+        int files = 0;
+        for (const auto& s : program.segments) {
+            const auto* c = std::get_if<daemon::CyclerSegment>(&s);
+            if (c == nullptr) continue;  // chamber segments are the daemon's, not the tester's
+            protocol::StepProgram p = c->program;
+            p.settings.nominal_capacity_ah = cell.nominal_capacity_ah;
+            const std::string xml = protocol::compile_step_file(p);
+            EXPECT_EQ(protocol::parse_step_file(xml), protocol::as_tester_program(p)) << name;
+            // What the daemon sends: one or two files (tester_parts), each valid for the tester.
+            for (const auto& part : protocol::tester_parts(c->program))
+                EXPECT_NO_THROW((void)protocol::parse_step_file(protocol::compile_step_file(
+                    protocol::resolve_capacity_limits(part, [](int) { return std::optional<double>(4.0); }))))
+                    << name;
+            ++files;
+        }
+        EXPECT_GT(files, 0) << name;
+    }
+}

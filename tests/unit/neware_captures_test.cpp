@@ -1,6 +1,7 @@
 // The 22 responses captured from a real BTS 8.0 server (../shared/reference/neware/bts8-captured-responses.txt):
 // every one parses to the right structs, and the simulated tester answers the request behind each one with
-// the same elements and attributes (names; values differ: another tester, another cell).
+// the same elements and attributes (names; values differ: another tester, another cell). All but
+// get_devinfo_bad_response (a server with no channels; the simulated tester always has its 8).
 #include <gtest/gtest.h>
 
 #include <chrono>
@@ -354,6 +355,14 @@ TEST(NewareCaptures, SimulatorAnswersWithTheCapturedStructure) {
     // Working: some rows recorded.
     for (int k = 0; k < 100 && sim.server().snapshot().total_time_s < 30.0; ++k) std::this_thread::sleep_for(20ms);
     expect_same("inquire_21_1_2_response", sim.ask(InquireRequest{{cell}}));  // working: with step_id
+    expect_same("inquire_21_1_4_response", sim.ask(InquireRequest{{empty}}));  // idle, no cell
+    // Working and idle channels in one answer (the captured "all" answers mix both shapes).
+    expect_same("inquire_all_response", sim.ask(InquireRequest{{cell, empty}}));
+    expect_same("inquire_21_1_1_and_2_response", sim.ask(InquireRequest{{empty, cell}}));
+    std::vector<ChannelAddress> all;
+    for (int k = 1; k <= 8; ++k) all.push_back({"127.0.0.1", 27, 21, 1, k});
+    expect_same("get_status_all_response", sim.ask(ChannelListRequest{Command::getchlstatus, all}));
+    expect_same("inquiredf_all_response", sim.ask(ChannelListRequest{Command::inquiredf, all}));
     const std::string inquired = sim.ask(InquireRequest{{cell}});
     EXPECT_NE(inquired.find("step_type=\"cc\""), std::string::npos) << inquired;  // real code of step 1 (CC Chg)
     DownloadRequest dl;

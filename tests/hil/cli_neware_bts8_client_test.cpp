@@ -139,6 +139,17 @@ TEST(NewareBts8Client, IndependentClientRunsAWholeJobOnCellbenchSim) {
     cfg["simulation"]["params"] = (kSource / "config/cells/p45b-thesis.json").string();
     std::ofstream(dir / "bench.json") << cfg.dump(2);
     Sim sim = start_sim(dir / "bench.json");
+    // A failed assertion returns early: the simulator process must not outlive the test.
+    struct Reaper {
+        Sim& s;
+        ~Reaper() {
+            if (s.pid > 0) {
+                ::kill(s.pid, SIGKILL);
+                ::waitpid(s.pid, nullptr, 0);
+            }
+            if (s.out) fclose(s.out);
+        }
+    } reaper{sim};
     ASSERT_GT(sim.pid, 0);
     ASSERT_GT(sim.port, 0) << "no 'neware tcp' line";
 
@@ -234,7 +245,7 @@ TEST(NewareBts8Client, IndependentClientRunsAWholeJobOnCellbenchSim) {
     ::kill(sim.pid, SIGTERM);
     int st = 0;
     ::waitpid(sim.pid, &st, 0);
-    EXPECT_TRUE(WIFEXITED(st) && WEXITSTATUS(st) == 0);
-    if (sim.out) fclose(sim.out);
+    sim.pid = -1;
+    EXPECT_TRUE(WIFEXITED(st) && WEXITSTATUS(st) == 0) << "cellbench sim must stop cleanly on SIGTERM";
     fs::remove_all(dir);
 }

@@ -80,7 +80,89 @@ void BM_NewareEncodeInquireRequest(benchmark::State& state) {
     state.SetItemsProcessed(state.iterations());
 }
 
+// One poll of the thesis' 3-member parallel group, both directions, as client and tester do it: the client
+// serializes inquire (3 channels), the tester parses it and serializes inquire_resp, the client splits and
+// parses that; then per member download (donwload_resp with `rows` rows, the real server's attribute layout
+// and atime per row). Items = frames (each serialized once and parsed once): 8 per round.
+void BM_NewareInquireDownloadRoundTrip(benchmark::State& state) {
+    const int rows = static_cast<int>(state.range(0));
+    std::vector<ChannelAddress> members;
+    for (int c = 1; c <= 3; ++c) members.push_back({"127.0.0.1", 27, 21, 1, c});
+    InquireResponse live;
+    for (const auto& m : members) {
+        InquireEntry e;
+        e.channel = {"", m.devtype, m.devid, m.subdevid, m.chlid};
+        e.cycle_id = 3;
+        e.step_id = 8;
+        e.step_type = "dc";
+        e.workstatus = ChannelStatus::working;
+        e.barcode = "P45B-001";
+        e.current_a = -1.5;
+        e.voltage_v = 3.7;
+        e.capacity_ah = 0.0123;
+        e.energy_wh = 0.0456;
+        e.total_time_s = 26005.3;
+        e.relative_time_s = 12.5;
+        e.log_code = 102000;
+        live.channels.push_back(e);
+    }
+    std::vector<DownloadResponse> downloads;
+    for (const auto& m : members) {
+        DownloadResponse d;
+        d.channel = {"", m.devtype, m.devid, m.subdevid, m.chlid};
+        d.testid = 143;
+        d.startpos = 219576;
+        for (int k = 0; k < rows; ++k) {
+            DownloadRecord r;
+            r.seqid = 219576 + k;
+            r.step_id = 24;
+            r.cycle_id = 29;
+            r.step_type = "dc";
+            r.test_time_s = 36070.0 + 0.1 * k;
+            r.atime = "2025-12-28 22:29:05";
+            r.voltage_v = 3.6780698299408;
+            r.current_a = -1.500295051460852847;
+            r.capacity_ah = 0.00295628436449786;
+            r.energy_wh = 0.0135611368830335;
+            d.records.push_back(r);
+        }
+        downloads.push_back(d);
+    }
+    std::int64_t frames = 0, bytes = 0;
+    FrameSplitter splitter;
+    auto through = [&](const std::string& wire, bool response) {
+        splitter.feed(wire);
+        auto f = splitter.next();
+        bytes += static_cast<std::int64_t>(wire.size());
+        ++frames;
+        if (response) {
+            auto r = parse_response(*f);
+            benchmark::DoNotOptimize(r);
+        } else {
+            auto q = parse_request(*f);
+            benchmark::DoNotOptimize(q);
+        }
+    };
+    for (auto _ : state) {
+        through(encode_request(InquireRequest{members}), false);
+        through(encode_response(live), true);
+        for (std::size_t m = 0; m < members.size(); ++m) {
+            DownloadRequest q;
+            q.channel = members[m];
+            q.testid = 143;
+            q.startpos = 219576;
+            through(encode_request(q), false);
+            through(encode_response(downloads[m]), true);
+        }
+    }
+    state.SetItemsProcessed(frames);
+    state.SetBytesProcessed(bytes);
+    state.counters["frames_per_s"] = benchmark::Counter(static_cast<double>(frames), benchmark::Counter::kIsRate);
+}
+
 }  // namespace
+
+BENCHMARK(BM_NewareInquireDownloadRoundTrip)->Arg(1)->Arg(10)->Arg(1000);
 
 // 3 = the thesis' parallel group, 8 = a whole BTS-4008.
 BENCHMARK(BM_NewareSplitAndParseInquire)->Arg(3)->Arg(8);

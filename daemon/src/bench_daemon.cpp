@@ -1249,7 +1249,14 @@ struct BenchDaemon::Impl {
         auto c = std::make_shared<RunContext>(*store, id, t0, cell.id);
         c->capacity_ah = so.capacity_ah;
         const auto sp = to_sequencer_program(program);
-        for (const auto& s : sp.segments) c->steps_per_segment.push_back(static_cast<int>(s.program.steps.size()));
+        for (const auto& s : sp.segments) {  // the sequencer's segments: a cycler program may run as two step files
+            if (s.kind != sequencer::Segment::Kind::Cycler) {
+                c->steps_per_segment.push_back(static_cast<int>(s.program.steps.size()));
+                continue;
+            }
+            for (const auto& part : protocol::tester_parts(s.program))
+                c->steps_per_segment.push_back(static_cast<int>(part.steps.size()));
+        }
         c->seq = std::make_unique<sequencer::Sequencer>(cycler_adapter, chamber_adapter, *c, so);
         {
             std::lock_guard l(ctx_m);

@@ -289,6 +289,11 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
             if (inflight) finish_inflight(std::nullopt, std::string("malformed answer: ") + e.what(), received);
             return;
         }
+        if (const auto* error = std::get_if<ErrorResponse>(&*response)) {
+            emit(NewareEventKind::protocol_error, "the tester answered " + error->command + " with an error: " + error->message);
+            if (inflight) finish_inflight(std::nullopt, "tester error: " + error->message, received);
+            return;
+        }
         const Command cmd = response_command(*response);
         if (!inflight || inflight->command != cmd) {
             emit(NewareEventKind::protocol_error,

@@ -331,15 +331,20 @@ std::string_view list_tag(Command c) {
         case Command::stop: return "stop";
         case Command::pause: return "pause";
         case Command::continue_: return "continue";
+        case Command::light: return "light";
+        case Command::clearflag: return "clearflag";
+        case Command::inquiredf: return "chl";
         default: return "";
     }
 }
 
 bool is_channel_list_command(Command c) {
-    return c == Command::getchlstatus || c == Command::stop || c == Command::pause || c == Command::continue_;
+    return c == Command::getchlstatus || c == Command::stop || c == Command::pause || c == Command::continue_ ||
+           c == Command::light || c == Command::clearflag || c == Command::inquiredf;
 }
 bool is_channel_result_command(Command c) {
-    return c == Command::start || c == Command::stop || c == Command::pause || c == Command::continue_;
+    return c == Command::start || c == Command::stop || c == Command::pause || c == Command::continue_ ||
+           c == Command::light || c == Command::clearflag;
 }
 
 Command command_or_throw(std::string_view name) {
@@ -371,14 +376,18 @@ void FrameSplitter::clear() {
     skipping_ = false;
 }
 
+// A frame ends at "</bts>", optional whitespace, "#\r\n". The scan looks for "#\r\n" (the last kMarker bytes
+// of every terminator form) and then checks what precedes it; a "#\r\n" after anything else (junk, a stray
+// terminator) ends a run of garbage.
 std::optional<std::string> FrameSplitter::next() {
-    constexpr std::size_t kTerm = kFrameTerminator.size();
+    constexpr std::string_view kMarker = "#\r\n";
+    constexpr std::string_view kEnd = "</bts>";
     for (;;) {
         const std::string_view pending(buffer_.data() + head_, buffer_.size() - head_);
-        const std::size_t pos = pending.find(kFrameTerminator, scanned_);
+        const std::size_t pos = pending.find(kMarker, scanned_);
         if (pos == std::string_view::npos) {
-            // Keep the last kTerm-1 bytes: they may be the start of a terminator.
-            const std::size_t keep = std::min(pending.size(), kTerm - 1);
+            // Keep the last kMarker-1 bytes: they may be the start of a terminator.
+            const std::size_t keep = std::min(pending.size(), kMarker.size() - 1);
             if (skipping_) {
                 garbage_bytes_ += pending.size() - keep;
                 head_ += pending.size() - keep;
@@ -386,7 +395,7 @@ std::optional<std::string> FrameSplitter::next() {
                 return std::nullopt;
             }
             scanned_ = pending.size() - keep;
-            if (pending.size() > max_frame_bytes_ + kTerm) {
+            if (pending.size() > max_frame_bytes_ + kFrameTerminator.size()) {
                 garbage_bytes_ += pending.size() - keep;
                 head_ += pending.size() - keep;
                 scanned_ = 0;
@@ -396,12 +405,20 @@ std::optional<std::string> FrameSplitter::next() {
             }
             return std::nullopt;
         }
-        const std::string_view segment = pending.substr(0, pos);
-        head_ += pos + kTerm;
+        std::string_view segment = pending.substr(0, pos);
+        head_ += pos + kMarker.size();
         scanned_ = 0;
+        const std::size_t consumed = pos + kMarker.size();
         if (skipping_) {  // the tail of an oversized frame
-            garbage_bytes_ += segment.size();
+            garbage_bytes_ += consumed;
             skipping_ = false;
+            continue;
+        }
+        while (!segment.empty() && (segment.back() == '\n' || segment.back() == '\r' || segment.back() == ' ' ||
+                                    segment.back() == '\t'))
+            segment.remove_suffix(1);
+        if (segment.size() < kEnd.size() || !iequals(segment.substr(segment.size() - kEnd.size()), kEnd)) {
+            if (!segment.empty()) garbage_bytes_ += consumed;  // junk (a lone stray terminator is not counted)
             continue;
         }
         // The frame starts at the last "<?xml" (or "<bts" without a declaration): whatever precedes it is
@@ -409,11 +426,11 @@ std::optional<std::string> FrameSplitter::next() {
         std::size_t start = segment.rfind("<?xml");
         if (start == std::string_view::npos) start = segment.rfind("<bts");
         if (start == std::string_view::npos) {
-            garbage_bytes_ += segment.size();
+            garbage_bytes_ += consumed;
             continue;
         }
-        garbage_bytes_ += start;
         const std::string_view frame = segment.substr(start);
+        garbage_bytes_ += start;
         if (frame.size() > max_frame_bytes_) {
             garbage_bytes_ += frame.size();
             throw ProtocolError("frame of " + std::to_string(frame.size()) + " bytes exceeds the limit of " +
@@ -437,14 +454,35 @@ std::string_view command_name(Command command) {
         case Command::pause: return "pause";
         case Command::continue_: return "continue";
         case Command::download: return "download";
+        case Command::inquiredf: return "inquiredf";
+        case Command::downloadlog: return "downloadlog";
+        case Command::downloadStepLayer: return "downloadStepLayer";
+        case Command::light: return "light";
+        case Command::clearflag: return "clearflag";
     }
     return "";
 }
 
+std::string response_name(Command command) {
+    if (command == Command::download) return "donwload_resp";  // sic, as the real server spells it
+    if (command == Command::downloadlog) return "donwloadlog_resp";
+    return std::string(command_name(command)) + "_resp";
+}
+
+std::optional<Command> response_command_from_name(std::string_view cmd) {
+    if (cmd.size() <= 5 || !iequals(cmd.substr(cmd.size() - 5), "_resp")) return std::nullopt;
+    const auto name = cmd.substr(0, cmd.size() - 5);
+    if (iequals(name, "donwload")) return Command::download;
+    if (iequals(name, "donwloadlog")) return Command::downloadlog;
+    return command_from_name(name);
+}
+
 std::optional<Command> command_from_name(std::string_view name) {
-    static constexpr std::array all{Command::connect, Command::getdevinfo, Command::getchlstatus, Command::inquire,
-                                    Command::start,   Command::stop,       Command::pause,        Command::continue_,
-                                    Command::download};
+    static constexpr std::array all{Command::connect,   Command::getdevinfo,  Command::getchlstatus,
+                                    Command::inquire,   Command::start,       Command::stop,
+                                    Command::pause,     Command::continue_,   Command::download,
+                                    Command::inquiredf, Command::downloadlog, Command::downloadStepLayer,
+                                    Command::light,     Command::clearflag};
     for (const auto c : all)
         if (iequals(command_name(c), name)) return c;
     return std::nullopt;
@@ -488,6 +526,7 @@ Command request_command(const Request& request) {
             else if constexpr (std::is_same_v<T, ChannelListRequest>) return r.command;
             else if constexpr (std::is_same_v<T, InquireRequest>) return Command::inquire;
             else if constexpr (std::is_same_v<T, DownloadRequest>) return Command::download;
+            else if constexpr (std::is_same_v<T, TestRequest>) return r.command;
             else return Command::start;
         },
         request);
@@ -502,6 +541,11 @@ Command response_command(const Response& response) {
             else if constexpr (std::is_same_v<T, ChannelStatusResponse>) return Command::getchlstatus;
             else if constexpr (std::is_same_v<T, InquireResponse>) return Command::inquire;
             else if constexpr (std::is_same_v<T, DownloadResponse>) return Command::download;
+            else if constexpr (std::is_same_v<T, InquireDfResponse>) return Command::inquiredf;
+            else if constexpr (std::is_same_v<T, DownloadLogResponse>) return Command::downloadlog;
+            else if constexpr (std::is_same_v<T, StepLayerResponse>) return Command::downloadStepLayer;
+            else if constexpr (std::is_same_v<T, ErrorResponse>)
+                return command_from_name(r.command).value_or(Command::connect);
             else return r.command;
         },
         response);
@@ -555,8 +599,16 @@ std::string encode_request(const Request& request) {
                 for (const auto& c : r.channels) {
                     out += '<';
                     out += tag;
+                    if (r.command == Command::inquiredf) {  // public clients: no ip, testid 0 = latest test
+                        attr(out, "devtype", c.devtype);
+                        attr(out, "devid", c.devid);
+                        attr(out, "subdevid", c.subdevid);
+                        attr(out, "chlid", c.chlid);
+                        out += " testid=\"0\" />";
+                        continue;
+                    }
                     channel_attrs_out(out, c);
-                    out += ">true</";
+                    out += r.on ? ">true</" : ">false</";
                     out += tag;
                     out += '>';
                 }
@@ -571,9 +623,19 @@ std::string encode_request(const Request& request) {
                     out += ">true</inquire>";
                 }
                 out += "</list>";
+            } else if constexpr (std::is_same_v<T, TestRequest>) {
+                if (r.command != Command::downloadlog && r.command != Command::downloadStepLayer)
+                    throw ProtocolError("a test request cannot carry command " + std::string(command_name(r.command)));
+                out += r.command == Command::downloadlog ? "<download" : "<downloadStepLayer";
+                attr(out, "devtype", r.channel.devtype);
+                attr(out, "devid", r.channel.devid);
+                attr(out, "subdevid", r.channel.subdevid);
+                attr(out, "chlid", r.channel.chlid);
+                attr(out, "testid", std::to_string(r.testid));
+                out += " />";
             } else if constexpr (std::is_same_v<T, DownloadRequest>) {
-                if (r.count < 1 || r.count > kMaxDownloadCount)
-                    throw ProtocolError("download: count must be 1.." + std::to_string(kMaxDownloadCount));
+                if (r.count < 0 || r.count > kMaxDownloadCount)
+                    throw ProtocolError("download: count must be 0.." + std::to_string(kMaxDownloadCount));
                 out += "<download";
                 channel_attrs_out(out, r.channel);
                 attr(out, "auxid", r.auxid);
@@ -613,8 +675,12 @@ std::string encode_response(const Response& response) {
     std::string out(kResponseProlog);
     const Command command = response_command(response);
     out += "  <cmd>";
-    out += command_name(command);
-    out += "_resp</cmd>\r\n";
+    if (const auto* e = std::get_if<ErrorResponse>(&response)) {
+        append_escaped(out, (e->command.empty() ? std::string("unknown") : e->command.substr(0, 64)) + "_resp");
+    } else {
+        out += response_name(command);
+    }
+    out += "</cmd>\r\n";
     std::visit(
         [&](const auto& r) {
             using T = std::decay_t<decltype(r)>;
@@ -676,9 +742,14 @@ std::string encode_response(const Response& response) {
                 out += "  </list>\r\n";
             } else if constexpr (std::is_same_v<T, DownloadResponse>) {
                 out += "  <download";
-                channel_attrs_out(out, r.channel);
+                attr(out, "devtype", r.channel.devtype);
+                attr(out, "devid", r.channel.devid);
+                attr(out, "subdevid", r.channel.subdevid);
+                attr(out, "chlid", r.channel.chlid);
                 attr(out, "testid", std::to_string(r.testid));
                 attr(out, "startpos", std::to_string(r.startpos));
+                attr(out, "count", r.count);
+                attr(out, "auxid", r.auxid);
                 out += " />\r\n  <list count=\"" + std::to_string(r.records.size()) + "\">\r\n";
                 for (const auto& d : r.records) {
                     out += "    <data";
@@ -687,14 +758,76 @@ std::string encode_response(const Response& response) {
                     attr(out, "cycleid", d.cycle_id);
                     attr(out, "steptype", d.step_type.empty() ? std::string("--") : d.step_type);
                     attr(out, "testtime", format_number(d.test_time_s * 1000.0, 0));
-                    if (!d.atime.empty()) attr(out, "atime", d.atime);
-                    attr(out, "volt", format_number(d.voltage_v, 4));
-                    attr(out, "curr", format_number(d.current_a, 4));
-                    attr(out, "cap", format_number(d.capacity_ah, 6));
-                    attr(out, "eng", format_number(d.energy_wh, 6));
+                    attr(out, "atime", d.atime);
+                    attr(out, "volt", format_number(d.voltage_v, 6));
+                    attr(out, "curr", format_number(d.current_a, 6));
+                    attr(out, "cap", format_number(d.capacity_ah, 9));
+                    attr(out, "eng", format_number(d.energy_wh, 9));
                     out += " />\r\n";
                 }
                 out += "  </list>\r\n";
+            } else if constexpr (std::is_same_v<T, InquireDfResponse>) {
+                out += "  <list count=\"" + std::to_string(r.channels.size()) + "\">\r\n";
+                for (const auto& c : r.channels) {
+                    out += "    <chl";
+                    attr(out, "devtype", c.channel.devtype);
+                    attr(out, "devid", c.channel.devid);
+                    attr(out, "subdevid", c.channel.subdevid);
+                    attr(out, "chlid", c.channel.chlid);
+                    attr(out, "testid", std::to_string(c.testid));
+                    attr(out, "count", std::to_string(c.count));
+                    out += c.flag ? ">true</chl>\r\n" : ">false</chl>\r\n";
+                }
+                out += "  </list>\r\n";
+            } else if constexpr (std::is_same_v<T, DownloadLogResponse>) {
+                out += "  <download";
+                attr(out, "devtype", r.channel.devtype);
+                attr(out, "devid", r.channel.devid);
+                attr(out, "subdevid", r.channel.subdevid);
+                attr(out, "chlid", r.channel.chlid);
+                attr(out, "testid", std::to_string(r.testid));
+                attr(out, "log_lever", r.log_level);
+                out += " />\r\n  <list count=\"" + std::to_string(r.entries.size()) + "\">\r\n";
+                for (const auto& e : r.entries) {
+                    out += "    <data";
+                    attr(out, "seqid", std::to_string(e.seqid));
+                    attr(out, "log_code", e.log_code);
+                    attr(out, "atime", e.atime);
+                    out += " />\r\n";
+                }
+                out += "  </list>\r\n";
+            } else if constexpr (std::is_same_v<T, StepLayerResponse>) {
+                out += "  <downloadStepLayer";
+                attr(out, "devtype", r.channel.devtype);
+                attr(out, "devid", r.channel.devid);
+                attr(out, "subdevid", r.channel.subdevid);
+                attr(out, "chlid", r.channel.chlid);
+                attr(out, "testid", std::to_string(r.testid));
+                out += " />\r\n  <list count=\"" + std::to_string(r.steps.size()) + "\">\r\n";
+                for (const auto& d : r.steps) {
+                    out += "    <data";
+                    attr(out, "startseqid", std::to_string(d.start_seqid));
+                    attr(out, "endseqid", std::to_string(d.end_seqid));
+                    attr(out, "stepindex", d.step_index);
+                    attr(out, "stepid", d.step_id);
+                    attr(out, "cycleid", d.cycle_id);
+                    attr(out, "steptype", d.step_type.empty() ? std::string("--") : d.step_type);
+                    attr(out, "steptime", format_number(d.step_time_s * 1000.0, 0));
+                    attr(out, "endatime", d.end_atime);
+                    attr(out, "startvolt", format_number(d.start_voltage_v, 6));
+                    attr(out, "endvolt", format_number(d.end_voltage_v, 6));
+                    attr(out, "startcurr", format_number(d.start_current_a, 6));
+                    attr(out, "endcurr", format_number(d.end_current_a, 6));
+                    attr(out, "cap", format_number(d.capacity_ah, 9));
+                    attr(out, "eng", format_number(d.energy_wh, 9));
+                    attr(out, "dcir", format_number(d.dcir_ohm, 6));
+                    out += " />\r\n";
+                }
+                out += "  </list>\r\n";
+            } else if constexpr (std::is_same_v<T, ErrorResponse>) {
+                out += "  <result>false</result>\r\n  <error>";
+                append_escaped(out, r.message);
+                out += "</error>\r\n";
             } else {  // ChannelCommandResponse
                 if (!is_channel_result_command(r.command))
                     throw ProtocolError("a channel-result response cannot carry command " +
@@ -755,10 +888,24 @@ Request parse_request(std::string_view frame) {
             r.testid = optional_int64(*node, "testid", where, 0);
             r.startpos = optional_int64(*node, "startpos", where, 1);
             r.count = find_attr(*node, "count") ? required_int(*node, "count", where) : kMaxDownloadCount;
-            if (r.startpos < 1) throw ProtocolError(where + ": attribute 'startpos': expected 1 or more");
-            if (r.count < 1 || r.count > kMaxDownloadCount)
-                throw ProtocolError(where + ": attribute 'count': expected 1.." + std::to_string(kMaxDownloadCount) +
+            if (r.count > kMaxDownloadCount)
+                throw ProtocolError(where + ": attribute 'count': expected 0.." + std::to_string(kMaxDownloadCount) +
                                     ", got " + std::to_string(r.count));
+            if (r.startpos < 1 && r.count > 0)
+                throw ProtocolError(where + ": attribute 'startpos': expected 1 or more (0 only with count=\"0\", "
+                                            "the test-id query)");
+            return r;
+        }
+        case Command::downloadlog:
+        case Command::downloadStepLayer: {
+            const std::string tag = command == Command::downloadlog ? "download" : "downloadStepLayer";
+            const auto* node = find_child(*doc.bts, tag);
+            if (node == nullptr) throw ProtocolError(doc.cmd + ": <" + tag + "> missing");
+            const std::string where = doc.cmd + ": <" + tag + ">";
+            TestRequest r;
+            r.command = command;
+            r.channel = channel_attrs(*node, where);
+            r.testid = optional_int64(*node, "testid", where, 0);
             return r;
         }
         case Command::inquire: {
@@ -801,13 +948,18 @@ Request parse_request(std::string_view frame) {
         case Command::getchlstatus:
         case Command::stop:
         case Command::pause:
-        case Command::continue_: {
+        case Command::continue_:
+        case Command::light:
+        case Command::clearflag:
+        case Command::inquiredf: {
             ChannelListRequest r;
             r.command = command;
             const auto tag = list_tag(command);
             const auto list = list_entries(doc, tag);
-            for (std::size_t i = 0; i < list.entries.size(); ++i)
+            for (std::size_t i = 0; i < list.entries.size(); ++i) {
                 r.channels.push_back(channel_attrs(*list.entries[i], entry_where(doc, tag, i)));
+                if (i == 0 && command == Command::light) r.on = !iequals(trim(list.entries[i]->data()), "false");
+            }
             return r;
         }
     }
@@ -819,8 +971,80 @@ Response parse_response(std::string_view frame) {
     const std::string_view cmd = doc.cmd;
     if (cmd.size() <= 5 || !iequals(cmd.substr(cmd.size() - 5), "_resp"))
         throw ProtocolError("expected a response (<cmd>NAME_resp</cmd>), got " + shown(cmd));
-    const Command command = command_or_throw(cmd.substr(0, cmd.size() - 5));
+    if (const auto* error = find_child(*doc.bts, "error")) {
+        const auto known = response_command_from_name(cmd);
+        if (!known || find_child(*doc.bts, "list") == nullptr)
+            return ErrorResponse{std::string(cmd.substr(0, cmd.size() - 5)), std::string(trim(error->data()))};
+    }
+    const auto parsed = response_command_from_name(cmd);
+    if (!parsed) throw ProtocolError("unknown command " + shown(cmd));
+    const Command command = *parsed;
+    auto test_header = [&](std::string_view tag, ChannelAddress& channel, std::int64_t& testid) -> const pt::ptree* {
+        const auto* node = find_child(*doc.bts, tag);
+        if (node == nullptr) throw ProtocolError(doc.cmd + ": <" + std::string(tag) + "> missing");
+        const std::string where = doc.cmd + ": <" + std::string(tag) + ">";
+        channel = channel_attrs(*node, where);
+        testid = optional_int64(*node, "testid", where, 0);
+        return node;
+    };
     switch (command) {
+        case Command::inquiredf: {
+            InquireDfResponse r;
+            const auto list = list_entries(doc, "chl");
+            for (std::size_t i = 0; i < list.entries.size(); ++i) {
+                const auto where = entry_where(doc, "chl", i);
+                TestInfo t;
+                t.channel = channel_attrs(*list.entries[i], where);
+                t.testid = optional_int64(*list.entries[i], "testid", where, 0);
+                t.count = optional_int64(*list.entries[i], "count", where, 0);
+                const auto text = trim(list.entries[i]->data());
+                t.flag = iequals(text, "true") || text == "1";
+                r.channels.push_back(std::move(t));
+            }
+            return r;
+        }
+        case Command::downloadlog: {
+            DownloadLogResponse r;
+            const auto* node = test_header("download", r.channel, r.testid);
+            r.log_level = optional_int(*node, "log_lever", doc.cmd + ": <download>");
+            const auto list = list_entries(doc, "data", false);
+            for (std::size_t i = 0; i < list.entries.size(); ++i) {
+                const auto at = entry_where(doc, "data", i);
+                LogEntry e;
+                e.seqid = optional_int64(*list.entries[i], "seqid", at, 0);
+                e.log_code = optional_int(*list.entries[i], "log_code", at);
+                e.atime = optional_string(*list.entries[i], "atime");
+                r.entries.push_back(std::move(e));
+            }
+            return r;
+        }
+        case Command::downloadStepLayer: {
+            StepLayerResponse r;
+            test_header("downloadStepLayer", r.channel, r.testid);
+            const auto list = list_entries(doc, "data", false);
+            for (std::size_t i = 0; i < list.entries.size(); ++i) {
+                const auto& d = *list.entries[i];
+                const auto at = entry_where(doc, "data", i);
+                StepLayerEntry e;
+                e.start_seqid = optional_int64(d, "startseqid", at, 0);
+                e.end_seqid = optional_int64(d, "endseqid", at, 0);
+                e.step_index = optional_int(d, "stepindex", at);
+                e.step_id = optional_int(d, "stepid", at);
+                e.cycle_id = optional_int(d, "cycleid", at);
+                e.step_type = optional_string(d, "steptype");
+                e.step_time_s = optional_double(d, "steptime", at) / 1000.0;
+                e.end_atime = optional_string(d, "endatime");
+                e.start_voltage_v = optional_double(d, "startvolt", at);
+                e.end_voltage_v = optional_double(d, "endvolt", at);
+                e.start_current_a = optional_double(d, "startcurr", at);
+                e.end_current_a = optional_double(d, "endcurr", at);
+                e.capacity_ah = optional_double(d, "cap", at);
+                e.energy_wh = optional_double(d, "eng", at);
+                e.dcir_ohm = optional_double(d, "dcir", at);
+                r.steps.push_back(std::move(e));
+            }
+            return r;
+        }
         case Command::connect: {
             ConnectResponse r;
             const auto* result = find_child(*doc.bts, "result");
@@ -923,6 +1147,8 @@ Response parse_response(std::string_view frame) {
             r.channel = channel_attrs(*node, where);
             r.testid = optional_int64(*node, "testid", where, 0);
             r.startpos = optional_int64(*node, "startpos", where, 1);
+            r.count = find_attr(*node, "count") ? optional_int(*node, "count", where) : kMaxDownloadCount;
+            r.auxid = optional_int(*node, "auxid", where);
             const auto list = list_entries(doc, "data", false);
             for (std::size_t i = 0; i < list.entries.size(); ++i) {
                 const auto& d = *list.entries[i];
@@ -951,7 +1177,9 @@ Response parse_response(std::string_view frame) {
         case Command::start:
         case Command::stop:
         case Command::pause:
-        case Command::continue_: {
+        case Command::continue_:
+        case Command::light:
+        case Command::clearflag: {
             ChannelCommandResponse r;
             r.command = command;
             const auto tag = list_tag(command);

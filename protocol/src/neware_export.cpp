@@ -13,7 +13,11 @@
 namespace cellbench::protocol {
 namespace {
 
-enum class Role { time_s, total_time, step_time, current, voltage, step_type, step_id, cycle, date, count };
+enum class Role { time_s, total_time, cumulative_time, step_time, current, voltage, step_type, step_id, cycle, date,
+                  nda_marker, count };
+
+constexpr double kMaxAbsVoltageV = 10.0;    // beyond: not a cell voltage (a unit or column mix-up)
+constexpr double kMaxAbsCurrentA = 10000.0;
 
 struct Alias {
     std::string_view normalized_name;  // csv::normalize_column_name form
@@ -37,7 +41,11 @@ constexpr std::array kAliases{
     Alias{"cycleno.", Role::cycle, 1.0},       Alias{"cyclenumber", Role::cycle, 1.0},
     Alias{"date", Role::date, 1.0},            Alias{"datetime", Role::date, 1.0},
     Alias{"realtime", Role::date, 1.0},        Alias{"absolutetime", Role::date, 1.0},
-    Alias{"systemtime", Role::date, 1.0},
+    Alias{"systemtime", Role::date, 1.0},      Alias{"timestamp", Role::date, 1.0},
+    Alias{"status", Role::step_type, 1.0},     Alias{"cumulativetime", Role::cumulative_time, 1.0},
+    Alias{"cumulativetime(h:min:s.ms)", Role::cumulative_time, 1.0},
+    // NewareNDA's CSV (Time = step time, Timestamp absolute): its capacity columns mark the layout.
+    Alias{"charge_capacity(mah)", Role::nda_marker, 1.0},
 };
 
 struct Column {
@@ -140,14 +148,25 @@ bool parse_date_utc_s(std::string_view s, double& value) {
 
 }  // namespace
 
-Recording parse_neware_export(std::string_view text, const std::string& source) {
+std::string_view to_string(NewareExportLayout layout) {
+    switch (layout) {
+        case NewareExportLayout::btsda_test_time: return "BTSDA record export, test time from Time(s)";
+        case NewareExportLayout::btsda_total_time: return "BTSDA record export, test time from Total Time";
+        case NewareExportLayout::btsda_cumulative_time: return "BTSDA record export, test time from Cumulative Time";
+        case NewareExportLayout::btsda_wall_clock: return "BTSDA record export, test time from its wall clock (Realtime/Date)";
+        case NewareExportLayout::newarenda: return "NewareNDA CSV (Time is step time), test time from Timestamp";
+    }
+    return "Neware export";
+}
+
+Recording parse_neware_export(std::string_view text, const std::string& source, NewareExportInfo* info) {
     csv::RecordReader reader(text, source);
     std::vector<std::string_view> fields;
     fields.reserve(16);
     if (!reader.next(fields))
         throw InputError(source +
                          ":1: empty file: expected the header row of a Neware record export (\"Step Type\", "
-                         "\"Time(s)\" or \"Total Time\", \"Current(A)\", \"Voltage(V)\", ...)");
+                         "\"Time(s)\", \"Total Time\" or \"Cumulative Time\", \"Current(A)\", \"Voltage(V)\", ...)");
 
     std::array<Column, static_cast<std::size_t>(Role::count)> cols;
     auto col = [&cols](Role r) -> Column& { return cols[static_cast<std::size_t>(r)]; };
@@ -159,12 +178,32 @@ Recording parse_neware_export(std::string_view text, const std::string& source) 
         col(*role) = Column{c, std::string(fields[c]), scale};
     }
 
-    // Time(s) is preferred: Total Time has only 1 s resolution in exports sampled faster.
-    const Column& time_col = col(Role::time_s).present() ? col(Role::time_s) : col(Role::total_time);
-    const bool time_is_duration = !col(Role::time_s).present();
-    if (!time_col.present())
-        reader.fail("no time column: expected \"Time(s)\" or \"Total Time\" (the header has " +
+    // Which export this is, and where its test time comes from. Time(s) is preferred (Total Time has only
+    // 1 s resolution in exports sampled faster), then Total Time, Cumulative Time, and the wall clock.
+    NewareExportLayout layout;
+    const Column* time_col = nullptr;
+    if (col(Role::nda_marker).present() && col(Role::date).present()) {
+        layout = NewareExportLayout::newarenda;
+        time_col = &col(Role::date);
+    } else if (col(Role::time_s).present()) {
+        layout = NewareExportLayout::btsda_test_time;
+        time_col = &col(Role::time_s);
+    } else if (col(Role::total_time).present()) {
+        layout = NewareExportLayout::btsda_total_time;
+        time_col = &col(Role::total_time);
+    } else if (col(Role::cumulative_time).present()) {
+        layout = NewareExportLayout::btsda_cumulative_time;
+        time_col = &col(Role::cumulative_time);
+    } else if (col(Role::date).present()) {
+        layout = NewareExportLayout::btsda_wall_clock;
+        time_col = &col(Role::date);
+    } else {
+        reader.fail("no time column: expected \"Time(s)\", \"Total Time\", \"Cumulative Time\", \"Realtime\"/\"Date\" or "
+                    "NewareNDA's \"Timestamp\" (the header has " +
                     csv::quote_cells(fields) + ")");
+    }
+    const bool wall_clock = layout == NewareExportLayout::newarenda || layout == NewareExportLayout::btsda_wall_clock;
+    if (info) *info = NewareExportInfo{layout, time_col->name};
     if (!col(Role::current).present())
         reader.fail("missing required column \"Current(A)\" (the header has " + csv::quote_cells(fields) + ")");
     if (!col(Role::voltage).present())
@@ -187,26 +226,39 @@ Recording parse_neware_export(std::string_view text, const std::string& source) 
     rec.voltage_v.reserve(expected_rows);
     rec.current_a.reserve(expected_rows);
 
-    csv::TimeStepGuard guard{time_col.name};
+    csv::TimeStepGuard guard{time_col->name};
     double step = 0.0;
     double previous_step_time_s = kNaN;
+    double first_unix_s = kNaN;
     while (reader.next(fields)) {
         reader.check_width(fields, width);
 
         double t = 0.0;
-        if (!time_is_duration) {
-            t = csv::read_number(reader, fields[time_col.index], time_col.name, true);
-        } else {
-            const std::string_view cell = fields[time_col.index];
-            if (!parse_duration_s(cell, t))
-                reader.fail_column(time_col.name, "expected a duration h:mm:ss[.fff] or seconds, got " + csv::quote_cell(cell));
+        const std::string_view time_cell = fields[time_col->index];
+        if (wall_clock) {
+            double unix_s = 0.0;
+            if (!parse_date_utc_s(time_cell, unix_s))
+                reader.fail_column(time_col->name, "expected a date YYYY-MM-DD hh:mm:ss[.fff], got " + csv::quote_cell(time_cell));
+            if (std::isnan(first_unix_s)) first_unix_s = unix_s;
+            t = unix_s - first_unix_s;
+        } else if (!parse_duration_s(time_cell, t) || !std::isfinite(t)) {
+            reader.fail_column(time_col->name,
+                               "expected a duration hh:mm:ss, h:mm:ss.fff or seconds, got " + csv::quote_cell(time_cell));
         }
         guard.check(t, reader);
         rec.time_s.push_back(t);
-        rec.current_a.push_back(csv::read_number(reader, fields[current_col.index], current_col.name, true) *
-                                current_col.scale);
-        rec.voltage_v.push_back(csv::read_number(reader, fields[voltage_col.index], voltage_col.name, true) *
-                                voltage_col.scale);
+        const double current = csv::read_number(reader, fields[current_col.index], current_col.name, true) *
+                               current_col.scale;
+        const double voltage = csv::read_number(reader, fields[voltage_col.index], voltage_col.name, true) *
+                               voltage_col.scale;
+        if (!std::isfinite(current) || std::abs(current) > kMaxAbsCurrentA)
+            reader.fail_column(current_col.name, "physically impossible current " + csv::quote_cell(fields[current_col.index]) +
+                                                     " (expected a finite value within +-10 kA)");
+        if (!std::isfinite(voltage) || std::abs(voltage) > kMaxAbsVoltageV)
+            reader.fail_column(voltage_col.name, "physically impossible voltage " + csv::quote_cell(fields[voltage_col.index]) +
+                                                     " (expected a finite value within +-10 V)");
+        rec.current_a.push_back(current);
+        rec.voltage_v.push_back(voltage);
 
         if (type_col.present()) rec.step_type.emplace_back(fields[type_col.index]);
         if (cycle_col.present())
@@ -236,7 +288,7 @@ Recording parse_neware_export(std::string_view text, const std::string& source) 
     }
     if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
 
-    rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, time_col.name);
+    rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, time_col->name);
     return rec;
 }
 

@@ -1,29 +1,6 @@
-// Step programs and the step-file format.
-//
-// NEWARE'S STEP-FILE SCHEMA IS NOT PUBLIC. The format below is cellbench's own; it lives only in this file so
-// that it can be replaced by the real one once a file from Neware's step editor can be compared.
-//
-// Format "cellbench.neware-steps/1" (UTF-8 XML, SI units, attribute names carry the unit):
-//   <?xml version="1.0" encoding="UTF-8"?>
-//   <cellbench_steps format="cellbench.neware-steps/1" name="hppc_1c" description="...">
-//     <step id="1" type="rest" time_s="10"/>
-//     <step id="2" type="cccv_charge" current_a="4.5" voltage_v="4.1" cutoff_current_a="0.05" note="Full Chg"/>
-//     <step id="12" type="cc_discharge" current_a="4.5" cutoff_voltage_v="2.9"
-//           cutoff_capacity_ah="0.1*C4 - C8 + C10"/>
-//     <step id="14" type="cycle" start_step="8" count="10"/>
-//     <step id="17" type="end"/>
-//   </cellbench_steps>
-// One <step> per step, in order, id = position (1-based). Attributes are exactly the StepProgram/JSON fields;
-// absent = not set. Numbers are written in shortest round-trip form, so compile -> parse is exact.
-//
-// For the later match, the shape of vendor files seen in public third-party tools (BTS Client 8.0,
-// unverified, do not rely on it):
-//   <root><config type="Step File" version="17|18" ...><Head_Info>...</Head_Info><Whole_Prt>...</Whole_Prt>
-//     <Step_Info Num="N"><Step1 Step_ID="1" Step_Type="4"><Limit><Main><Time Value="600000"/></Main></Limit>
-//     </Step1>...</Step_Info></config></root>
-//   Step_Type seen: 1 CC Chg, 2 CC DChg, 4 Rest, 5 Cycle (Limit/Other/Start_Step, Cycle_Count), 6 End,
-//   7 CCCV Chg (CCCV DChg unknown). Limit/Main fields seen: Curr (mA), Volt (0.1 mV), Stop_Volt (0.1 mV),
-//   Stop_Curr (mA), Time (ms), Cap (mA*s). How custom capacity functions (eq. 2.4) are stored is unknown.
+// Step programs and the step file in the real BTS Client schema (../shared/reference/neware/: a file written
+// by BTS Client 2024.06.24, schema version 17, and the schema facts in the README there). The format is
+// described above compile_step_file below; what it cannot express is described in the header.
 #include "cellbench/protocol/neware_stepfile.hpp"
 
 #include "cellbench/core/recording.hpp"
@@ -36,6 +13,9 @@
 #include <cctype>
 #include <charconv>
 #include <cmath>
+#include <cstdio>
+#include <ctime>
+#include <limits>
 #include <set>
 
 #include <boost/property_tree/ptree.hpp>
@@ -98,6 +78,9 @@ struct Problem {
 
 std::optional<Problem> find_problem(const StepProgram& p) {
     if (p.steps.empty()) return Problem{"steps", "expected at least one step (and an end step last)", 0, false};
+    if (p.first_step < 1 || p.first_step > static_cast<int>(p.steps.size()))
+        return Problem{"first_step", "expected a step of the program (1.." + std::to_string(p.steps.size()) + ")", 0,
+                       false};
     auto positive = [](const std::optional<double>& v) { return v && std::isfinite(*v) && *v > 0.0; };
     for (std::size_t i = 0; i < p.steps.size(); ++i) {
         const Step& s = p.steps[i];
@@ -145,6 +128,8 @@ std::optional<Problem> find_problem(const StepProgram& p) {
                 break;
             case StepType::cccv_charge:
             case StepType::cccv_discharge:
+            case StepType::cv_charge:
+            case StepType::cv_discharge:
                 if (!s.current_a) return bad("current_a", "a CCCV step needs its current");
                 if (!s.voltage_v) return bad("voltage_v", "a CCCV step needs its constant-voltage set value");
                 if (auto e = unused(s.cutoff_voltage_v.has_value(), "cutoff_voltage_v")) return e;
@@ -234,13 +219,16 @@ std::string_view to_string(StepType type) {
         case StepType::cccv_discharge: return "cccv_discharge";
         case StepType::cycle: return "cycle";
         case StepType::end: return "end";
+        case StepType::cv_charge: return "cv_charge";
+        case StepType::cv_discharge: return "cv_discharge";
     }
     return "rest";
 }
 
 std::optional<StepType> step_type_from_string(std::string_view text) {
     for (const auto t : {StepType::rest, StepType::cc_charge, StepType::cc_discharge, StepType::cccv_charge,
-                         StepType::cccv_discharge, StepType::cycle, StepType::end})
+                         StepType::cccv_discharge, StepType::cycle, StepType::end, StepType::cv_charge,
+                         StepType::cv_discharge})
         if (to_string(t) == text) return t;
     return std::nullopt;
 }
@@ -248,22 +236,31 @@ std::optional<StepType> step_type_from_string(std::string_view text) {
 int step_direction(StepType type) {
     switch (type) {
         case StepType::cc_charge:
-        case StepType::cccv_charge: return +1;
+        case StepType::cccv_charge:
+        case StepType::cv_charge: return +1;
         case StepType::cc_discharge:
-        case StepType::cccv_discharge: return -1;
+        case StepType::cccv_discharge:
+        case StepType::cv_discharge: return -1;
         default: return 0;
     }
 }
 
 bool step_carries_current(StepType type) { return step_direction(type) != 0; }
 
+bool step_has_cv_phase(StepType type) {
+    return type == StepType::cccv_charge || type == StepType::cccv_discharge || type == StepType::cv_charge ||
+           type == StepType::cv_discharge;
+}
+
 std::string_view step_type_code(StepType type) {
     switch (type) {
         case StepType::rest: return "rest";
         case StepType::cc_charge: return "cc";
         case StepType::cc_discharge: return "dc";
-        case StepType::cccv_charge: return "cccv";
-        case StepType::cccv_discharge: return "cccv_dc";
+        case StepType::cccv_charge: return "cc";     // "cv" in its CV phase (the runner reports that)
+        case StepType::cccv_discharge: return "dc";
+        case StepType::cv_charge:
+        case StepType::cv_discharge: return "cv";
         default: return "--";
     }
 }
@@ -462,12 +459,14 @@ StepProgram StepProgram::from_json(const nlohmann::json& j, const std::string& s
         const auto type_it = sj.find("type");
         if (type_it == sj.end() || !type_it->is_string())
             json_fields::fail(source, path + ".type",
-                      "expected one of rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cycle, end");
+                      "expected one of rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cv_charge, "
+                      "cv_discharge, cycle, end");
         const auto type = step_type_from_string(type_it->get<std::string>());
         if (!type)
             json_fields::fail(source, path + ".type",
                       "unknown step type \"" + type_it->get<std::string>() +
-                          "\" (expected rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cycle, end)");
+                          "\" (expected rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cv_charge, "
+                          "cv_discharge, cycle, end)");
         s.type = *type;
         if (const auto it = sj.find("id"); it != sj.end()) {
             if (!it->is_number_integer() || it->get<long long>() != static_cast<long long>(index + 1))
@@ -505,126 +504,411 @@ StepProgram StepProgram::from_json(const nlohmann::json& j, const std::string& s
 }
 
 // -------------------------------------------------------------------------------------------------------------
-// Step file
+// Capacity limits the format cannot express, defaults, parts
 
-std::string compile_step_file(const StepProgram& program) {
+namespace {
+
+// Steps in the body of the innermost loop that contains step `id` (its cycle step excluded), or {} when `id`
+// is in no loop. Loops nest (validated), so the innermost is the one with the latest start.
+std::pair<int, int> innermost_loop(const StepProgram& p, int id) {
+    std::pair<int, int> best{0, 0};
+    for (std::size_t k = 0; k < p.steps.size(); ++k) {
+        const Step& c = p.steps[k];
+        const int cid = static_cast<int>(k) + 1;
+        if (c.type == StepType::cycle && c.start_step <= id && id < cid && c.start_step > best.first)
+            best = {c.start_step, cid - 1};
+    }
+    return best;
+}
+
+bool referenced_outside_loop(const StepProgram& p, int limited_step, int referenced) {
+    const auto [first, last] = innermost_loop(p, limited_step);
+    return !(first != 0 && referenced >= first && referenced <= last);
+}
+
+double whole_mas(double ah) { return std::round(ah * 3.6e6) / 3.6e6; }  // the file's resolution: 1 mA*s
+
+}  // namespace
+
+std::optional<double> nominal_step_capacity_ah(const StepProgram& program, int step_id) {
+    if (step_id < 1 || step_id > static_cast<int>(program.steps.size())) return std::nullopt;
+    const Step& s = program.steps[static_cast<std::size_t>(step_id - 1)];
+    if (!step_carries_current(s.type) || !s.current_a) return std::nullopt;
+    if (s.time_s) return *s.current_a * *s.time_s / 3600.0;
+    return program.settings.nominal_capacity_ah;
+}
+
+StepProgram resolve_capacity_limits(const StepProgram& program,
+                                    const std::function<std::optional<double>(int)>& measured_ah) {
+    StepProgram out = program;
+    for (std::size_t i = 0; i < out.steps.size(); ++i) {
+        Step& s = out.steps[i];
+        if (!s.cutoff_capacity_ah || s.cutoff_capacity_ah->is_constant()) continue;
+        const int id = static_cast<int>(i) + 1;
+        double ah = s.cutoff_capacity_ah->constant_ah;
+        for (const auto& t : s.cutoff_capacity_ah->terms) {
+            std::optional<double> c;
+            if (measured_ah && referenced_outside_loop(program, id, t.step_id)) c = measured_ah(t.step_id);
+            if (!c) c = nominal_step_capacity_ah(program, t.step_id);
+            if (!c)
+                throw InputError("step " + std::to_string(id) + ": capacity limit " + s.cutoff_capacity_ah->to_string() +
+                                 " needs C" + std::to_string(t.step_id) +
+                                 ", which only a measurement or the cell's nominal capacity gives");
+            ah += t.factor * *c;
+        }
+        s.cutoff_capacity_ah = CapacityExpression{std::max(whole_mas(ah), 1.0 / 3.6e6), {}};
+    }
+    return out;
+}
+
+StepProgram as_tester_program(const StepProgram& program) {
     program.validate();
+    StepProgram p = resolve_capacity_limits(program);
+    p.description.clear();
+    for (auto& s : p.steps) s.note.clear();
+    auto& st = p.settings;
+    if (!st.record_interval_s) st.record_interval_s = 1.0;
+    double v_hi = 0.0, v_lo = std::numeric_limits<double>::infinity(), i_max = 0.0;
+    for (const auto& s : p.steps) {
+        for (const auto& v : {s.voltage_v, s.cutoff_voltage_v}) {
+            if (!v) continue;
+            v_hi = std::max(v_hi, *v);
+            v_lo = std::min(v_lo, *v);
+        }
+        if (s.current_a) i_max = std::max(i_max, *s.current_a);
+    }
+    auto tenth_mv = [](double v) { return std::round(v * 1e4) / 1e4; };
+    auto milliamp = [](double a) { return std::round(a * 1e3) / 1e3; };
+    if (!st.protect_upper_v && v_hi > 0.0) st.protect_upper_v = tenth_mv(v_hi + 0.1);
+    if (!st.protect_lower_v && std::isfinite(v_lo)) st.protect_lower_v = tenth_mv(std::max(0.0, v_lo - 0.1));
+    if (!st.protect_upper_a && i_max > 0.0) st.protect_upper_a = milliamp(1.1 * i_max);
+    if (!st.protect_lower_a && i_max > 0.0) st.protect_lower_a = -milliamp(1.1 * i_max);
+    return p;
+}
+
+std::vector<StepProgram> tester_parts(const StepProgram& program) {
+    program.validate();
+    int k = 0;  // the last step that must have been measured before the rest can be written
+    for (std::size_t i = 0; i < program.steps.size(); ++i) {
+        const Step& s = program.steps[i];
+        if (!s.cutoff_capacity_ah) continue;
+        for (const auto& t : s.cutoff_capacity_ah->terms)
+            if (referenced_outside_loop(program, static_cast<int>(i) + 1, t.step_id)) k = std::max(k, t.step_id);
+    }
+    if (k < program.first_step) return {program};
+    // A loop around step k would have to run across the two files: not split, nominal values instead.
+    for (std::size_t c = 0; c < program.steps.size(); ++c)
+        if (program.steps[c].type == StepType::cycle && program.steps[c].start_step <= k &&
+            static_cast<int>(c) + 1 > k)
+            return {program};
+    StepProgram first = program;
+    first.steps.resize(static_cast<std::size_t>(k));
+    Step end;
+    end.type = StepType::end;
+    first.steps.push_back(end);
+    StepProgram second = program;
+    second.first_step = k + 1;
+    first.validate();
+    second.validate();
+    return {first, second};
+}
+
+// -------------------------------------------------------------------------------------------------------------
+// Step file: the BTS Client schema.
+//
+//   <?xml version="1.0" encoding="GB2312"?>                      (UTF-8 when the name is not ASCII)
+//   <root>
+//     <config type="Step File" version="17" client_version="cellbench" date="YYYYMMDDhhmmss" Guid="...">
+//       <Head_Info> Operate 65, Scale 1, Start_Step (first_step), PN (name), RateType 105, MultCap (mA*s)
+//       <Whole_Prt> <Protect><Main> Volt Upper/Lower (0.1 mV), Curr Upper/Lower (mA), Delay_Time (ms),
+//                   Cap Upper (mA*s) </Main></Protect> <Record><Main><Time (ms)/></Main></Record>
+//       <Step_Info Num="N"> <StepK Step_ID="K" Step_Type="T"> [Record] <Limit><Main> Curr (mA), Volt (0.1 mV,
+//                   the CV set value), Time (ms), Stop_Volt (0.1 mV), Stop_Curr (mA), Cap (mA*s) </Main>
+//                   | <Other> Start_Step, Cycle_Count </Other></Limit> [Protect] </StepK>
+//       <SMBUS><SMBUS_Info Num="0" AdjacentInterval="0" /></SMBUS>
+//   </config></root>
+// Rate / Stop_Rate (C-rates against MultCap) are read when Curr / Stop_Curr are absent.
+
+namespace {
+
+constexpr double kTenthMv = 1e4;    // per V
+constexpr double kMa = 1e3;         // per A
+constexpr double kMs = 1e3;         // per s
+constexpr double kMaS = 3.6e6;      // mA*s per Ah
+
+int step_type_code_number(StepType t) {
+    switch (t) {
+        case StepType::cc_charge: return 1;
+        case StepType::cc_discharge: return 2;
+        case StepType::cv_charge: return 3;
+        case StepType::rest: return 4;
+        case StepType::cycle: return 5;
+        case StepType::end: return 6;
+        case StepType::cccv_charge: return 7;
+        case StepType::cv_discharge: return 19;
+        case StepType::cccv_discharge: return 20;
+    }
+    return 4;
+}
+
+std::optional<StepType> step_type_of_number(int code) {
+    switch (code) {
+        case 1: return StepType::cc_charge;
+        case 2: return StepType::cc_discharge;
+        case 3: return StepType::cv_charge;
+        case 4: return StepType::rest;
+        case 5: return StepType::cycle;
+        case 6: return StepType::end;
+        case 7: return StepType::cccv_charge;
+        case 19: return StepType::cv_discharge;
+        case 20: return StepType::cccv_discharge;
+        default: return std::nullopt;
+    }
+}
+
+std::string unit_text(double v) { return neware::format_number(v, 3); }
+
+std::string fnv_guid(std::string_view text) {
+    std::uint64_t h1 = 1469598103934665603ull, h2 = 1099511628211ull * 31;
+    for (const char c : text) {
+        h1 = (h1 ^ static_cast<unsigned char>(c)) * 1099511628211ull;
+        h2 = (h2 ^ static_cast<unsigned char>(c)) * 1099511628211ull + 0x9e3779b97f4a7c15ull;
+    }
+    char buf[48];
+    std::snprintf(buf, sizeof buf, "%08x-%04x-4%03x-a%03x-%012llx", static_cast<unsigned>(h1 >> 32),
+                  static_cast<unsigned>((h1 >> 16) & 0xffff), static_cast<unsigned>(h1 & 0xfff),
+                  static_cast<unsigned>((h2 >> 52) & 0xfff), static_cast<unsigned long long>(h2 & 0xffffffffffffull));
+    return buf;
+}
+
+std::string utc_stamp() {
+    const std::time_t t = std::time(nullptr);
+    std::tm tm{};
+    gmtime_r(&t, &tm);
+    char buf[32];
+    std::strftime(buf, sizeof buf, "%Y%m%d%H%M%S", &tm);
+    return buf;
+}
+
+}  // namespace
+
+std::string compile_step_file(const StepProgram& program, const StepFileOptions& options) {
+    const StepProgram p = as_tester_program(program);
+    const std::string nl = "\r\n";
+    auto value = [&](std::string& out, int indent, const char* tag, double v) {
+        out += std::string(static_cast<std::size_t>(indent), ' ') + "<" + tag + " Value=\"" + unit_text(v) + "\" />" + nl;
+    };
     auto escaped = [](std::string_view text) {
         std::string out;
         neware::xml::append_escaped(out, text, neware::xml::Escape::whitespace);
         return out;
     };
-    std::string out = "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n";
-    out += "<cellbench_steps format=\"" + std::string(kStepFileFormat) + "\" name=\"" + escaped(program.name) + "\"";
-    if (!program.description.empty()) out += " description=\"" + escaped(program.description) + "\"";
-    out += ">\n";
-    for (std::size_t i = 0; i < program.steps.size(); ++i) {
-        const Step& s = program.steps[i];
-        out += "  <step id=\"" + std::to_string(i + 1) + "\" type=\"" + std::string(to_string(s.type)) + "\"";
-        auto num = [&](const char* name, const std::optional<double>& v) {
-            if (v) out += std::string(" ") + name + "=\"" + number_text(*v) + "\"";
-        };
-        num("current_a", s.current_a);
-        num("voltage_v", s.voltage_v);
-        num("time_s", s.time_s);
-        num("cutoff_voltage_v", s.cutoff_voltage_v);
-        num("cutoff_current_a", s.cutoff_current_a);
-        if (s.cutoff_capacity_ah) out += " cutoff_capacity_ah=\"" + s.cutoff_capacity_ah->to_string() + "\"";
-        if (s.type == StepType::cycle)
-            out += " start_step=\"" + std::to_string(s.start_step) + "\" count=\"" + std::to_string(s.count) + "\"";
-        if (!s.note.empty()) out += " note=\"" + escaped(s.note) + "\"";
-        out += "/>\n";
+    const auto& st = p.settings;
+    std::string body;
+    body += "    <Head_Info>" + nl;
+    body += "      <Operate Value=\"65\" />" + nl;
+    body += "      <Scale Value=\"1\" />" + nl;
+    body += "      <Start_Step Value=\"" + std::to_string(p.first_step) + "\" Hide_Ctrl_Step=\"0\" />" + nl;
+    body += "      <PN Value=\"" + escaped(p.name) + "\" />" + nl;
+    body += "      <RateType Value=\"105\" />" + nl;
+    if (st.nominal_capacity_ah) value(body, 6, "MultCap", *st.nominal_capacity_ah * kMaS);
+    body += "    </Head_Info>" + nl;
+    body += "    <Whole_Prt>" + nl + "      <Protect>" + nl + "        <Main>" + nl;
+    if (st.protect_upper_v || st.protect_lower_v) {
+        body += "          <Volt>" + nl;
+        if (st.protect_upper_v) value(body, 12, "Upper", *st.protect_upper_v * kTenthMv);
+        if (st.protect_lower_v) value(body, 12, "Lower", *st.protect_lower_v * kTenthMv);
+        body += "          </Volt>" + nl;
     }
-    out += "</cellbench_steps>\n";
+    if (st.protect_upper_a || st.protect_lower_a) {
+        body += "          <Curr>" + nl;
+        if (st.protect_upper_a) value(body, 12, "Upper", *st.protect_upper_a * kMa);
+        if (st.protect_lower_a) value(body, 12, "Lower", *st.protect_lower_a * kMa);
+        body += "          </Curr>" + nl;
+    }
+    if (st.protect_delay_s) value(body, 10, "Delay_Time", *st.protect_delay_s * kMs);
+    if (st.protect_capacity_ah) {
+        body += "          <Cap>" + nl;
+        value(body, 12, "Upper", *st.protect_capacity_ah * kMaS);
+        body += "          </Cap>" + nl;
+    }
+    body += "        </Main>" + nl + "      </Protect>" + nl;
+    body += "      <Record>" + nl + "        <Main>" + nl;
+    value(body, 10, "Time", *st.record_interval_s * kMs);
+    body += "        </Main>" + nl + "      </Record>" + nl + "    </Whole_Prt>" + nl;
+    body += "    <Step_Info Num=\"" + std::to_string(p.steps.size()) + "\">" + nl;
+    for (std::size_t i = 0; i < p.steps.size(); ++i) {
+        const Step& s = p.steps[i];
+        const std::string tag = "Step" + std::to_string(i + 1);
+        body += "      <" + tag + " Step_ID=\"" + std::to_string(i + 1) + "\" Step_Type=\"" +
+                std::to_string(step_type_code_number(s.type)) + "\">" + nl;
+        if (s.record_interval_s || s.record_delta_v || s.record_delta_a) {
+            body += "        <Record>" + nl + "          <Main>" + nl;
+            if (s.record_interval_s) value(body, 12, "Time", *s.record_interval_s * kMs);
+            if (s.record_delta_v) value(body, 12, "Volt", *s.record_delta_v * kTenthMv);
+            if (s.record_delta_a) value(body, 12, "Curr", *s.record_delta_a * kMa);
+            body += "          </Main>" + nl + "        </Record>" + nl;
+        }
+        if (s.type == StepType::cycle) {
+            body += "        <Limit>" + nl + "          <Other>" + nl;
+            body += "            <Start_Step Value=\"" + std::to_string(s.start_step) + "\" />" + nl;
+            body += "            <Cycle_Count Value=\"" + std::to_string(s.count) + "\" />" + nl;
+            body += "          </Other>" + nl + "        </Limit>" + nl;
+        } else if (s.type != StepType::end) {
+            body += "        <Limit>" + nl + "          <Main>" + nl;
+            if (s.current_a) value(body, 12, "Curr", *s.current_a * kMa);
+            if (s.voltage_v) value(body, 12, "Volt", *s.voltage_v * kTenthMv);
+            if (s.time_s) value(body, 12, "Time", *s.time_s * kMs);
+            if (s.cutoff_voltage_v) value(body, 12, "Stop_Volt", *s.cutoff_voltage_v * kTenthMv);
+            if (s.cutoff_current_a) value(body, 12, "Stop_Curr", *s.cutoff_current_a * kMa);
+            if (s.cutoff_capacity_ah) value(body, 12, "Cap", s.cutoff_capacity_ah->constant_ah * kMaS);
+            body += "          </Main>" + nl + "        </Limit>" + nl;
+        }
+        if (s.protect_upper_v || s.protect_lower_v) {
+            body += "        <Protect>" + nl + "          <Main>" + nl + "            <Volt>" + nl;
+            if (s.protect_upper_v) value(body, 14, "Upper", *s.protect_upper_v * kTenthMv);
+            if (s.protect_lower_v) value(body, 14, "Lower", *s.protect_lower_v * kTenthMv);
+            body += "            </Volt>" + nl + "          </Main>" + nl + "        </Protect>" + nl;
+        }
+        body += "      </" + tag + ">" + nl;
+    }
+    body += "    </Step_Info>" + nl;
+    body += "    <SMBUS>" + nl + "      <SMBUS_Info Num=\"0\" AdjacentInterval=\"0\" />" + nl + "    </SMBUS>" + nl;
+    const bool ascii = std::all_of(p.name.begin(), p.name.end(), [](char c) { return static_cast<unsigned char>(c) < 0x80; });
+    std::string out = std::string("<?xml version=\"1.0\" encoding=\"") + (ascii ? "GB2312" : "UTF-8") + "\"?>" + nl;
+    out += "<root>" + nl;
+    out += "  <config type=\"Step File\" version=\"17\" client_version=\"cellbench\" date=\"" +
+           (options.date.empty() ? utc_stamp() : escaped(options.date)) + "\" Guid=\"" + fnv_guid(body) + "\">" + nl;
+    out += body;
+    out += "  </config>" + nl + "</root>";
     return out;
 }
 
 StepProgram parse_step_file(std::string_view xml) {
     using neware::ProtocolError;
+    // GB2312 and UTF-8 agree on ASCII, which is all the schema's markup and numbers use; a non-ASCII program
+    // name is kept as the file's bytes.
     const pt::ptree tree = neware::xml::read_document(xml, "step file: ");
     const pt::ptree* root = nullptr;
     for (const auto& [key, child] : tree) {
         if (key == "<xmlcomment>") continue;
-        if (key != "cellbench_steps" || root != nullptr)
-            throw ProtocolError("step file: expected one <cellbench_steps> root element (format " +
-                                std::string(kStepFileFormat) + ")");
+        if (key != "root" || root != nullptr)
+            throw ProtocolError("step file: expected one <root> element (BTS Client step file), found <" +
+                                key.substr(0, 40) + ">");
         root = &child;
     }
-    if (root == nullptr)
-        throw ProtocolError("step file: expected a <cellbench_steps> root element (format " +
-                            std::string(kStepFileFormat) + ")");
-    auto attrs_of = [](const pt::ptree& node) -> const pt::ptree* {
-        const auto it = node.find("<xmlattr>");
-        return it == node.not_found() ? nullptr : &it->second;
-    };
-    auto attr = [&](const pt::ptree& node, const char* name) -> std::optional<std::string> {
-        const pt::ptree* a = attrs_of(node);
-        if (a == nullptr) return std::nullopt;
-        const auto it = a->find(name);
-        if (it == a->not_found()) return std::nullopt;
+    if (root == nullptr) throw ProtocolError("step file: expected a <root> element (BTS Client step file)");
+    const auto cfg_it = root->find("config");
+    if (cfg_it == root->not_found()) throw ProtocolError("step file: <root> without <config>");
+    const pt::ptree& cfg = cfg_it->second;
+    auto attr = [](const pt::ptree& node, const char* name) -> std::optional<std::string> {
+        const auto a = node.find("<xmlattr>");
+        if (a == node.not_found()) return std::nullopt;
+        const auto it = a->second.find(name);
+        if (it == a->second.not_found()) return std::nullopt;
         return it->second.data();
     };
-    const auto format = attr(*root, "format");
-    if (!format || *format != kStepFileFormat)
-        throw ProtocolError(std::string("step file: expected format=\"") + kStepFileFormat + "\"");
+    const auto type = attr(cfg, "type");
+    if (!type || *type != "Step File")
+        throw ProtocolError("step file: expected <config type=\"Step File\">, got type=\"" + type.value_or("").substr(0, 40) + "\"");
+    const auto version = attr(cfg, "version");
+    const auto vnum = version ? parse_int(*version) : std::nullopt;
+    if (!vnum || (*vnum != 17 && *vnum != 18))
+        throw ProtocolError("step file: schema version \"" + version.value_or("").substr(0, 20) +
+                            "\" is not one this reader knows (17, 18)");
+
+    // <A><B><C Value=".."/> under a node: the number, or nullopt.
+    auto number_at = [&](const pt::ptree& node, const std::string& path, const std::string& where) -> std::optional<double> {
+        const auto child = node.get_child_optional(pt::ptree::path_type(path, '/'));
+        if (!child) return std::nullopt;
+        const auto text = attr(*child, "Value");
+        if (!text) throw ProtocolError(where + ": <" + path + "> without Value");
+        const auto v = parse_number(*text);
+        if (!v) throw ProtocolError(where + ": <" + path + "> Value=\"" + text->substr(0, 30) + "\": expected a number");
+        return v;
+    };
+    auto scaled = [](std::optional<double> v, double per_unit) -> std::optional<double> {
+        if (!v) return std::nullopt;
+        return *v / per_unit;
+    };
 
     StepProgram p;
-    p.name = attr(*root, "name").value_or("");
-    p.description = attr(*root, "description").value_or("");
-    static const std::set<std::string> kKnown{"id",           "type",     "current_a",        "voltage_v",
-                                              "time_s",       "cutoff_voltage_v", "cutoff_current_a",
-                                              "cutoff_capacity_ah", "start_step", "count", "note"};
-    for (const auto& child : *root) {
-        const std::string& key = child.first;
-        const pt::ptree& node = child.second;  // (not a structured binding: lambdas below capture it)
+    const std::string head = "step file: <Head_Info>";
+    if (const auto h = cfg.get_child_optional("Head_Info")) {
+        if (const auto pn = h->get_child_optional("PN")) p.name = attr(*pn, "Value").value_or("");
+        if (const auto ss = number_at(*h, "Start_Step", head)) p.first_step = static_cast<int>(*ss);
+        p.settings.nominal_capacity_ah = scaled(number_at(*h, "MultCap", head), kMaS);
+    }
+    if (const auto w = cfg.get_child_optional("Whole_Prt")) {
+        const std::string where = "step file: <Whole_Prt>";
+        auto& st = p.settings;
+        st.protect_upper_v = scaled(number_at(*w, "Protect/Main/Volt/Upper", where), kTenthMv);
+        st.protect_lower_v = scaled(number_at(*w, "Protect/Main/Volt/Lower", where), kTenthMv);
+        st.protect_upper_a = scaled(number_at(*w, "Protect/Main/Curr/Upper", where), kMa);
+        st.protect_lower_a = scaled(number_at(*w, "Protect/Main/Curr/Lower", where), kMa);
+        st.protect_delay_s = scaled(number_at(*w, "Protect/Main/Delay_Time", where), kMs);
+        st.protect_capacity_ah = scaled(number_at(*w, "Protect/Main/Cap/Upper", where), kMaS);
+        st.record_interval_s = scaled(number_at(*w, "Record/Main/Time", where), kMs);
+    }
+    const auto info = cfg.get_child_optional("Step_Info");
+    if (!info) throw ProtocolError("step file: <Step_Info> missing");
+    std::vector<std::pair<int, const pt::ptree*>> nodes;
+    for (const auto& [key, node] : *info) {
         if (key == "<xmlattr>" || key == "<xmlcomment>") continue;
-        if (key != "step") throw ProtocolError("step file: unexpected element <" + key.substr(0, 40) + ">");
-        const std::size_t index = p.steps.size();
-        const std::string where = "step file: <step> #" + std::to_string(index + 1);
-        if (const pt::ptree* a = attrs_of(node))
-            for (const auto& [name, value] : *a)
-                if (!kKnown.count(name)) throw ProtocolError(where + ": unknown attribute '" + name.substr(0, 40) + "'");
+        const auto id_text = attr(node, "Step_ID");
+        const auto id = id_text ? parse_int(*id_text) : std::nullopt;
+        if (key.rfind("Step", 0) != 0 || !id)
+            throw ProtocolError("step file: <Step_Info>: unexpected element <" + key.substr(0, 40) + "> (expected StepK with Step_ID)");
+        nodes.emplace_back(*id, &node);
+    }
+    std::sort(nodes.begin(), nodes.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+    if (const auto num = attr(*info, "Num"); num && parse_int(*num) != static_cast<int>(nodes.size()))
+        throw ProtocolError("step file: <Step_Info Num=\"" + num->substr(0, 20) + "\"> but " +
+                            std::to_string(nodes.size()) + " steps");
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+        const auto& [id, node] = nodes[i];
+        const std::string where = "step file: step " + std::to_string(id);
+        if (id != static_cast<int>(i) + 1)
+            throw ProtocolError(where + ": expected Step_ID " + std::to_string(i + 1) + " (steps are numbered in order)");
+        const auto code_text = attr(*node, "Step_Type");
+        const auto code = code_text ? parse_int(*code_text) : std::nullopt;
+        if (!code) throw ProtocolError(where + ": Step_Type missing or not a number");
+        const auto type = step_type_of_number(*code);
+        if (!type)
+            throw ProtocolError(where + ": Step_Type " + std::to_string(*code) +
+                                " is not supported (known: 1 CC Chg, 2 CC DChg, 3 CV Chg, 4 Rest, 5 Cycle, 6 End, "
+                                "7 CCCV Chg, 19 CV DChg, 20 CCCV DChg)");
         Step s;
-        const auto id = attr(node, "id");
-        if (id) {
-            const auto v = parse_int(*id);
-            if (!v || *v != static_cast<int>(index + 1))
-                throw ProtocolError(where + ": expected id=\"" + std::to_string(index + 1) + "\"");
-        }
-        const auto type_text = attr(node, "type");
-        if (!type_text) throw ProtocolError(where + ": attribute 'type' missing");
-        const auto type = step_type_from_string(*type_text);
-        if (!type) throw ProtocolError(where + ": unknown type '" + type_text->substr(0, 40) + "'");
         s.type = *type;
-        auto num = [&](const char* name) -> std::optional<double> {
-            const auto text = attr(node, name);
-            if (!text) return std::nullopt;
-            const auto v = parse_number(*text);
-            if (!v) throw ProtocolError(where + ": attribute '" + name + "': expected a number");
-            return v;
-        };
-        auto integer = [&](const char* name) -> int {
-            const auto text = attr(node, name);
-            if (!text) return 0;
-            const auto v = parse_int(*text);
-            if (!v || *v < 0) throw ProtocolError(where + ": attribute '" + name + "': expected a non-negative integer");
-            return *v;
-        };
-        s.current_a = num("current_a");
-        s.voltage_v = num("voltage_v");
-        s.time_s = num("time_s");
-        s.cutoff_voltage_v = num("cutoff_voltage_v");
-        s.cutoff_current_a = num("cutoff_current_a");
-        if (const auto cap = attr(node, "cutoff_capacity_ah")) {
-            try {
-                s.cutoff_capacity_ah = CapacityExpression::parse(*cap);
-            } catch (const InputError& e) {
-                throw ProtocolError(where + ": cutoff_capacity_ah: " + e.what());
-            }
+        const pt::ptree& n = *node;
+        if (s.type == StepType::cycle) {
+            const auto start = number_at(n, "Limit/Other/Start_Step", where);
+            const auto count = number_at(n, "Limit/Other/Cycle_Count", where);
+            if (!start || !count) throw ProtocolError(where + ": a cycle step needs Limit/Other/Start_Step and Cycle_Count");
+            s.start_step = static_cast<int>(*start);
+            s.count = static_cast<int>(*count);
+        } else if (s.type != StepType::end) {
+            s.current_a = scaled(number_at(n, "Limit/Main/Curr", where), kMa);
+            if (!s.current_a && p.settings.nominal_capacity_ah)
+                if (const auto rate = number_at(n, "Limit/Main/Rate", where))
+                    s.current_a = *rate * *p.settings.nominal_capacity_ah;
+            s.voltage_v = scaled(number_at(n, "Limit/Main/Volt", where), kTenthMv);
+            s.time_s = scaled(number_at(n, "Limit/Main/Time", where), kMs);
+            s.cutoff_voltage_v = scaled(number_at(n, "Limit/Main/Stop_Volt", where), kTenthMv);
+            s.cutoff_current_a = scaled(number_at(n, "Limit/Main/Stop_Curr", where), kMa);
+            if (!s.cutoff_current_a && p.settings.nominal_capacity_ah)
+                if (const auto rate = number_at(n, "Limit/Main/Stop_Rate", where))
+                    s.cutoff_current_a = *rate * *p.settings.nominal_capacity_ah;
+            if (const auto cap = scaled(number_at(n, "Limit/Main/Cap", where), kMaS))
+                s.cutoff_capacity_ah = CapacityExpression{*cap, {}};
+            if (s.type == StepType::rest) s.current_a.reset();  // some clients write a 0 current on rests
+            if (!step_has_cv_phase(s.type)) s.voltage_v.reset();
         }
-        s.start_step = integer("start_step");
-        s.count = integer("count");
-        s.note = attr(node, "note").value_or("");
+        s.record_interval_s = scaled(number_at(n, "Record/Main/Time", where), kMs);
+        s.record_delta_v = scaled(number_at(n, "Record/Main/Volt", where), kTenthMv);
+        s.record_delta_a = scaled(number_at(n, "Record/Main/Curr", where), kMa);
+        s.protect_upper_v = scaled(number_at(n, "Protect/Main/Volt/Upper", where), kTenthMv);
+        s.protect_lower_v = scaled(number_at(n, "Protect/Main/Volt/Lower", where), kTenthMv);
         p.steps.push_back(std::move(s));
     }
     p.validate();

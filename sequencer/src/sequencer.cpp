@@ -52,7 +52,21 @@ void Sequencer::start(const Program& program, double t) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (active(state_)) throw InputError("a run is already active");
     if (program.segments.empty()) throw InputError("program " + program.name + " has no segments");
-    program_ = program;
+    // A cycler program whose capacity limit needs a measured step (thesis eq. 2.4: C4) runs as two step files,
+    // the second resolved from the first's rows when it starts (protocol::tester_parts; the real step-file
+    // format has constant limits only).
+    program_ = Program{program.name, {}};
+    for (const Segment& s : program.segments) {
+        if (s.kind != Segment::Kind::Cycler) {
+            program_.segments.push_back(s);
+            continue;
+        }
+        for (auto& part : protocol::tester_parts(s.program)) {
+            Segment piece = s;
+            piece.program = std::move(part);
+            program_.segments.push_back(std::move(piece));
+        }
+    }
     state_ = RunState::Running;
     segment_ = 0;
     rec_ = Recording{};
@@ -97,7 +111,23 @@ void Sequencer::start_segment_locked(double t) {
         }
         cycler_seen_working_ = false;
         last_step_id_ = -1;
-        cycler_.start(s.program, program_.name + "-" + std::to_string(segment_));
+        if (s.program.first_step == 1) step_capacity_ah_.clear();
+        protocol::StepProgram resolved;
+        try {
+            resolved = protocol::resolve_capacity_limits(s.program, [this](int id) -> std::optional<double> {
+                const auto it = step_capacity_ah_.find(id);
+                return it == step_capacity_ah_.end() ? std::nullopt : std::optional<double>(it->second);
+            });
+        } catch (const std::exception& e) {
+            abort_locked(std::string("cannot write the step file: ") + e.what(), t);
+            return;
+        }
+        for (const auto& [id, ah] : step_capacity_ah_)
+            if (s.program.first_step > 1 && id < s.program.first_step)
+                sink_.on_event(t, "info", "cycler", "measured C" + std::to_string(id) + " = " + fmt("%.4f Ah", ah) +
+                                                        " for the capacity limits from step " +
+                                                        std::to_string(s.program.first_step));
+        cycler_.start(resolved, program_.name + "-" + std::to_string(segment_));
         sink_.on_event(t, "info", "cycler", "started step program " + s.program.name);
         return;
     }
@@ -193,6 +223,8 @@ void Sequencer::record_locked(const CyclerSample& s) {
         rec_.ambient_c.push_back(last_chamber_ ? last_chamber_->air_c : kNaN);
     }
     if (program_.segments[std::min(segment_, program_.segments.size() - 1)].kind != Segment::Kind::Cycler) return;
+    // Step capacities of the latest execution (what a capacity limit refers to).
+    if (s.step_id > 0 && std::isfinite(s.capacity_ah)) step_capacity_ah_[s.step_id] = std::abs(s.capacity_ah);
     // Step 0 is the idle tester (a live reading before its first row or after its test): no step of the program.
     if (s.step_id > 0 && (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_)) {
         sink_.on_step(s.t_mono_s, static_cast<int>(segment_), s.step_id, s.cycle_id, s.step_type);

@@ -487,7 +487,7 @@ TEST(NewareBtsDownload, ResponseRowsRoundTripWithTestTimeInMilliseconds) {
     const std::string frame = encode_response(r);
     EXPECT_NE(frame.find("testtime=\"26005300\""), std::string::npos) << frame;
     const auto back = std::get<DownloadResponse>(parse_response(frame));
-    EXPECT_EQ(back.channel, ch(1));
+    EXPECT_TRUE(back.channel.same_channel(ch(1)));  // the real server's <download> carries no ip
     EXPECT_EQ(back.testid, 3);
     ASSERT_EQ(back.records.size(), 3u);
     for (std::size_t i = 0; i < 3; ++i) {
@@ -521,4 +521,71 @@ TEST(NewareBtsDownload, BrokenRowsAreProtocolErrors) {
     EXPECT_THROW(parse_request("<?xml version=\"1.0\"?><bts version=\"1.0\"><cmd>download</cmd><download ip=\"1\" "
                                "devtype=\"24\" devid=\"1\" subdevid=\"1\" chlid=\"1\" startpos=\"1\" count=\"5000\"/></bts>"),
                  ProtocolError);
+}
+
+// ---------------------------------------------------------------------------------------------------------
+// Requests as public BTS 8 clients write them.
+
+TEST(NewareBtsRealClients, StartWithBackupAndAStrayQuoteBeforeTheEnd) {
+    const std::string frame =
+        "<?xml version=\"1.0\" encoding=\"UTF-8\" ?><bts version=\"1.0\"><cmd>start</cmd><list count = \"1\">"
+        "<start ip=\"127.0.0.1\" devtype=\"27\" devid=\"21\" subdevid=\"1\" chlid=\"1\" barcode=\"cell-01\">"
+        "C:\\steps\\hppc.xml</start><backup backupdir=\"C:\\Neware data\\\" remotedir=\"\" filenametype=\"0\" "
+        "customfilename=\"\" addtimewhenrepeat=\"0\" createdirbydate=\"0\" filetype=\"1\" backupontime=\"1\" "
+        "backupontimeinterval=\"720\" backupfree=\"1\" /></list>\"</bts>\n\n#\r\n";
+    const auto r = std::get<StartRequest>(parse_request(frame));
+    ASSERT_EQ(r.entries.size(), 1u);
+    EXPECT_EQ(r.entries[0].channel, (ChannelAddress{"127.0.0.1", 27, 21, 1, 1}));
+    EXPECT_EQ(r.entries[0].step_file_path, "C:\\steps\\hppc.xml");
+    EXPECT_EQ(r.entries[0].barcode, "cell-01");
+    ASSERT_TRUE(r.backup);
+    EXPECT_EQ(r.backup->backupdir, "C:\\Neware data\\");
+    EXPECT_EQ(r.backup->filetype, 1);
+}
+
+TEST(NewareBtsRealClients, NewCommandsRoundTrip) {
+    const ChannelAddress c{"", 27, 21, 1, 3};
+    const auto df = std::get<ChannelListRequest>(parse_request(encode_request(ChannelListRequest{Command::inquiredf, {c}})));
+    EXPECT_EQ(df.command, Command::inquiredf);
+    EXPECT_EQ(df.channels.at(0), c);
+    const auto off = std::get<ChannelListRequest>(parse_request(encode_request(ChannelListRequest{Command::light, {c}, false})));
+    EXPECT_EQ(off.command, Command::light);
+    EXPECT_FALSE(off.on);
+    for (const auto cmd : {Command::downloadlog, Command::downloadStepLayer}) {
+        const auto t = std::get<TestRequest>(parse_request(encode_request(TestRequest{cmd, c, 143})));
+        EXPECT_EQ(t.command, cmd);
+        EXPECT_EQ(t.testid, 143);
+        EXPECT_TRUE(t.channel.same_channel(c));
+    }
+    // The test-id query: startpos 0 with count 0 is valid, startpos 0 with rows is not.
+    const std::string id = "<?xml version=\"1.0\"?><bts><cmd>download</cmd><download devtype=\"27\" devid=\"21\" "
+                           "subdevid=\"1\" chlid=\"1\" auxid=\"0\" testid=\"0\" startpos=\"0\" count=\"0\"/></bts>";
+    const auto q = std::get<DownloadRequest>(parse_request(id));
+    EXPECT_EQ(q.count, 0);
+    EXPECT_EQ(q.startpos, 0);
+    std::string rows = id;
+    rows.replace(rows.find("count=\"0\""), 9, "count=\"10\"");
+    EXPECT_THROW(parse_request(rows), ProtocolError);
+    // A request for a command nobody knows is a ProtocolError naming it (the simulator answers it with an error).
+    try {
+        parse_request("<?xml version=\"1.0\"?><bts><cmd>goto</cmd></bts>");
+        ADD_FAILURE() << "no error";
+    } catch (const ProtocolError& e) {
+        EXPECT_NE(std::string(e.what()).find("unknown command 'goto'"), std::string::npos) << e.what();
+    }
+    ErrorResponse err{"goto", "unknown command 'goto'"};
+    const auto back = std::get<ErrorResponse>(parse_response(encode_response(err)));
+    EXPECT_EQ(back.command, "goto");
+    EXPECT_EQ(back.message, "unknown command 'goto'");
+}
+
+TEST(NewareFrameSplitter, FrameEndsAtBtsCloseWithOrWithoutTheBlankLine) {
+    const std::string body = "<?xml version=\"1.0\"?><bts version=\"1.0\"><cmd>connect_resp</cmd><result>ok</result></bts>";
+    FrameSplitter s;
+    s.feed(body + "#\r\n" + body + "\r\n#\r\n" + "junk #\r\n" + body + "\n\n#\r\n");
+    std::vector<std::string> frames;
+    while (auto f = s.next()) frames.push_back(*f);
+    ASSERT_EQ(frames.size(), 3u);
+    for (const auto& f : frames) EXPECT_EQ(f, body);
+    EXPECT_EQ(s.garbage_bytes(), 8u);  // "junk #\r\n": a '#' line that does not follow </bts>
 }

@@ -150,7 +150,7 @@ TEST(NewareExport, DateFormats) {
 
 TEST(NewareExport, BadInputIsAnErrorWithLineAndColumn) {
     EXPECT_EQ(error_of("Step Type,Total Time,Current(A),Voltage(V)\nRest,00:61:00,0,4\n"),
-              "rw_neware.csv:2: column \"Total Time\": expected a duration h:mm:ss[.fff] or seconds, got \"00:61:00\"");
+              "rw_neware.csv:2: column \"Total Time\": expected a duration hh:mm:ss, h:mm:ss.fff or seconds, got \"00:61:00\"");
     EXPECT_EQ(error_of("Step Type,Time(s),Current(A),Voltage(V)\nRest,0,0,4\nRest,1,zero,4\n"),
               "rw_neware.csv:3: column \"Current(A)\": expected a number, got \"zero\"");
     EXPECT_EQ(error_of("Step Type,Time(s),Current(A),Voltage(V)\nRest,0,,4\n"),
@@ -159,10 +159,99 @@ TEST(NewareExport, BadInputIsAnErrorWithLineAndColumn) {
     std::string msg = error_of("Step Type,Time(s),Voltage(V)\nRest,0,4\n");
     EXPECT_EQ(msg.rfind("rw_neware.csv:1: missing required column \"Current(A)\"", 0), 0u) << msg;
     msg = error_of("Step Type,Time,Current(A),Voltage(V)\nRest,00:00:00,0,4\n");
-    EXPECT_EQ(msg.rfind("rw_neware.csv:1: no time column: expected \"Time(s)\" or \"Total Time\"", 0), 0u) << msg;
+    EXPECT_EQ(msg.rfind("rw_neware.csv:1: no time column: expected \"Time(s)\", \"Total Time\", \"Cumulative Time\"", 0), 0u) << msg;
     msg = error_of("");
     EXPECT_EQ(msg.rfind("rw_neware.csv:1: empty file", 0), 0u) << msg;
     EXPECT_EQ(error_of(kRwHeader), "rw_neware.csv:1: header only: expected data rows after the header");
 }
 
 }  // namespace
+
+// ---------------------------------------------------------------------------------------------------------
+// Several BTSDA versions and NewareNDA's CSV: the same four rows (0, 1.5, 61 and 3725.25 s) in every layout
+// give the same BDF times, and the reader says which layout it found.
+
+namespace {
+
+using cellbench::protocol::NewareExportInfo;
+using cellbench::protocol::NewareExportLayout;
+
+const std::vector<double> kTimes{0.0, 1.5, 61.0, 3725.25};
+
+struct Layout {
+    const char* name;
+    std::string text;
+    NewareExportLayout expected;
+};
+
+std::vector<Layout> layouts() {
+    return {
+        {"Time(s) in seconds",
+         "DataPoint,Step Type,Time(s),Current(A),Voltage(V)\n1,Rest,0,0,4.1\n2,CC DChg,1.5,-4.5,4.0\n"
+         "3,CC DChg,61,-4.5,3.9\n4,Rest,3725.25,0,3.95\n",
+         NewareExportLayout::btsda_test_time},
+        {"Time(s) as h:mm:ss.ms",
+         "DataPoint,Step Type,Time(s),Current(A),Voltage(V)\n1,Rest,0:00:00.000,0,4.1\n2,CC DChg,0:00:01.500,-4.5,4.0\n"
+         "3,CC DChg,0:01:01.000,-4.5,3.9\n4,Rest,1:02:05.250,0,3.95\n",
+         NewareExportLayout::btsda_test_time},
+        {"Total Time hh:mm:ss.ms",
+         "DataPoint,Step Type,Time,Total Time,Current(A),Voltage(V)\n1,Rest,00:00:00,00:00:00,0,4.1\n"
+         "2,CC DChg,00:00:00,00:00:01.5,-4.5,4.0\n3,CC DChg,00:00:59.5,00:01:01,-4.5,3.9\n"
+         "4,Rest,00:00:00,01:02:05.25,0,3.95\n",
+         NewareExportLayout::btsda_total_time},
+        {"Cumulative Time hh:mm:ss",
+         "Record ID,Cycle Index,Step Index,Step Type,Step Time,Cumulative Time,Current(A),Voltage(V)\n"
+         "1,1,1,Rest,00:00:00,00:00:00,0,4.1\n2,1,2,CC DChg,00:00:00,00:00:01.500,-4.5,4.0\n"
+         "3,1,2,CC DChg,00:00:59.500,00:01:01,-4.5,3.9\n4,1,3,Rest,00:00:00,01:02:05.250,0,3.95\n",
+         NewareExportLayout::btsda_cumulative_time},
+        {"Realtime wall clock only",
+         "DataPoint,Step Type,Current(mA),Voltage(V),Realtime\n1,Rest,0,4.1,2025-05-23 09:35:38\n"
+         "2,CC DChg,-4500,4.0,2025-05-23 09:35:39.5\n3,CC DChg,-4500,3.9,2025-05-23 09:36:39\n"
+         "4,Rest,0,3.95,2025-05-23 10:37:43.25\n",
+         NewareExportLayout::btsda_wall_clock},
+        {"NewareNDA CSV",
+         "Index,Cycle,Step,Status,Time,Voltage,Current(mA),Charge_Capacity(mAh),Discharge_Capacity(mAh),"
+         "Charge_Energy(mWh),Discharge_Energy(mWh),Timestamp\n"
+         "1,1,1,Rest,0.0,4.1,0.0,0,0,0,0,2025-05-23 09:35:38\n"
+         "2,1,2,CC_DChg,0.0,4.0,-4500.0,0,0,0,0,2025-05-23 09:35:39.500\n"
+         "3,1,2,CC_DChg,59.5,3.9,-4500.0,0,74.4,0,0,2025-05-23 09:36:39\n"
+         "4,1,3,Rest,0.0,3.95,0.0,0,0,0,0,2025-05-23 10:37:43.250\n",
+         NewareExportLayout::newarenda},
+    };
+}
+
+}  // namespace
+
+TEST(NewareExport, EveryTimeLayoutGivesTheSameBdfTimes) {
+    for (const auto& l : layouts()) {
+        NewareExportInfo info;
+        const Recording rec = parse_neware_export(l.text, "export.csv", &info);
+        EXPECT_EQ(info.layout, l.expected) << l.name;
+        ASSERT_EQ(rec.size(), 4u) << l.name;
+        for (std::size_t k = 0; k < kTimes.size(); ++k) EXPECT_NEAR(rec.time_s[k], kTimes[k], 1e-9) << l.name << " row " << k;
+        EXPECT_DOUBLE_EQ(rec.current_a[1], -4.5) << l.name;  // mA columns scaled, the sign kept
+        EXPECT_DOUBLE_EQ(rec.voltage_v[3], 3.95) << l.name;
+    }
+    // NewareNDA: its Time column is the step time (it falls back), never taken as the test time; its Status is
+    // the step type, its Step the step count.
+    const Recording nda = parse_neware_export(layouts().back().text, "nda.csv");
+    EXPECT_EQ(nda.step_type[1], "CC_DChg");
+    EXPECT_EQ(nda.step_count, (std::vector<double>{1, 2, 2, 3}));
+    ASSERT_EQ(nda.unix_time_s.size(), 4u);
+    EXPECT_DOUBLE_EQ(nda.unix_time_s[0], 1747992938.0);
+}
+
+TEST(NewareExport, ImpossibleValuesNameTheRow) {
+    const std::string head = "DataPoint,Time(s),Current(A),Voltage(V)\n1,0,0,4.1\n";
+    EXPECT_NE(error_of(head + "2,1,0,42.0\n").find("rw_neware.csv:3: column \"Voltage(V)\": physically impossible voltage"),
+              std::string::npos)
+        << error_of(head + "2,1,0,42.0\n");
+    EXPECT_NE(error_of(head + "2,1,-20000,4.0\n").find(":3: column \"Current(A)\": physically impossible current"),
+              std::string::npos);
+    EXPECT_NE(error_of(head + "2,1,0,inf\n").find(":3:"), std::string::npos);
+    EXPECT_NE(error_of(head + "2,1,nan,4.0\n").find(":3:"), std::string::npos);
+    EXPECT_NE(error_of("DataPoint,Cumulative Time,Current(A),Voltage(V)\n1,00:00:00,0,4.1\n2,yesterday,0,4.1\n")
+                  .find(":3: column \"Cumulative Time\": expected a duration"),
+              std::string::npos);
+    EXPECT_NE(error_of("DataPoint,Current(A),Voltage(V)\n1,0,4.1\n").find("no time column"), std::string::npos);
+}

@@ -124,7 +124,7 @@ TEST(NewareRunner, CcThenCvThenCurrentCutoff) {
         if (!r.cv_phase()) {
             saw_cc = true;
             EXPECT_NEAR(r.last().current_a, 4.5, 1e-12);
-            EXPECT_EQ(r.step_type_code(), "cccv");
+            EXPECT_EQ(r.step_type_code(), "cc");
         } else {
             saw_cv = true;
             EXPECT_EQ(r.step_type_code(), "cv");

@@ -2,7 +2,9 @@
 // eq. 2.4, step-file and JSON round trips, and errors that name the step / JSON path.
 #include <gtest/gtest.h>
 
+#include <fstream>
 #include <map>
+#include <sstream>
 #include <nlohmann/json.hpp>
 
 #include "cellbench/core/recording.hpp"
@@ -16,12 +18,25 @@ using nlohmann::json;
 
 namespace {
 
-void expect_round_trips(const StepProgram& p) {
-    const std::string xml = compile_step_file(p);
-    EXPECT_EQ(parse_step_file(xml), p) << xml;
-    EXPECT_EQ(StepProgram::from_json(p.to_json()), p) << p.to_json().dump(2);
+const std::string kReference = std::string(CELLBENCH_SHARED_DIR) + "/reference/neware/bts-client-2024-step-file.xml";
+
+std::string read(const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+}
+
+void expect_round_trips(const StepProgram& program) {
+    // The step file carries the program as the tester sees it (limits resolved, no notes): that reads back.
+    StepProgram p = program;
+    if (!p.settings.nominal_capacity_ah) p.settings.nominal_capacity_ah = 4.5;  // MultCap, for eq. 2.4
+    const std::string xml = compile_step_file(p, {"20260101000000"});
+    EXPECT_EQ(parse_step_file(xml), as_tester_program(p)) << xml;
+    EXPECT_EQ(compile_step_file(parse_step_file(xml), {"20260101000000"}), xml);
+    EXPECT_EQ(StepProgram::from_json(program.to_json()), program) << program.to_json().dump(2);
     // and through text, as config/programs/*.json will be read
-    EXPECT_EQ(StepProgram::from_json(json::parse(p.to_json().dump())), p);
+    EXPECT_EQ(StepProgram::from_json(json::parse(program.to_json().dump())), program);
 }
 
 std::string error_of(const std::function<void()>& f) {
@@ -136,37 +151,131 @@ TEST(NewareStepFile, RandomWalkIsTable51) {
     expect_round_trips(p);
 }
 
-TEST(NewareStepFile, FileIsTheDocumentedFormat) {
-    const std::string xml = compile_step_file(thesis_hppc_program());
-    EXPECT_NE(xml.find("<cellbench_steps format=\"cellbench.neware-steps/1\" name=\"hppc_1c\""), std::string::npos);
-    EXPECT_NE(xml.find("<step id=\"12\" type=\"cc_discharge\" current_a=\"4.5\" cutoff_voltage_v=\"2.9\" "
-                       "cutoff_capacity_ah=\"0.1*C4 - C8 + C10\" note=\"10% SOC DChg\"/>"),
+TEST(NewareStepFile, ReferenceBtsClientFileParses) {
+    const StepProgram p = parse_step_file(read(kReference));  // version 17, GB2312 declared, CRLF
+    EXPECT_EQ(p.name, "2025-02-06 10-59-55");                 // PN
+    EXPECT_EQ(p.first_step, 1);
+    ASSERT_TRUE(p.settings.nominal_capacity_ah);
+    EXPECT_DOUBLE_EQ(*p.settings.nominal_capacity_ah, 0.045);  // MultCap 162000 mA*s
+    EXPECT_DOUBLE_EQ(*p.settings.protect_upper_v, 4.3);
+    EXPECT_DOUBLE_EQ(*p.settings.protect_lower_v, 2.5);
+    EXPECT_DOUBLE_EQ(*p.settings.protect_upper_a, 0.03);
+    EXPECT_DOUBLE_EQ(*p.settings.protect_lower_a, -0.03);
+    EXPECT_DOUBLE_EQ(*p.settings.protect_capacity_ah, 0.05);
+    EXPECT_DOUBLE_EQ(*p.settings.protect_delay_s, 5.0);
+    EXPECT_DOUBLE_EQ(*p.settings.record_interval_s, 10.0);
+    ASSERT_EQ(p.steps.size(), 5u);
+    const auto& s = p.steps;
+    EXPECT_EQ(s[0].type, StepType::cc_charge);  // Step_Type 1
+    EXPECT_DOUBLE_EQ(*s[0].current_a, 0.0225);  // 22.5 mA
+    EXPECT_DOUBLE_EQ(*s[0].time_s, 10800.0);    // 10800000 ms
+    EXPECT_DOUBLE_EQ(*s[0].cutoff_voltage_v, 4.2);  // 42000 x 0.1 mV
+    EXPECT_DOUBLE_EQ(*s[0].record_interval_s, 10.0);
+    EXPECT_DOUBLE_EQ(*s[0].record_delta_v, 0.05);
+    EXPECT_DOUBLE_EQ(*s[0].protect_upper_v, 4.5);
+    EXPECT_EQ(s[1].type, StepType::cv_charge);  // Step_Type 3
+    EXPECT_DOUBLE_EQ(*s[1].voltage_v, 4.2);
+    EXPECT_DOUBLE_EQ(*s[1].cutoff_current_a, 0.00225);
+    EXPECT_DOUBLE_EQ(*s[1].record_delta_a, 0.005);
+    EXPECT_EQ(s[2].type, StepType::cc_discharge);  // Step_Type 2
+    EXPECT_DOUBLE_EQ(*s[2].cutoff_voltage_v, 2.75);
+    EXPECT_EQ(s[3].type, StepType::cycle);  // Step_Type 5: steps 1..3 five times
+    EXPECT_EQ(s[3].start_step, 1);
+    EXPECT_EQ(s[3].count, 5);
+    EXPECT_EQ(s[4].type, StepType::end);
+}
+
+TEST(NewareStepFile, ReferenceFileRoundTrips) {
+    const StepProgram p = parse_step_file(read(kReference));
+    const std::string again = compile_step_file(p, {"20250207035516"});
+    EXPECT_EQ(parse_step_file(again), p) << again;
+    // The same schema as the reference: root/config/Head_Info, Whole_Prt, Step_Info, SMBUS, StepK elements.
+    for (const char* part : {"<root>", "<config type=\"Step File\" version=\"17\"", "<Head_Info>", "<MultCap Value=\"162000\" />",
+                             "<Whole_Prt>", "<Step_Info Num=\"5\">", "<Step1 Step_ID=\"1\" Step_Type=\"1\">",
+                             "<Curr Value=\"22.5\" />", "<Stop_Volt Value=\"42000\" />",
+                             "<Step2 Step_ID=\"2\" Step_Type=\"3\">", "<Start_Step Value=\"1\" />",
+                             "<Cycle_Count Value=\"5\" />", "<Step5 Step_ID=\"5\" Step_Type=\"6\">",
+                             "<SMBUS_Info Num=\"0\" AdjacentInterval=\"0\" />"})
+        EXPECT_NE(again.find(part), std::string::npos) << part << "\n" << again;
+    // Version 18 and a UTF-8 declaration read the same.
+    std::string v18 = read(kReference);
+    v18.replace(v18.find("version=\"17\""), 12, "version=\"18\"");
+    v18.replace(v18.find("GB2312"), 6, "UTF-8");
+    EXPECT_EQ(parse_step_file(v18), p);
+}
+
+TEST(NewareStepFile, ThesisHppcIsWrittenInTheRealSchema) {
+    StepProgram hppc = thesis_hppc_program();
+    hppc.settings.nominal_capacity_ah = 4.5;
+    const std::string xml = compile_step_file(hppc, {"20260101000000"});
+    EXPECT_NE(xml.find("<PN Value=\"hppc_1c\" />"), std::string::npos) << xml;
+    EXPECT_NE(xml.find("<MultCap Value=\"16200000\" />"), std::string::npos);
+    // Step 2 CCCV charge 4.5 A to 4.1 V, 50 mA cut-off; step 8 the CCCV discharge pulse (code 20).
+    EXPECT_NE(xml.find("<Step2 Step_ID=\"2\" Step_Type=\"7\">\r\n        <Limit>\r\n          <Main>\r\n"
+                       "            <Curr Value=\"4500\" />\r\n            <Volt Value=\"41000\" />\r\n"
+                       "            <Stop_Curr Value=\"50\" />"),
               std::string::npos)
         << xml;
-    EXPECT_NE(xml.find("<step id=\"14\" type=\"cycle\" start_step=\"8\" count=\"10\"/>"), std::string::npos);
-    // Typographic quotes from a hand-edited file are accepted like the BTS frames.
-    std::string edited = xml;
-    const auto at = edited.find("time_s=\"10\"");
-    edited.replace(at, 11, "time_s=\xE2\x80\x9D" "10\xE2\x80\x9D");
-    EXPECT_EQ(parse_step_file(edited), thesis_hppc_program());
+    EXPECT_NE(xml.find("<Step8 Step_ID=\"8\" Step_Type=\"20\">"), std::string::npos);
+    EXPECT_NE(xml.find("<Time Value=\"30000\" />"), std::string::npos);
+    // The loop: step 14 runs 8..14 ten times.
+    EXPECT_NE(xml.find("<Step14 Step_ID=\"14\" Step_Type=\"5\">\r\n        <Limit>\r\n          <Other>\r\n"
+                       "            <Start_Step Value=\"8\" />\r\n            <Cycle_Count Value=\"10\" />"),
+              std::string::npos);
+    // Eq. 2.4 with nominal capacities: 0.1 x 4.5 Ah - 4.5 A x 30 s + 4.5 A x 10 s = 0.425 Ah = 1530000 mA*s.
+    EXPECT_NE(xml.find("<Cap Value=\"1530000\" />"), std::string::npos);
+    EXPECT_EQ(xml.find("cellbench_steps"), std::string::npos);  // the old format is gone
+    // Without a capacity for C4 there is nothing to write: the error names the step and the term.
+    EXPECT_NE(error_of([] { compile_step_file(thesis_hppc_program()); }).find("step 12: capacity limit 0.1*C4 - C8 + C10 needs C4"),
+              std::string::npos);
+}
+
+TEST(NewareStepFile, CapacityFormulaIsResolvedFromTheMeasuredPilot) {
+    const StepProgram hppc = thesis_hppc_program();
+    // The tester runs it as two files: 1..4 + End, then the program from step 5 with C4 measured.
+    const auto parts = tester_parts(hppc);
+    ASSERT_EQ(parts.size(), 2u);
+    ASSERT_EQ(parts[0].steps.size(), 5u);
+    EXPECT_EQ(parts[0].steps[3].note, "Full DChg");
+    EXPECT_EQ(parts[0].steps[4].type, StepType::end);
+    EXPECT_EQ(parts[1].first_step, 5);
+    EXPECT_EQ(parts[1].steps, hppc.steps);  // the same step ids
+    // C4 measured 4.0 Ah; C8, C10 inside the loop at nominal (time-limited pulses): 0.4 - 0.0375 + 0.0125.
+    const StepProgram r = resolve_capacity_limits(parts[1], [](int id) -> std::optional<double> {
+        if (id == 4) return 4.0;
+        if (id == 8 || id == 10) return 99.0;  // never used: re-executed in every pulse set
+        return std::nullopt;
+    });
+    ASSERT_TRUE(r.steps[11].cutoff_capacity_ah->is_constant());
+    EXPECT_NEAR(r.steps[11].cutoff_capacity_ah->constant_ah, 0.375, 1e-6);
+    const std::string xml = compile_step_file(r, {"20260101000000"});
+    EXPECT_NE(xml.find("<Start_Step Value=\"5\" Hide_Ctrl_Step=\"0\" />"), std::string::npos);
+    EXPECT_NE(xml.find("<Cap Value=\"1350000\" />"), std::string::npos);
+    EXPECT_EQ(parse_step_file(xml).first_step, 5);
+    // A program whose limits refer only to steps inside the loop (hppc_short) needs one file.
+    StepProgram short_hppc = hppc;
+    short_hppc.steps[11].cutoff_capacity_ah = CapacityExpression{0.45, {{8, -1.0}, {10, 1.0}}};
+    EXPECT_EQ(tester_parts(short_hppc).size(), 1u);
 }
 
 TEST(NewareStepFile, MalformedFilesAreProtocolErrors) {
-    const std::string good = compile_step_file(thesis_random_walk_program());
+    const std::string good = compile_step_file(thesis_random_walk_program(), {"20260101000000"});
     for (const std::string& bad : {std::string("garbage"), std::string("<root/>"),
-                                   std::string("<cellbench_steps format=\"other/1\"/>"),
+                                   std::string("<cellbench_steps format=\"cellbench.neware-steps/1\"/>"),
+                                   std::string("<root><config type=\"Step File\" version=\"12\"/></root>"),
                                    good.substr(0, good.size() / 2)}) {
         EXPECT_THROW(parse_step_file(bad), ProtocolError) << bad;
     }
     std::string wrong_number = good;
-    wrong_number.replace(wrong_number.find("current_a=\"4.5\""), 15, "current_a=\"4,5\"");
-    EXPECT_THROW(parse_step_file(wrong_number), ProtocolError);
-    std::string unknown_attr = good;
-    unknown_attr.replace(unknown_attr.find("current_a=\"4.5\""), 15, "curent_a=\"4.5\"");
-    EXPECT_THROW(parse_step_file(unknown_attr), ProtocolError);
+    wrong_number.replace(wrong_number.find("<Curr Value=\"4500\""), 18, "<Curr Value=\"4,5\"");
+    EXPECT_NE(error_of([&] { parse_step_file(wrong_number); }).find("step 2: <Limit/Main/Curr> Value=\"4,5\": expected a number"),
+              std::string::npos);
+    std::string unknown_type = good;
+    unknown_type.replace(unknown_type.find("Step_Type=\"2\""), 13, "Step_Type=\"25\"");
+    EXPECT_NE(error_of([&] { parse_step_file(unknown_type); }).find("Step_Type 25 is not supported"), std::string::npos);
     // Well-formed but not a valid program: InputError naming the step.
     std::string no_end = good;
-    no_end.replace(no_end.find("type=\"end\""), 10, "type=\"rest\" time_s=\"1\"");
+    no_end.replace(no_end.find("Step_Type=\"6\""), 13, "Step_Type=\"4\"");
     EXPECT_NE(error_of([&] { parse_step_file(no_end); }).find("last step must be an end step"), std::string::npos);
 }
 
@@ -247,6 +356,10 @@ TEST(NewareStepFile, StepTypeCodesForInquire) {
     EXPECT_EQ(step_type_code(StepType::rest), "rest");
     EXPECT_EQ(step_type_code(StepType::cc_charge), "cc");
     EXPECT_EQ(step_type_code(StepType::cc_discharge), "dc");
+    // What real BTS 8 servers report: cc/dc in the CC phase of a CCCV step (cv in its CV phase), never "cccv".
+    EXPECT_EQ(step_type_code(StepType::cccv_charge), "cc");
+    EXPECT_EQ(step_type_code(StepType::cccv_discharge), "dc");
+    EXPECT_EQ(step_type_code(StepType::cv_charge), "cv");
     EXPECT_EQ(step_direction(StepType::cccv_discharge), -1);
     EXPECT_EQ(step_direction(StepType::cccv_charge), +1);
     EXPECT_EQ(step_direction(StepType::rest), 0);

@@ -91,6 +91,13 @@ int run_cli(int argc, char** argv) {
     simb_cmd->add_option("--config", simb.config, "Bench configuration")->capture_default_str()->check(CLI::ExistingFile);
     simb_cmd->add_option("--time-scale", simb.time_scale, "Bench seconds per wall second (default: from the config)");
 
+    StepsOptions steps;
+    auto* steps_cmd = app.add_subcommand("steps", "Write the Neware step file (BTS Client schema) the daemon would send");
+    steps_cmd->add_option("--program", steps.program, "Program name (config/programs/NAME.json)")->required();
+    steps_cmd->add_option("--cell", steps.cell, "Cell name (config/cells/NAME.json)")->required();
+    steps_cmd->add_option("--config", steps.config, "Bench configuration")->capture_default_str()->check(CLI::ExistingFile);
+    steps_cmd->add_option("-o,--output", steps.output, "Step file to write (.xml)")->required();
+
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
@@ -113,6 +120,7 @@ int run_cli(int argc, char** argv) {
         if (*diag_cmd) return run_diagnose(diag);
         if (*gen_cmd) return run_generate(gen);
         if (*simb_cmd) return run_sim(simb);
+        if (*steps_cmd) return run_steps(steps);
     } catch (const InputError& e) {
         spdlog::error("{}", e.what());
         return 1;

@@ -71,7 +71,11 @@ int run_import(const ImportOptions& o) {
         throw InputError("import: give a cycler recording (--neware and/or --bdf); --dewesoft alone has no current");
     OutputFiles outputs({o.output});  // the folder is checked before the work
     Recording rec;
-    if (!o.neware.empty()) rec = protocol::parse_neware_export(read_file(o.neware), o.neware);
+    if (!o.neware.empty()) {
+        protocol::NewareExportInfo layout;
+        rec = protocol::parse_neware_export(read_file(o.neware), o.neware, &layout);
+        spdlog::info("{}: {} (column \"{}\")", o.neware, protocol::to_string(layout.layout), layout.time_column);
+    }
     if (rec.repaired_timestamps > 0)
         spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.neware, rec.repaired_timestamps);
     if (!o.bdf.empty()) {

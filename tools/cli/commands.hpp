@@ -64,6 +64,11 @@ struct SimOptions {
 };
 int run_sim(const SimOptions& o);
 
+struct StepsOptions {
+    std::string program, cell, config = "config/bench.sim.json", output;
+};
+int run_steps(const StepsOptions& o);  // cmd_steps.cpp
+
 // The metrics JSON of INTERFACES.md ("cellbench.metrics/1"); an unmeasured quantity is null.
 nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);
 

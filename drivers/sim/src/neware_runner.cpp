@@ -30,7 +30,7 @@ std::string_view to_string(RunState state) {
 ProgramRunner::ProgramRunner(protocol::StepProgram program, double start_s, double tick_s)
     : program_(std::move(program)), tick_s_(tick_s > 0 && std::isfinite(tick_s) ? tick_s : 0.1), now_s_(start_s) {
     program_.validate();
-    enter_step(0);
+    enter_step(program_.first_step - 1);  // Head_Info Start_Step
 }
 
 std::string_view ProgramRunner::step_type_code() const {
@@ -156,7 +156,7 @@ std::size_t ProgramRunner::run_until(double t_s, RunnerCell& cell) {
         double current = 0.0;
         if (s.type == StepType::cc_charge || s.type == StepType::cc_discharge) {
             current = set_current;
-        } else if (s.type == StepType::cccv_charge || s.type == StepType::cccv_discharge) {
+        } else if (protocol::step_has_cv_phase(s.type)) {
             const double v_set = *s.voltage_v;
             if (!cv_phase_) {
                 const double v_cc = cell.voltage_at(set_current);
@@ -200,7 +200,7 @@ std::size_t ProgramRunner::run_until(double t_s, RunnerCell& cell) {
         if (reason.empty() && s.cutoff_voltage_v &&
             (dir > 0 ? m.voltage_v >= *s.cutoff_voltage_v : m.voltage_v <= *s.cutoff_voltage_v))
             reason = "voltage";
-        if (reason.empty() && (s.type == StepType::cccv_charge || s.type == StepType::cccv_discharge)) {
+        if (reason.empty() && protocol::step_has_cv_phase(s.type)) {
             if (cv_phase_ && s.cutoff_current_a && std::fabs(m.current_a) <= *s.cutoff_current_a) reason = "current";
             // The measured voltage reached the set value during a CC tick: CV from the next tick on.
             if (!cv_phase_ && (dir > 0 ? m.voltage_v >= *s.voltage_v : m.voltage_v <= *s.voltage_v)) cv_phase_ = true;

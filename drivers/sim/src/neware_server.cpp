@@ -5,6 +5,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <ctime>
 #include <deque>
 #include <filesystem>
 #include <fstream>
@@ -53,7 +54,7 @@ struct GroupRecord {
     std::uint32_t faulted_mask = 0;  // bit i: members[i] carried no current
     std::uint16_t conducting = 0;
     std::uint16_t step_id = 0, cycle_id = 0;
-    char step_type[8] = {};  // the tester's code: rest, cc, dc, cccv, ...
+    char step_type[8] = {};  // the tester's code: rest, cc, dc, cv
 };
 // The tester's data memory: the newest rows of the running (or last) test. At 10 rows per bench second this
 // is over 8 bench hours; a client that falls further behind gets an answer starting at the oldest row kept.
@@ -97,6 +98,9 @@ struct NewareServer::Impl {
     // Recorded data of the latest test: rows seqid first_seqid.. (one per program tick).
     std::int64_t test_id = 0;
     std::int64_t first_seqid = 1;
+    // Wall clock of the test's start (unix s) and its bench time: a row's atime is start + its test time.
+    double test_start_unix_s = 0.0;
+    std::vector<LogEntry> test_log;  // the test's log (downloadlog): start 100000, end 100001
     std::deque<GroupRecord> records;
     std::vector<std::weak_ptr<Session>> sessions;
 
@@ -270,8 +274,25 @@ struct NewareServer::Impl {
         update_snapshot();
     }
 
+    std::int64_t last_seqid() const { return first_seqid + static_cast<std::int64_t>(records.size()) - 1; }
+
+    std::string atime_at(double test_time_s) const {
+        const auto t = static_cast<std::time_t>(std::floor(test_start_unix_s + test_time_s));
+        std::tm tm{};
+        gmtime_r(&t, &tm);
+        char buf[32];
+        std::strftime(buf, sizeof buf, "%Y-%m-%d %H:%M:%S", &tm);
+        return buf;
+    }
+
+    void log_event(int code) {
+        const double t = records.empty() ? 0.0 : records.back().test_time_s;
+        test_log.push_back({std::max<std::int64_t>(1, last_seqid()), code, atime_at(t)});
+    }
+
     void on_run_ended() {
         plant.set_current(0.0);
+        log_event(100001);
         if (runner->state() == RunState::finished) {
             for (auto& m : members)
                 if (!m.faulted) m.status = ChannelStatus::finish;
@@ -351,7 +372,7 @@ struct NewareServer::Impl {
 
     Response handle_one(const GetDevInfoRequest&) {
         GetDevInfoResponse r;
-        r.servers.push_back({options.ip, bound_port.load()});
+        r.servers.push_back({options.ip, 3306});  // the BTS server's database port, as real servers list it
         for (int c = 1; c <= options.channel_count; ++c)
             r.channels.push_back({ChannelAddress{options.ip, options.devtype, options.devid, options.subdevid, c}, true});
         return r;
@@ -363,16 +384,49 @@ struct NewareServer::Impl {
             for (const auto& a : req.channels) {
                 StatusEntry s;
                 s.channel = a;
+                s.reserve_pause = true;  // as real BTS 8 servers report
                 if (const Member* m = member(a)) {
                     s.status = m->status;
                 } else if (exists(a)) {
-                    s.status = ChannelStatus::stop;  // no cell, never started
+                    s.status = ChannelStatus::finish;  // no cell, never started: idle channels say finish
                 } else {
                     s.status = ChannelStatus::unknown;
                     s.status_text = "false";
                 }
                 r.channels.push_back(std::move(s));
             }
+            return r;
+        }
+        if (req.command == Command::inquiredf) {
+            InquireDfResponse r;
+            for (const auto& a : req.channels) {
+                TestInfo t;
+                t.channel = {"", a.devtype, a.devid, a.subdevid, a.chlid};
+                if (member(a) != nullptr) {
+                    t.testid = test_id;
+                    t.count = test_id > 0 ? std::max<std::int64_t>(0, last_seqid()) : 0;
+                }
+                t.flag = !(member(a) != nullptr && run_active());  // true: no test running (as the captures show)
+                r.channels.push_back(t);
+            }
+            return r;
+        }
+        if (req.command == Command::light || req.command == Command::clearflag) {
+            ChannelCommandResponse r;
+            r.command = req.command;
+            for (const auto& a : req.channels) {
+                bool ok = exists(a);
+                if (req.command == Command::clearflag) {
+                    // Clears a protect flag (the channel can be started again); nothing to clear answers false.
+                    Member* m = member(a);
+                    ok = m != nullptr && m->status == ChannelStatus::protect;
+                    if (ok) m->status = ChannelStatus::stop;
+                } else if (ok) {
+                    spdlog::info("neware sim: channel {} light {}", a.key(), req.on ? "on" : "off");
+                }
+                r.channels.push_back({a, ok, ok ? "ok" : "false"});
+            }
+            update_snapshot();
             return r;
         }
         ChannelCommandResponse r;
@@ -387,6 +441,7 @@ struct NewareServer::Impl {
                         if (!group_done && run_active()) {
                             runner->stop();
                             plant.set_current(0.0);
+                            log_event(100001);
                             for (auto& m : members)
                                 if (!m.faulted) m.status = ChannelStatus::stop;
                             spdlog::info("neware sim: program '{}' stopped at bench {:.1f} s", runner->program().name,
@@ -458,7 +513,7 @@ struct NewareServer::Impl {
                     e.log_code = 102000;  // seen on working channels in the field
                 }
             } else if (exists(a)) {
-                e.workstatus = ChannelStatus::stop;
+                e.workstatus = ChannelStatus::finish;  // idle, no cell
                 e.voltage_v = 0.0;
             } else {
                 e.workstatus = ChannelStatus::unknown;
@@ -473,14 +528,16 @@ struct NewareServer::Impl {
 
     Response handle_one(const DownloadRequest& req) {
         DownloadResponse r;
-        r.channel = req.channel;
-        r.testid = test_id;
+        r.channel = {"", req.channel.devtype, req.channel.devid, req.channel.subdevid, req.channel.chlid};
+        r.testid = member(req.channel) != nullptr ? test_id : 0;
+        r.count = req.count;
+        r.auxid = req.auxid;
         const auto index = static_cast<std::size_t>(
             std::find_if(members.begin(), members.end(), [&](const Member& m) { return m.chlid == req.channel.chlid; }) -
             members.begin());
-        if (member(req.channel) == nullptr || (req.testid != 0 && req.testid != test_id)) {
+        if (member(req.channel) == nullptr || (req.testid != 0 && req.testid != test_id) || req.count == 0) {
             r.startpos = req.startpos;
-            return r;  // no cell on that channel, or a test this tester no longer holds: nothing recorded
+            return r;  // no cell there, a test this tester no longer holds, or the test-id query (count 0)
         }
         const std::int64_t start = std::max(req.startpos, first_seqid);
         r.startpos = start;
@@ -494,11 +551,64 @@ struct NewareServer::Impl {
             d.cycle_id = g.cycle_id;
             d.step_type = std::string(g.step_type, strnlen(g.step_type, sizeof g.step_type));
             d.test_time_s = g.test_time_s;
+            d.atime = atime_at(g.test_time_s);
             d.voltage_v = g.voltage_v;
             d.current_a = carried ? g.group_current_a / g.conducting : 0.0;
             d.capacity_ah = carried ? g.member_capacity_ah : 0.0;
             d.energy_wh = carried ? g.member_energy_wh : 0.0;
             r.records.push_back(std::move(d));
+        }
+        return r;
+    }
+
+    Response handle_one(const TestRequest& req) {
+        const bool ours = member(req.channel) != nullptr && (req.testid == 0 || req.testid == test_id);
+        const ChannelAddress ch{"", req.channel.devtype, req.channel.devid, req.channel.subdevid, req.channel.chlid};
+        if (req.command == Command::downloadlog) {
+            DownloadLogResponse r;
+            r.channel = ch;
+            r.testid = member(req.channel) != nullptr ? test_id : 0;
+            if (ours) r.entries = test_log;
+            return r;
+        }
+        StepLayerResponse r;
+        r.channel = ch;
+        r.testid = member(req.channel) != nullptr ? test_id : 0;
+        if (!ours) return r;
+        // The step table: one entry per run of rows of one step execution (step id and cycle).
+        const auto index = static_cast<std::size_t>(
+            std::find_if(members.begin(), members.end(), [&](const Member& m) { return m.chlid == req.channel.chlid; }) -
+            members.begin());
+        double previous_end_s = 0.0;
+        for (std::size_t k = 0; k < records.size();) {
+            std::size_t j = k;
+            while (j + 1 < records.size() && records[j + 1].step_id == records[k].step_id &&
+                   records[j + 1].cycle_id == records[k].cycle_id)
+                ++j;
+            const GroupRecord& a = records[k];
+            const GroupRecord& b = records[j];
+            auto member_current = [&](const GroupRecord& g) {
+                const bool carried = index < 32 && (g.faulted_mask & (1u << index)) == 0 && g.conducting > 0;
+                return carried ? g.group_current_a / g.conducting : 0.0;
+            };
+            StepLayerEntry e;
+            e.start_seqid = first_seqid + static_cast<std::int64_t>(k);
+            e.end_seqid = first_seqid + static_cast<std::int64_t>(j);
+            e.step_index = static_cast<int>(r.steps.size()) + 1;
+            e.step_id = a.step_id;
+            e.cycle_id = a.cycle_id;
+            e.step_type = std::string(a.step_type, strnlen(a.step_type, sizeof a.step_type));
+            e.step_time_s = b.test_time_s - previous_end_s;
+            e.end_atime = atime_at(b.test_time_s);
+            e.start_voltage_v = a.voltage_v;
+            e.end_voltage_v = b.voltage_v;
+            e.start_current_a = member_current(a);
+            e.end_current_a = member_current(b);
+            e.capacity_ah = b.member_capacity_ah;
+            e.energy_wh = b.member_energy_wh;
+            previous_end_s = b.test_time_s;
+            r.steps.push_back(std::move(e));
+            k = j + 1;
         }
         return r;
     }
@@ -553,6 +663,11 @@ struct NewareServer::Impl {
             ++test_id;
             first_seqid = 1;
             records.clear();
+            test_start_unix_s = static_cast<double>(std::chrono::duration_cast<std::chrono::seconds>(
+                                                        std::chrono::system_clock::now().time_since_epoch())
+                                                        .count());
+            test_log.clear();
+            test_log.push_back({1, 100000, atime_at(0.0)});
             member_serial = 0;
             for (auto& m : members) {
                 m.faulted = false;
@@ -576,16 +691,23 @@ struct NewareServer::Impl {
         try {
             response = handle(parse_request(frame));
         } catch (const ProtocolError& e) {
+            // Never silence: a client waits for one answer per request.
             count(&NewareServerStats::malformed_requests);
-            spdlog::warn("neware sim: malformed request ignored: {}", e.what());
-            return {};
+            std::string cmd;
+            try {
+                cmd = frame_command(frame);
+            } catch (const ProtocolError&) {
+                cmd = "unknown";
+            }
+            spdlog::warn("neware sim: request '{}' answered with an error: {}", cmd.substr(0, 64), e.what());
+            response = ErrorResponse{cmd, e.what()};
         }
         if (stall) {
             count(&NewareServerStats::unanswered);
             return {};
         }
         std::string bytes = encode_response(response);
-        if (malformed) bytes = bytes.substr(0, bytes.size() / 2) + std::string(kFrameTerminator);
+        if (malformed) bytes = bytes.substr(0, bytes.size() / 2) + "</bts>" + std::string(kFrameTerminator);
         if (garbage) bytes = kGarbage + bytes;
         count(&NewareServerStats::responses);
         return bytes;

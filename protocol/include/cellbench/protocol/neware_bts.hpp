@@ -3,9 +3,14 @@
 //
 //   <?xml version="1.0" encoding="UTF-8" ?><bts version="1.0"><cmd>NAME</cmd>...</bts>\n\n#\r\n
 //
-// Neware's API document is not public. Everything here follows ../shared/reference/neware-bts-api-notes.md
-// (what public clients and the vendor examples they quote show) and is kept in this one place so it can be
-// corrected against a real tester. Pure code: bytes in, structs out; no sockets, no clocks.
+// Matched against responses captured from a real BTS 8.0 server (devtype 27) and the requests of public
+// BTS 8 clients (../shared/reference/neware/): every command those exchange is here, with the real server's
+// spellings (`donwload_resp`, `donwloadlog_resp`, `downloadStepLayer_resp`) and attribute layouts. Pure code:
+// bytes in, structs out; no sockets, no clocks.
+//
+// Framing: a frame ends at `</bts>` followed by optional whitespace and `#\r\n` (so "\n\n#\r\n", the form the
+// encoders write, and "#\r\n" right after `</bts>` are both frames). Requests of real clients may carry a stray
+// '"' between `</list>` and `</bts>`; it is ignored.
 //
 // Robustness rules (the tester is a separate box; its bytes are untrusted):
 //  - FrameSplitter takes arbitrary chunks and yields whole frames; bytes outside frames (before "<?xml" or
@@ -72,9 +77,16 @@ private:
 // ---------------------------------------------------------------------------------------------------------
 // Vocabulary
 
-enum class Command { connect, getdevinfo, getchlstatus, inquire, start, stop, pause, continue_, download };
+enum class Command {
+    connect, getdevinfo, getchlstatus, inquire, start, stop, pause, continue_, download,
+    inquiredf, downloadlog, downloadStepLayer, light, clearflag
+};
 std::string_view command_name(Command command);                       // "continue" for continue_
 std::optional<Command> command_from_name(std::string_view name);      // exact, case-insensitive
+// The <cmd> of the tester's answer: "download" -> "donwload_resp", "downloadlog" -> "donwloadlog_resp" (the real
+// server's spelling), else NAME + "_resp". response_command_from_name accepts both spellings.
+std::string response_name(Command command);
+std::optional<Command> response_command_from_name(std::string_view cmd);
 
 // Channel states of getchlstatus_resp and inquire_resp/@workstatus. Unseen words map to `unknown` (the
 // raw word is kept beside it) so a newer tester does not break the client.
@@ -102,10 +114,20 @@ struct ConnectRequest {
     std::string username = "admin", password = "neware", type = "bfgs";
 };
 struct GetDevInfoRequest {};
-// getchlstatus, stop, pause, continue: <list count><TAG ip devtype devid subdevid chlid>true</TAG>...</list>
+// getchlstatus, stop, pause, continue, light, clearflag:
+//   <list count><TAG ip devtype devid subdevid chlid>true</TAG>...</list>   (light: text false = lamp off)
+// inquiredf: <list count><chl devtype devid subdevid chlid testid="0"/>...</list>
 struct ChannelListRequest {
     Command command = Command::getchlstatus;
     std::vector<ChannelAddress> channels;
+    bool on = true;  // element text true|false (light: lamp on/off)
+};
+// downloadlog: <download devtype devid subdevid chlid testid/>; downloadStepLayer:
+// <downloadStepLayer devtype devid subdevid chlid [testid]/>. testid 0 (or absent): the channel's latest test.
+struct TestRequest {
+    Command command = Command::downloadlog;
+    ChannelAddress channel;
+    std::int64_t testid = 0;
 };
 struct InquireRequest {
     std::vector<ChannelAddress> channels;
@@ -129,17 +151,17 @@ struct StartRequest {
 // Recorded data of one channel's test (the tester records every point itself, at its own record interval,
 // whatever the client's polling): <download ip devtype devid subdevid chlid auxid testid startpos count/>.
 // Rows are numbered from seqid 1 per test; `startpos` is the first seqid wanted. testid 0 asks for the
-// channel's latest test (the answer names it).
+// channel's latest test (the answer names it). startpos="0" count="0" is how clients ask for the test id only.
 inline constexpr int kMaxDownloadCount = 1000;
 struct DownloadRequest {
     ChannelAddress channel;
     int auxid = 0;
     std::int64_t testid = 0;
-    std::int64_t startpos = 1;
-    int count = kMaxDownloadCount;  // 1..kMaxDownloadCount
+    std::int64_t startpos = 1;      // 0 only with count 0
+    int count = kMaxDownloadCount;  // 0..kMaxDownloadCount
 };
-using Request =
-    std::variant<ConnectRequest, GetDevInfoRequest, ChannelListRequest, InquireRequest, StartRequest, DownloadRequest>;
+using Request = std::variant<ConnectRequest, GetDevInfoRequest, ChannelListRequest, InquireRequest, StartRequest,
+                             DownloadRequest, TestRequest>;
 
 // ---------------------------------------------------------------------------------------------------------
 // Responses (tester -> client): <cmd>NAME_resp</cmd>
@@ -197,7 +219,8 @@ struct ChannelResult {
     bool ok = false;
     std::string text;  // "ok", "false", or what the tester said
 };
-// start, stop, pause, continue: <list count><TAG ip devtype devid subdevid chlid>ok|false</TAG>...</list>
+// start, stop, pause, continue, light, clearflag:
+//   <list count><TAG ip devtype devid subdevid chlid>ok|false</TAG>...</list>
 struct ChannelCommandResponse {
     Command command = Command::start;
     std::vector<ChannelResult> channels;
@@ -213,18 +236,69 @@ struct DownloadRecord {
     double voltage_v = 0.0, current_a = 0.0;  // + = charge
     double capacity_ah = 0.0, energy_wh = 0.0;  // of the step
 };
-// <download ip devtype devid subdevid chlid auxid testid startpos/> then <list count><data .../>...</list>.
-// Fewer rows than asked for means the client has everything recorded so far.
+// <cmd>donwload_resp</cmd> <download devtype devid subdevid chlid testid startpos count auxid/> then
+// <list count><data .../>...</list>. Fewer rows than asked for means the client has everything recorded so far.
 struct DownloadResponse {
-    ChannelAddress channel;
+    ChannelAddress channel;  // the real server sends no ip here
     std::int64_t testid = 0;
     std::int64_t startpos = 1;
+    int count = kMaxDownloadCount;  // as asked
+    int auxid = 0;
     std::vector<DownloadRecord> records;
 };
+// inquiredf_resp: <list count><chl devtype devid subdevid chlid testid count>true|false</chl>...</list>:
+// the channel's latest test and how many rows it recorded (the element text: whether the test is finished,
+// as the captures show idle channels true and working ones false).
+struct TestInfo {
+    ChannelAddress channel;
+    std::int64_t testid = 0;
+    std::int64_t count = 0;
+    bool flag = false;
+};
+struct InquireDfResponse {
+    std::vector<TestInfo> channels;
+};
+// donwloadlog_resp: <download devtype devid subdevid chlid testid log_lever/> then <data seqid log_code atime/>.
+struct LogEntry {
+    std::int64_t seqid = 0;
+    int log_code = 0;
+    std::string atime;
+};
+struct DownloadLogResponse {
+    ChannelAddress channel;
+    std::int64_t testid = 0;
+    int log_level = 0;  // the wire's `log_lever` (sic)
+    std::vector<LogEntry> entries;
+};
+// downloadStepLayer_resp: one <data> per executed step (the tester's step table).
+struct StepLayerEntry {
+    std::int64_t start_seqid = 0, end_seqid = 0;
+    int step_index = 0, step_id = 0, cycle_id = 0;
+    std::string step_type;         // cc, dc, cv, rest
+    double step_time_s = 0.0;      // wire: ms
+    std::string end_atime;
+    double start_voltage_v = 0.0, end_voltage_v = 0.0, start_current_a = 0.0, end_current_a = 0.0;
+    double capacity_ah = 0.0, energy_wh = 0.0, dcir_ohm = 0.0;
+};
+struct StepLayerResponse {
+    ChannelAddress channel;
+    std::int64_t testid = 0;
+    std::vector<StepLayerEntry> steps;
+};
+// What the simulated tester answers to a command it does not know (or a request it cannot read), instead of
+// silence: <cmd>NAME_resp</cmd><result>false</result><error>why</error>. `command` is the request's <cmd> text
+// ("unknown" when unreadable). parse_response returns it for any frame with an <error> element and an
+// unknown command.
+struct ErrorResponse {
+    std::string command;
+    std::string message;
+};
 using Response = std::variant<ConnectResponse, GetDevInfoResponse, ChannelStatusResponse, InquireResponse,
-                              ChannelCommandResponse, DownloadResponse>;
+                              ChannelCommandResponse, DownloadResponse, InquireDfResponse, DownloadLogResponse,
+                              StepLayerResponse, ErrorResponse>;
 
 [[nodiscard]] Command request_command(const Request& request);
+// ErrorResponse: its command when known, else Command::connect (check holds_alternative<ErrorResponse> first).
 [[nodiscard]] Command response_command(const Response& response);
 
 // ---------------------------------------------------------------------------------------------------------

@@ -2,10 +2,10 @@
 // Step programs for the Neware tester and their step-file form. This is the ONE place that knows the
 // step-file format: everything else (sequencer, daemon, simulated tester) goes through StepProgram.
 //
-// !! Neware's step-file schema is NOT public. The file written here is cellbench's own documented XML
-// !! (format "cellbench.neware-steps/1", see neware_stepfile.cpp for the full description and the shape of
-// !! vendor files seen in the field). The simulated tester executes it; a real BTS will reject it, which is
-// !! the safe failure until the format is matched to a real file from Neware's step editor.
+// The step file is the real BTS Client schema (../shared/reference/neware/README.md and the BTS Client 2024
+// file there): <root><config type="Step File" version="17" ...> with Head_Info, Whole_Prt, Step_Info and
+// SMBUS; units 0.1 mV, mA, ms, mA*s; Step_Type codes 1 CC Chg, 2 CC DChg, 3 CV Chg, 4 Rest, 5 Cycle, 6 End,
+// 7 CCCV Chg, 19 CV DChg, 20 CCCV DChg. See neware_stepfile.cpp for the mapping in full.
 //
 // A StepProgram maps 1:1 to JSON (config/programs/*.json, schema "cellbench.program/1"):
 //   {"schema": "cellbench.program/1", "name": "hppc_1c",
@@ -26,12 +26,26 @@
 //  - cccv_charge / cccv_discharge: constant current until the terminal voltage reaches voltage_v, then
 //    constant voltage; ends when |current| falls to cutoff_current_a (CV phase only), time_s elapsed, or the
 //    capacity limit is reached.
+//  - cv_charge / cv_discharge: constant voltage voltage_v with the current limited to current_a (the tester
+//    executes it like a CCCV step; BTS Step_Type 3 / 19).
 //  - cycle: jumps back to start_step until the block start_step..cycle has run `count` times in total
 //    (Neware's "Cycle count": thesis Table 2.12 runs 10 pulse sets with count 10).
 //  - end: the program finishes.
 //  - Step capacity: |charge| moved during the step, Ah (as the tester counts it per step). A capacity limit may
 //    reference earlier steps' capacities from their latest execution, e.g. thesis eq. 2.4:
 //    C12 = 0.1*C4 - C8 + C10. A step not yet executed counts 0; a limit <= 0 ends the step at once.
+//
+// WHAT THE REAL FORMAT CANNOT EXPRESS, and how it is handled:
+//  - A capacity limit that refers to other steps (eq. 2.4): a step file carries one constant Cap. Such a
+//    limit is resolved to a constant before compiling (resolve_capacity_limits): a referenced step inside the
+//    same loop body as the limited step (the pulses C8, C10 of an HPPC set) is taken at its nominal capacity
+//    (set current x time limit; those steps are time-limited), a step outside it (the pilot discharge C4) at
+//    its measured capacity. To have that measurement, the daemon's sequencer runs such a program as two step
+//    files (tester_parts): steps 1..k then End, and, once the tester has recorded step k, the whole program
+//    again starting at step k+1 (Head_Info Start_Step) with the limit resolved from the rows it recorded.
+//    Step ids stay those of the program. `cellbench steps` (no measurement) resolves with the cell's nominal
+//    capacity and says so.
+//  - Step notes: the schema has no field for them; they are not written (the program name goes to PN).
 #include <functional>
 #include <optional>
 #include <string>
@@ -42,17 +56,17 @@
 
 namespace cellbench::protocol {
 
-enum class StepType { rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cycle, end };
+enum class StepType { rest, cc_charge, cc_discharge, cccv_charge, cccv_discharge, cycle, end, cv_charge, cv_discharge };
 
 std::string_view to_string(StepType type);                       // "cc_charge", ...
 std::optional<StepType> step_type_from_string(std::string_view);  // exact
 
 // +1 charge, -1 discharge, 0 rest/cycle/end.
 int step_direction(StepType type);
-bool step_carries_current(StepType type);  // cc*, cccv*
-// The step_type word the tester reports in inquire_resp while running this step. Seen in the field: rest,
-// cc, dc, cv; the CCCV words ("cccv", "cccv_dc") are unverified guesses (the simulated tester reports "cv"
-// during the CV phase of a CCCV step).
+bool step_carries_current(StepType type);  // cc*, cccv*, cv*
+bool step_has_cv_phase(StepType type);     // cccv*, cv*: voltage_v is the CV set value
+// The step_type word a real BTS 8 reports in inquire_resp/download rows while running this step: rest, cc,
+// dc, cv (a CCCV step reports cc/dc in its CC phase and cv in its CV phase; idle channels "--").
 std::string_view step_type_code(StepType type);
 
 // Capacity limit: constant_ah + sum(factor * C[step]), C[step] = capacity of that step's latest execution.
@@ -83,8 +97,12 @@ struct Step {
     // End conditions.
     std::optional<double> time_s;
     std::optional<double> cutoff_voltage_v;  // cc*
-    std::optional<double> cutoff_current_a;  // cccv*
+    std::optional<double> cutoff_current_a;  // cccv*, cv*
     std::optional<CapacityExpression> cutoff_capacity_ah;
+    // Step-file extras (BTS per-step Record and Protect; the tester applies them, the model carries them so a
+    // vendor file reads back unchanged). Unset: not written.
+    std::optional<double> record_interval_s, record_delta_v, record_delta_a;
+    std::optional<double> protect_upper_v, protect_lower_v;
     // Loop (cycle only).
     int start_step = 0;
     int count = 0;
@@ -93,10 +111,23 @@ struct Step {
     bool operator==(const Step&) const = default;
 };
 
+// Whole-program settings of a step file (Head_Info MultCap, Whole_Prt): unset = not written / derived.
+struct StepFileSettings {
+    std::optional<double> nominal_capacity_ah;  // MultCap (mA*s), the reference of C-rates
+    std::optional<double> record_interval_s;    // Whole_Prt/Record/Main/Time
+    std::optional<double> protect_upper_v, protect_lower_v;  // Whole_Prt/Protect/Main/Volt
+    std::optional<double> protect_upper_a, protect_lower_a;  // Whole_Prt/Protect/Main/Curr (signed, A)
+    std::optional<double> protect_capacity_ah;               // Whole_Prt/Protect/Main/Cap/Upper
+    std::optional<double> protect_delay_s;                   // Whole_Prt/Protect/Main/Delay_Time
+    bool operator==(const StepFileSettings&) const = default;
+};
+
 struct StepProgram {
     std::string name;
     std::string description;
     std::vector<Step> steps;  // step id = index + 1
+    int first_step = 1;       // where the tester starts (Head_Info Start_Step); see tester_parts()
+    StepFileSettings settings;
 
     bool operator==(const StepProgram&) const = default;
 
@@ -111,12 +142,35 @@ struct StepProgram {
 };
 
 inline constexpr const char* kProgramSchema = "cellbench.program/1";
-inline constexpr const char* kStepFileFormat = "cellbench.neware-steps/1";
 
-// Step file (see the top of this header). compile validates first (InputError); parse throws
-// neware::ProtocolError for a malformed file and InputError for a well-formed but invalid program.
-std::string compile_step_file(const StepProgram& program);
+// Step file (see the top of this header). compile validates first (InputError) and resolves capacity limits
+// that refer to other steps (resolve_capacity_limits with no measurement; InputError when one needs a
+// measurement and settings.nominal_capacity_ah is unset). parse reads version 17 and 18, GB2312 or UTF-8
+// declared; throws neware::ProtocolError for a malformed file and InputError for a well-formed but invalid
+// program. Notes and descriptions are not part of the format.
+struct StepFileOptions {
+    std::string date;  // "YYYYMMDDhhmmss" of the config element; empty: now (UTC)
+};
+std::string compile_step_file(const StepProgram& program, const StepFileOptions& options = {});
 StepProgram parse_step_file(std::string_view xml);
+
+// Nominal capacity of a step (Ah): set current x time limit for a time-limited current step, the program's
+// settings.nominal_capacity_ah for one that runs to a voltage or current cut-off, nullopt when unknown.
+std::optional<double> nominal_step_capacity_ah(const StepProgram& program, int step_id);
+// The program with every capacity limit that refers to other steps replaced by a constant (see the top of
+// this header): a referenced step inside the limited step's loop body at its nominal capacity, one outside
+// at measured_ah(step) when given, else nominal. Throws InputError naming the step when a value is unknown.
+// A result <= 0 is kept as a tiny positive limit (the step ends at once, as on the tester).
+StepProgram resolve_capacity_limits(const StepProgram& program,
+                                    const std::function<std::optional<double>(int step_id)>& measured_ah = {});
+// The program exactly as its step file carries it (compile writes this, parse reads it back equal): capacity
+// limits resolved (no measurement), unset settings filled with the defaults compile writes (record every
+// 1 s; Whole_Prt protection 0.1 V beyond the program's voltages, 1.1 x its largest current), notes and
+// description dropped.
+StepProgram as_tester_program(const StepProgram& program);
+// How the tester runs a program: one part, or two when a capacity limit needs a measured step outside its
+// loop (steps 1..k + End, then the whole program from step k+1). Parts keep the program's step ids.
+std::vector<StepProgram> tester_parts(const StepProgram& program);
 
 // The thesis' programs (reference thesis, P45B, 1C = 4.5 A, limits 2.9 V / 4.1 V).
 // Table 2.10: CC discharge test at a C-rate (Table 2.11: 0.5, 1, 2, 4, 10, 13 -> 2.25 ... 58.5 A; the thesis

@@ -10,6 +10,7 @@
 // instrument silent beyond its grace period -> the current is stopped, the chamber goes to its safe set
 // point, the reason is recorded and the run ends `aborted`. A run never continues blind.
 #include <functional>
+#include <map>
 #include <memory>
 #include <limits>
 #include <mutex>
@@ -138,6 +139,7 @@ private:
     Recording rec_;
     double full_charge_row_ = 0;  // row where SOC = 1 (end of the last CCCV charge before the pulses)
     std::size_t fitted_pulse_sets_ = 0;
+    std::map<int, double> step_capacity_ah_;  // |capacity| of each step's latest execution (capacity limits)
     std::size_t window_begin_ = 0;
     // The last fitted pulse set's rested voltage V_A and charge count (Ah from the run start) at A: with this
     // pulse set's they give the OCV slope the fit needs (a chord over one SOC step).

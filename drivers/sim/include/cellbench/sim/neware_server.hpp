@@ -1,7 +1,13 @@
 #pragma once
 // Simulated Neware BTS-4008 with its BTS API server: XML frames over loopback TCP (protocol/neware_bts.hpp),
-// many connections (one session each), answering connect, getdevinfo, getchlstatus, inquire, start, stop,
-// pause and continue with the response shapes of the API notes.
+// many connections (one session each), answering every command of a real BTS 8.0 server's captures
+// (../shared/reference/neware/) with the same elements and attributes: connect, getdevinfo, getchlstatus
+// (reservepause="1", idle channels `finish` at the cell's voltage), inquire, inquiredf (test id and row count),
+// start, stop, pause, continue, download (`donwload_resp`, atime per row, startpos="0" count="0" = the test id
+// only), downloadlog (start 100000 / end 100001), downloadStepLayer (one entry per executed step), light and
+// clearflag (clears a protect). A command it does not know, or a request it cannot read, gets an error
+// answer (<result>false</result><error>why</error>), never silence. Step files are the real BTS Client schema
+// (a file written by BTS Client runs here as it is), started from Head_Info Start_Step.
 //
 // The tester executes started step files itself (ProgramRunner, neware_runner.hpp) on the shared
 // BenchPlant. The channels listed in cell_channels are wired to the plant's cell; with more than one they
@@ -16,7 +22,8 @@
 // current.
 //
 // Step files: `start` names a path on the "BTS PC". It is looked up among files registered with
-// add_step_file(), then on disk (relative paths against step_file_dir).
+// add_step_file(), then on disk (relative paths against step_file_dir). devtype 24 (BTS-4008) by default;
+// 27 (the captured BTS 8.0 unit) or any other through the options.
 //
 // Fault switches (thread-safe): refuse connections (the listening socket closes: connect is refused), drop
 // every open connection, stall responses (requests are read and carried out, never answered: a lost reply),

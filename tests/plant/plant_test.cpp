@@ -28,11 +28,14 @@ PlantOptions options(std::uint64_t seed, Layout layout = Layout::thesis, std::ve
     return o;
 }
 
-// Coulomb count of the measured current (held from one sample to the next), as a fraction of `capacity_ah`.
+// Coulomb count of the measured current as a fraction of `capacity_ah`: trapezoids inside a step (the CV taper),
+// the last sample's current held across a step change.
 std::vector<double> coulomb_soc(const Recording& r, double soc0, double capacity_ah) {
     std::vector<double> soc(r.size(), soc0);
-    for (std::size_t k = 1; k < r.size(); ++k)
-        soc[k] = soc[k - 1] + r.current_a[k - 1] * (r.time_s[k] - r.time_s[k - 1]) / (3600.0 * capacity_ah);
+    for (std::size_t k = 1; k < r.size(); ++k) {
+        const double i = r.step_count[k] == r.step_count[k - 1] ? 0.5 * (r.current_a[k - 1] + r.current_a[k]) : r.current_a[k - 1];
+        soc[k] = soc[k - 1] + i * (r.time_s[k] - r.time_s[k - 1]) / (3600.0 * capacity_ah);
+    }
     return soc;
 }
 

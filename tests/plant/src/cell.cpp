@@ -232,14 +232,24 @@ CellSpec make_cell(const PlantOptions& options) {
     m.voltage_noise_v = rng.uniform(1e-4, 5e-4);
     m.current_noise_a = rng.uniform(1e-3, 5e-3);
 
+    // The drive profile's heating, roughly (RMS current about 1.6C): thermal effects are scaled so that they matter
+    // on a cell that heats little.
+    const double r_total = c.r0_ohm(0.5, Direction::discharge) + c.r1_ohm(0.5, Direction::discharge) +
+                           c.r2_ohm(0.5, Direction::discharge);
+    const double drive_heat_w = std::pow(1.6 * c.nominal_capacity_ah, 2) * r_total;
+    const double drive_rise_k =
+        drive_heat_w * c.r_th_k_per_w * (1.0 - std::exp(-3600.0 / (c.r_th_k_per_w * c.c_th_j_per_k)));
+
     // Base-cell options with known truth.
     Rng opt(options.seed, 2);
     const bool exp_form = opt.index(2) == 0;
     const double k_exp = opt.uniform(0.012, 0.03), k_lin = opt.uniform(0.012, 0.025);
+    const double k_floor = 0.12 / std::max(drive_rise_k, 1e-3);  // at least ~12 % over the drive's rise
     const double kappa = opt.uniform(1.5, 3.0);
     auto set_temperature = [&] {
         c.temperature_dependence.form = exp_form ? TemperatureDependence::Form::exponential : TemperatureDependence::Form::linear;
-        c.temperature_dependence.coefficient_per_k = exp_form ? k_exp : k_lin;
+        c.temperature_dependence.coefficient_per_k =
+            exp_form ? std::clamp(k_floor, k_exp, 0.06) : std::clamp(k_floor, k_lin, 0.04);
     };
     auto set_current = [&] {
         c.current_dependence.enabled = true;
@@ -259,7 +269,8 @@ CellSpec make_cell(const PlantOptions& options) {
             case Effect::resistance_temperature: set_temperature(); break;
             case Effect::resistance_current: set_current(); break;
             case Effect::thermal_second_order:
-                c.thermal3 = {true, r.uniform(0.6, 0.85), r.uniform(0.6, 2.0), r.uniform(10.0, 40.0)};
+                c.thermal3 = {true, r.uniform(0.6, 0.85), std::clamp(1.0 / drive_heat_w, r.uniform(0.6, 2.0), 4.0),
+                              r.uniform(10.0, 40.0)};
                 break;
             case Effect::ocv_hysteresis: {
                 const double m_total = r.uniform(0.008, 0.02), fast = r.uniform(0.3, 0.7);

@@ -29,6 +29,9 @@ int main(int argc, char** argv) {
     app.add_flag("--temperature-dependence", temperature_dependence, "base cell with temperature-dependent resistances");
     app.add_flag("--current-dependence", current_dependence, "base cell with a current-dependent RC1 overpotential");
     app.add_flag("--no-noise", no_noise, "write the exact values (no noise, no quantization)");
+    double thesis_pulse_s = 30.0;
+    app.add_option("--thesis-discharge-pulse-s", thesis_pulse_s, "thesis layout: discharge pulse length (Table 2.12: 30 s)")
+        ->check(CLI::Range(1.0, 600.0));
     app.add_option("-o,--output", out_dir, "output directory (created)")->required();
     CLI11_PARSE(app, argc, argv);
 
@@ -48,6 +51,7 @@ int main(int argc, char** argv) {
         o.temperature_dependence = temperature_dependence;
         o.current_dependence = current_dependence;
         o.noise = !no_noise;
+        o.thesis_discharge_pulse_s = thesis_pulse_s;
 
         const std::filesystem::path dir(out_dir);
         std::filesystem::create_directories(dir);

@@ -52,17 +52,6 @@ Step cc_discharge(const CellSpec& c, double current_a, double seconds = kInf, bo
     s.fine_sampling = fine;
     return s;
 }
-Step cc_charge(const CellSpec& c, double current_a, double seconds, bool fine) {
-    Step s;
-    s.type = "CC Chg";
-    s.mode = Mode::cc;
-    s.current_a = current_a;
-    s.voltage_limit_v = c.v_max_v;
-    s.duration_s = seconds;
-    s.fine_sampling = fine;
-    return s;
-}
-
 // Ah of a 10 % SOC step: 10 % of `reference_ah` minus the net charge the pulse set since `first` removed.
 std::function<double(const std::vector<StepResult>&)> soc_step_ah(std::function<double(const std::vector<StepResult>&)> reference_ah,
                                                                   std::size_t pulse_steps) {
@@ -112,9 +101,14 @@ Program hppc_program(const CellSpec& c, Layout layout, const PlantOptions& optio
             p.push_back(cccv_charge(c, i1c));
             p.push_back(rest(3600.0));
             for (int level = 0; level < 10; ++level) {
-                p.push_back(cc_discharge(c, i1c, 30.0, true));       // discharge pulse
+                // Pulses held for their full time, the current clamped (CV) at a voltage limit.
+                Step pulse = cccv_discharge(c, i1c, 30.0, true);
+                pulse.cutoff_current_a = 0.0;
+                p.push_back(pulse);                                   // discharge pulse
                 p.push_back(rest(40.0, true));
-                p.push_back(cc_charge(c, 0.75 * i1c, 10.0, true));   // regen pulse at 0.75x, no rest after it
+                Step regen = cccv_charge(c, 0.75 * i1c, 10.0, true);  // regen pulse at 0.75x, no rest after it
+                regen.cutoff_current_a = 0.0;
+                p.push_back(regen);
                 Step step = cc_discharge(c, step_rate * i1c, kInf, true);
                 step.ah_limit = soc_step_ah([rated](const std::vector<StepResult>&) { return rated; }, 3);
                 step.end_loop_on_cutoff = true;

@@ -205,7 +205,18 @@ Recording generate_cc_low(const CellSpec& c, const PlantOptions& o) {
 }
 Recording generate_cc_high(const CellSpec& c, const PlantOptions& o) {
     Rng rng(c.seed, 33);
-    const double rate = rng.index(2) == 0 ? 3.0 : 4.0;
+    // 3C or 4C by seed, raised (up to 6C) until the discharge heats the cell by more than 10 K by estimate, lowered
+    // (down to 2C) where it would heat it by more than ~30 K.
+    double rate = rng.index(2) == 0 ? 3.0 : 4.0;
+    auto rise_k = [&](double r) {
+        const double soc = 0.5, i = r * c.current_1c_a();
+        const double p = i * i * (c.r0_ohm(soc, Direction::discharge) + c.r1_ohm(soc, Direction::discharge) +
+                                  c.r2_ohm(soc, Direction::discharge));
+        const double seconds = 0.9 * 3600.0 / r;
+        return p * c.r_th_k_per_w * (1.0 - std::exp(-seconds / (c.r_th_k_per_w * c.c_th_j_per_k)));
+    };
+    while (rate < 6.0 && rise_k(rate) < 13.0) rate += 1.0;
+    while (rate > 2.0 && rise_k(rate) > 30.0) rate -= 0.5;  // nor beyond what a cell survives
     return simulate(c, cc_discharge_program(c, rate), bench_start(c, 34), false, splitmix64(c.seed) ^ 3, o.noise, "cc_high");
 }
 Recording generate_drive(const CellSpec& c, const PlantOptions& o) {

@@ -390,8 +390,13 @@ Truth make_truth(const CellSpec& c, Layout layout) {
 
 nlohmann::json to_json(const Truth& t) {
     auto dir = [](const DirectionTable& d) {
-        return nlohmann::json{{"r0_ohm", d.r0_ohm}, {"r1_ohm", d.r1_ohm}, {"r2_ohm", d.r2_ohm},
-                              {"tau1_s", d.tau1_s}, {"tau2_s", d.tau2_s}};
+        std::vector<double> c1, c2;  // C = tau / R, for comparison with cellbench.params/1 tables
+        for (std::size_t k = 0; k < d.r1_ohm.size(); ++k) {
+            c1.push_back(d.tau1_s[k] / d.r1_ohm[k]);
+            c2.push_back(d.tau2_s[k] / d.r2_ohm[k]);
+        }
+        return nlohmann::json{{"r0_ohm", d.r0_ohm}, {"r1_ohm", d.r1_ohm}, {"r2_ohm", d.r2_ohm}, {"tau1_s", d.tau1_s},
+                              {"tau2_s", d.tau2_s}, {"c1_f", c1},         {"c2_f", c2}};
     };
     return {{"schema", "cellbench.plant-truth/1"},
             {"seed", t.seed},

@@ -205,11 +205,11 @@ CellSpec make_cell(const PlantOptions& options) {
     c.r0_low_amp = rng.uniform(0.2, 0.8);
     c.r0_low_width = rng.uniform(0.05, 0.15);
     c.r0_bowl = rng.uniform(0.0, 0.5);
-    c.r1_ref_ohm = c.r0_ref_ohm * rng.uniform(0.3, 1.0);
+    c.r1_ref_ohm = c.r0_ref_ohm * rng.uniform(0.25, 0.8);
     c.r1_low_amp = rng.uniform(0.5, 2.0);
     c.r1_low_width = rng.uniform(0.08, 0.2);
     c.r1_slope = rng.uniform(-0.2, 0.2);
-    c.r2_ref_ohm = c.r0_ref_ohm * rng.uniform(0.3, 1.2);
+    c.r2_ref_ohm = c.r0_ref_ohm * rng.uniform(0.3, 1.0);
     c.r2_low_amp = rng.uniform(0.5, 2.0);
     c.r2_low_width = rng.uniform(0.08, 0.2);
     c.r2_slope = rng.uniform(-0.2, 0.2);
@@ -404,6 +404,9 @@ nlohmann::json to_json(const Truth& t) {
             {"format", t.format},
             {"layout", t.layout},
             {"capacity_ah", t.capacity_ah},
+            {"capacity_definition",
+             "charge between OCV = v_min_v (SOC 0) and OCV = v_max_v (SOC 1); a discharge to the v_min_v cut-off under "
+             "load delivers less (the cut-off's share), a CCCV charge ends just below SOC 1"},
             {"nominal_capacity_ah", t.nominal_capacity_ah},
             {"drive_capacity_ah", t.drive_capacity_ah},
             {"v_min_v", t.v_min_v},

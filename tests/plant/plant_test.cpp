@@ -2,12 +2,15 @@
 #include "cellbench/plant/plant.hpp"
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <numeric>
 #include <set>
 #include <sstream>
@@ -408,6 +411,32 @@ TEST(PlantLayouts, DriveProfileStaysInsideTheVoltageWindowAndSpansTheSocRange) {
     EXPECT_LT(*imin, -2.0 * cell.current_1c_a());
     EXPECT_GT(*imax, 0.5 * cell.current_1c_a());
     EXPECT_GT(r.time_s.back(), 3600.0);
+}
+
+TEST(PlantCli, WritesTheFourRecordingsAndTheTruth) {
+    const auto dir = std::filesystem::temp_directory_path() / ("plant_cli_" + std::to_string(::getpid()));
+    const std::string exe = std::string(CELLBENCH_BIN_DIR) + "/cellbench_plant";
+    const std::string cmd = exe +
+                            " --seed 2 --layout usabc --effect extra_rc --effect capacity_error --sample-s 0.5 -o " +
+                            dir.string() + " > " + (dir.string() + ".log");
+    ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
+    for (const char* f : {"hppc.bdf.csv", "cc_low.bdf.csv", "cc_high.bdf.csv", "drive.bdf.csv", "truth.json"})
+        EXPECT_TRUE(std::filesystem::exists(dir / f)) << f;
+    std::ifstream truth_file(dir / "truth.json");
+    const auto truth = nlohmann::json::parse(truth_file);
+    EXPECT_EQ(truth["layout"], "usabc");
+    EXPECT_EQ(truth["effects"], (nlohmann::json{"extra_rc", "capacity_error"}));
+    EXPECT_EQ(truth["soc"].size(), 19u);
+    EXPECT_EQ(truth["discharge"]["tau2_s"].size(), 19u);
+    EXPECT_NE(truth["drive_capacity_ah"].get<double>(), truth["capacity_ah"].get<double>());
+    std::ifstream log(dir.string() + ".log");
+    std::stringstream printed;
+    printed << log.rdbuf();
+    EXPECT_NE(printed.str().find("drive.bdf.csv"), std::string::npos);
+    std::filesystem::remove_all(dir);
+    std::filesystem::remove(dir.string() + ".log");
+    EXPECT_NE(std::system((exe + " --seed 2 --effect no_such_effect -o " + dir.string() + " 2> /dev/null").c_str()), 0);
+    EXPECT_FALSE(std::filesystem::exists(dir / "truth.json"));
 }
 
 }  // namespace

@@ -55,7 +55,10 @@ struct Plant {
         switch (phase) {
             case Phase::rest: return 0.0;
             case Phase::cc: return set_a;
-            case Phase::cv: return (cv_v - emf_v(x)) / (r0_internal(x, d) + series_ohm());
+            case Phase::cv: {  // the current holding the voltage, never beyond the set value nor reversed
+                const double i = (cv_v - emf_v(x)) / (r0_internal(x, d) + series_ohm());
+                return set_a >= 0.0 ? std::clamp(i, 0.0, set_a) : std::clamp(i, set_a, 0.0);
+            }
         }
         return 0.0;
     }

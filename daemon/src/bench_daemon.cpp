@@ -1129,8 +1129,10 @@ struct BenchDaemon::Impl {
             dopt.layout = protocol::DeweCanLayout::from_json(cfg.daq.layout, cfg.source.string() + " $.instruments.daq.layout");
         dopt.sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
         dopt.area_m2 = cfg.daq.cell_area_m2;
+        // At least 1 s of wall time: a loaded host (or the simulated DAQ's timer at a high time scale) can hold a
+        // healthy stream back for a few hundred ms, which must not read as silence (faults' grace floors at 3 s).
         dopt.silence_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(
-            std::max(200.0, 1000.0 * cfg.daq.stale_after_s / scale)));
+            std::max(1000.0, 1000.0 * cfg.daq.stale_after_s / scale)));
         std::shared_ptr<drivers::CanTransport> transport =
             ep.kind == drivers::CanEndpoint::Kind::can_dgram
                 ? drivers::open_can_dgram_listener(io, ep.name, std::chrono::milliseconds(200))
@@ -1809,9 +1811,9 @@ std::string BenchDaemon::metrics_text() {
     const bool run_active = d.active() != nullptr;
     {
         std::lock_guard l(d.live_m);
-        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt},
-                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt},
-                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt}};
+        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt, 0, 0, std::nullopt},
+                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt, 0, 0, std::nullopt},
+                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt, 0, 0, std::nullopt}};
         if (d.live_cycler) s.voltage_v = d.live_cycler->voltage_v, s.current_a = d.live_cycler->current_a;
         if (d.live_daq) s.surface_c = d.live_daq->surface_c;
         if (d.live_chamber) s.ambient_c = d.live_chamber->ambient_c;

@@ -5,6 +5,7 @@
 // shaped like the grids, one child per grid) and evaluates it like PyBaMM's linear interpolant does.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>

@@ -55,8 +55,7 @@ std::string num(double v) {
 std::string py_list(const std::vector<double>& v) {
     std::string s = "[";
     for (std::size_t i = 0; i < v.size(); ++i) {
-        if (i) s += ", ";
-        if (i && i % 8 == 0) s += "\n    ";
+        if (i) s += i % 8 == 0 ? ",\n    " : ", ";
         s += num(v[i]);
     }
     return s + "]";

@@ -409,7 +409,7 @@ TEST(DashboardBrowser, RunStartedPausedResumedAndStoppedFromThePage) {
 // The `diagnose --report` page: rendered by Chromium (screenshot of the whole page, no horizontal overflow),
 // and printed to PDF (`chromium --print-to-pdf`), its first page rendered to PNG with pdftoppm when installed.
 // The recording is the real 4C discharge with the first 50 rows' DAQ cells emptied (as an import leaves them
-// before the DAQ's first sample): the page must not say temperature was not measured.
+// before the DAQ's first sample): the page must still group the error by the measured temperature rise.
 TEST(ReportBrowser, DiagnoseReportRendersAndPrintsToPdf) {
     const std::string chromium = find_program({"chromium", "chromium-browser", "google-chrome"});
     const std::string chromedriver = find_program({"chromedriver"});
@@ -439,12 +439,14 @@ TEST(ReportBrowser, DiagnoseReportRendersAndPrintsToPdf) {
     }
     const fs::path html = shots / "report.html", pdf = shots / "report.pdf";
     const std::string cmd = bin.string() + " diagnose --params " + (kSource / "config/cells/p45b-thesis.json").string() + " " +
-                            rec.string() + " --effects entropic_heat,series_resistance_offset,thermal_second_order --report " +
+                            rec.string() + " --effects entropic_heat series_resistance_offset thermal_second_order --report " +
                             html.string() + " > " + (dir.path / "diagnose.log").string() + " 2>&1";
     ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
     std::stringstream page;
     page << std::ifstream(html).rdbuf();
-    EXPECT_EQ(page.str().find("temperature not measured"), std::string::npos);
+    // The temperature conditions come from the measured surface temperature (only the 50 empty rows, 0.7 % of the
+    // time, are "not measured"; before the fix every row was, as the first row's cell is empty).
+    EXPECT_NE(page.str().find("temperature rise above 6 K"), std::string::npos);
     EXPECT_NE(page.str().find("p45b-thesis.json"), std::string::npos) << "header names the parameter set";
     EXPECT_NE(page.str().find("cc_4c_gap.bdf.csv"), std::string::npos) << "header names the recording";
     EXPECT_NE(page.str().find("Error / mV"), std::string::npos) << "voltage error in mV";

@@ -228,7 +228,8 @@ int run_export_params(const ExportParamsOptions& o) {
     outputs.write(o.output, [&](std::ostream& out) { out << py.str(); });
     outputs.commit();
     std::vector<std::string> left_out;
-    for (const auto& [id, v] : ext.to_json().items())
+    const nlohmann::json ext_json = ext.to_json();  // items() refers to it: keep it alive through the loop
+    for (const auto& [id, v] : ext_json.items())
         if (id != "resistance_temperature" && id != "resistance_current" && id != "series_resistance_offset" &&
             id != "entropic_heat" && id != "capacity_error")
             left_out.push_back(id);

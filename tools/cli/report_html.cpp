@@ -310,8 +310,10 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
           << "</h3><div class='id'>" << html_escape(effect) << "</div><div class='badges'><span class='badge "
           << (sig ? "sig'>significant" : "no'>not significant") << "</span><span class='badge"
           << (kind == "parameters_wrong" ? " wrong" : "") << "'>" << html_escape(kind_words(kind)) << "</span></div>";
-        o << "<div class='evidence'>Removes " << fmt("%.0f %%", 100 * f.value("score", 0.0))
-          << " of the held-out error; improves " << f.value("folds_improved", 0) << " time blocks; ΔBIC "
+        const double score = f.value("score", 0.0);
+        o << "<div class='evidence'>" << (score >= 0 ? "Removes " + fmt("%.0f %%", 100 * score) + " of the held-out error"
+                                                     : "Makes the held-out error " + fmt("%.0f %%", -100 * score) + " worse")
+          << "; improves " << f.value("folds_improved", 0) << " time blocks; ΔBIC "
           << fmt("%.0f", f.value("delta_bic", 0.0)) << "</div>";
         const auto& params = f.contains("parameters") && f["parameters"].is_object() ? f["parameters"] : nlohmann::json::object();
         if (!params.empty()) {

@@ -78,11 +78,15 @@ const STEP_WORDS = {
   cccv: "constant-current, constant-voltage charge", dcv: "constant-voltage discharge", cp: "constant-power charge",
   dp: "constant-power discharge", cr: "constant-resistance discharge", pulse: "current pulse", end: "end of program",
   cc_discharge: "constant-current discharge", cc_charge: "constant-current charge", cv_charge: "constant-voltage charge",
+  cccv_dc: "constant-current, constant-voltage discharge", cccv_dchg: "constant-current, constant-voltage discharge",
+  cc_dchg: "constant-current discharge", cc_chg: "constant-current charge", cv_chg: "constant-voltage charge",
+  cccv_chg: "constant-current, constant-voltage charge",
 };
 export function stepWords(kind) {
   if (!kind) return "–";
   const w = STEP_WORDS[String(kind).toLowerCase().replace(/[\s-]+/g, "_")];
-  return w ? `${w} (${kind})` : String(kind);
+  if (!w) return String(kind);
+  return w.toLowerCase() === String(kind).toLowerCase() ? w : `${w} (${kind})`;
 }
 
 // Test time in seconds as h:mm:ss (or m:ss).

@@ -7,12 +7,12 @@ BIN     := $(BUILD)/bin
 OUT     := $(BUILD)/run
 
 # Debian packages the build and the tests need (installed by `make deps` when missing). nodejs and npm build the
-# dashboard (web/), chromium and chromium-driver run its browser test; an npm that came with another nodejs
+# dashboard (web/), chromium and chromium-driver run its browser tests (poppler-utils renders the report's PDF); an npm that came with another nodejs
 # package (NodeSource's provides it and conflicts with Debian's) counts as installed.
 DEBS := cmake g++ make pkg-config ccache \
         libceres-dev libeigen3-dev libboost-dev libboost-system-dev libspdlog-dev nlohmann-json3-dev \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
-        python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver clang libclang-rt-dev
+        python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver poppler-utils clang libclang-rt-dev
 
 .PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz fuzz-configure soak
 

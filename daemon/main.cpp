@@ -13,6 +13,7 @@
 #include <boost/asio/signal_set.hpp>
 #include <spdlog/spdlog.h>
 
+#include "cellbench/core/version.hpp"
 #include "cellbench/daemon/bench_daemon.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/daemon/http_server.hpp"
@@ -36,6 +37,7 @@ int main(int argc, char** argv) {
     app.add_option("--web-root", web_root,
                    "Serve the dashboard from this folder (e.g. build/web/dist) instead of the one built in")
         ->check(CLI::ExistingDirectory);
+    app.set_version_flag("--version", cellbench::version_string(), "Print the version and exit");
     app.add_flag("-v,--verbose", verbose, "Debug logging");
     app.add_flag("-q,--quiet", quiet, "Warnings and errors only");
     try {

@@ -11,6 +11,7 @@
 #include <fstream>
 #include <future>
 #include <map>
+#include <set>
 #include <mutex>
 #include <sstream>
 #include <thread>
@@ -24,6 +25,7 @@
 #include <boost/asio/steady_timer.hpp>
 #include <spdlog/spdlog.h>
 
+#include "cellbench/core/version.hpp"
 #include "cellbench/daemon/diagnose_jobs.hpp"
 #include "cellbench/daemon/http_server.hpp"
 #include "cellbench/daemon/metrics.hpp"
@@ -49,7 +51,7 @@ using SteadyClock = std::chrono::steady_clock;
 
 namespace {
 
-constexpr const char* kVersion = "0.1.0";
+const char* const kVersion = cellbench::version();  // CMake project version (core/version.hpp)
 
 double unix_now_s() {
     return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
@@ -385,6 +387,13 @@ struct BenchDaemon::Impl {
     mutable std::mutex live_m;
     std::string neware_state = "connecting", chamber_state = "connecting", daq_state = "connecting";
     std::string neware_detail, chamber_detail, daq_detail;
+    // /metrics: returns to "connected" after having been connected, per instrument (live_m).
+    std::map<std::string, std::uint64_t> reconnects;
+    std::set<std::string> was_connected;
+    void note_state(const std::string& instrument, const std::string& old_state, const std::string& new_state) {
+        if (new_state != "connected" || old_state == "connected") return;
+        if (!was_connected.insert(instrument).second) ++reconnects[instrument];
+    }
     std::optional<CyclerSample> live_cycler;
     std::optional<DaqSample> live_daq;
     std::optional<ChamberSample> live_chamber;
@@ -487,6 +496,8 @@ struct BenchDaemon::Impl {
     };
     std::mutex fault_m;  // leaf
     std::map<std::string, FaultEpisode> episodes;
+    // /metrics: every fault occurrence per instrument, and the cycler's lost or malformed answers (fault_m).
+    std::map<std::string, std::uint64_t> fault_count, lost_answers;
 
     static std::string instrument_of(const std::string& key) { return key.substr(0, key.find(':')); }
 
@@ -531,6 +542,8 @@ struct BenchDaemon::Impl {
                 first = true;
             }
             ++ep.occurrences;
+            ++fault_count[instrument];
+            if (kind == "timeout" || kind == "protocol_error") ++lost_answers[instrument];
             ep.last_s = now;
             ep.message = message;
             run = c ? std::optional<RunId>(c->id) : ep.run;
@@ -790,7 +803,11 @@ struct BenchDaemon::Impl {
         {
             std::lock_guard lock(live_m);
             switch (e.kind) {
-                case drivers::NewareEventKind::connected: neware_state = "connected"; neware_detail.clear(); break;
+                case drivers::NewareEventKind::connected:
+                    note_state("neware", neware_state, "connected");
+                    neware_state = "connected";
+                    neware_detail.clear();
+                    break;
                 case drivers::NewareEventKind::disconnected:
                 case drivers::NewareEventKind::connect_failed: neware_state = "offline"; neware_detail = e.message; break;
                 case drivers::NewareEventKind::group_fault: neware_state = "error"; neware_detail = e.message; break;
@@ -854,6 +871,7 @@ struct BenchDaemon::Impl {
         {
             std::lock_guard lock(live_m);
             changed = state != daq_state;
+            note_state("dewe", daq_state, state);
             daq_state = state;
             daq_detail = h.message;
         }
@@ -920,6 +938,7 @@ struct BenchDaemon::Impl {
         std::lock_guard lock(live_m);
         row.t_s = t;
         live_chamber = row;
+        note_state("chamber", chamber_state, "connected");
         chamber_state = "connected";
         chamber_detail.clear();
     }
@@ -1110,8 +1129,10 @@ struct BenchDaemon::Impl {
             dopt.layout = protocol::DeweCanLayout::from_json(cfg.daq.layout, cfg.source.string() + " $.instruments.daq.layout");
         dopt.sensitivity_v_per_w_per_m2 = cfg.daq.sensitivity_v_per_w_per_m2;
         dopt.area_m2 = cfg.daq.cell_area_m2;
+        // At least 1 s of wall time: a loaded host (or the simulated DAQ's timer at a high time scale) can hold a
+        // healthy stream back for a few hundred ms, which must not read as silence (faults' grace floors at 3 s).
         dopt.silence_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(
-            std::max(200.0, 1000.0 * cfg.daq.stale_after_s / scale)));
+            std::max(1000.0, 1000.0 * cfg.daq.stale_after_s / scale)));
         std::shared_ptr<drivers::CanTransport> transport =
             ep.kind == drivers::CanEndpoint::Kind::can_dgram
                 ? drivers::open_can_dgram_listener(io, ep.name, std::chrono::milliseconds(200))
@@ -1792,20 +1813,33 @@ std::string BenchDaemon::metrics_text() {
     auto& d = *impl_;
     metrics::BenchSnapshot s;
     s.uptime_s = std::chrono::duration<double>(SteadyClock::now() - d.started_at).count();
+    s.version = cellbench::version();
+    s.git = cellbench::git_describe();
     const bool run_active = d.active() != nullptr;
     {
         std::lock_guard l(d.live_m);
-        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt},
-                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt},
-                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt}};
+        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt, 0, 0, std::nullopt},
+                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt, 0, 0, std::nullopt},
+                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt, 0, 0, std::nullopt}};
         if (d.live_cycler) s.voltage_v = d.live_cycler->voltage_v, s.current_a = d.live_cycler->current_a;
         if (d.live_daq) s.surface_c = d.live_daq->surface_c;
         if (d.live_chamber) s.ambient_c = d.live_chamber->ambient_c;
         if (run_active) s.soc = d.live_soc;
+        for (auto& i : s.instruments) i.reconnects = d.reconnects.contains(i.name) ? d.reconnects.at(i.name) : 0;
+    }
+    {
+        std::lock_guard l(d.fault_m);
+        for (auto& i : s.instruments) {
+            if (const auto it = d.fault_count.find(i.name); it != d.fault_count.end()) i.faults = it->second;
+            if (i.name == "neware") i.lost_frames = d.lost_answers.contains("neware") ? d.lost_answers.at("neware") : 0;
+        }
     }
     if (d.neware_server) s.instruments[0].sim_requests = d.neware_server->stats().requests;
     if (d.chamber_server) s.instruments[1].sim_requests = d.chamber_server->stats().requests;
-    if (d.dewe) s.daq_stream = d.dewe->health().stats;
+    if (d.dewe) {
+        s.daq_stream = d.dewe->health().stats;
+        s.instruments[2].lost_frames = s.daq_stream->lost_frames;
+    }
     if (d.store) s.store = d.store->stats();
     if (auto c = d.current()) {
         metrics::RunSnapshot r;
@@ -1814,7 +1848,6 @@ std::string BenchDaemon::metrics_text() {
         try {
             const json j = d.run_json(c->id);
             r.state = j.value("state", "");
-            if (j.contains("samples") && j["samples"].is_number_unsigned()) r.samples = j["samples"].get<std::uint64_t>();
             if (j.contains("step") && j["step"].is_object()) {
                 if (j["step"].contains("index") && j["step"]["index"].is_number_integer()) r.step_index = j["step"]["index"].get<int>();
                 if (j["step"].contains("count") && j["step"]["count"].is_number_integer()) r.step_count = j["step"]["count"].get<int>();

@@ -1,5 +1,6 @@
 #include "cellbench/daemon/http_server.hpp"
 #include "cellbench/daemon/http_handler.hpp"
+#include "cellbench/daemon/openapi.hpp"
 #include "cellbench/daemon/web_assets.hpp"
 
 #include <algorithm>
@@ -367,6 +368,13 @@ private:
                 return start_run();
             }
             return method_not_allowed("GET, HEAD, POST");
+        }
+        if (n == 1 && seg[0] == "openapi.json") {  // daemon/src/openapi.json (openapi.hpp)
+            if (!is_get()) return method_not_allowed("GET, HEAD");
+            Reply r;
+            r.res.set(http::field::content_type, kJson);
+            r.res.body() = std::string(openapi_json());
+            return r;
         }
         if (n == 1 && seg[0] == "cells") {
             if (!is_get()) return method_not_allowed("GET, HEAD");

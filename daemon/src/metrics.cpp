@@ -145,6 +145,8 @@ double RateMeter::rate(double t_now_s, double count_now) const {
 // -------------------------------------------------------------------------------------------------------
 
 void write_bench_metrics(Exposition& out, const BenchSnapshot& s) {
+    out.family("cellbench_build_info", MetricType::gauge, "Always 1; the labels say which cellbenchd this is.");
+    out.sample(1.0, {{"version", s.version}, {"git", s.git}});
     out.gauge("cellbench_uptime_seconds", "Seconds since cellbenchd started.", s.uptime_s);
 
     // Instruments.
@@ -157,6 +159,16 @@ void write_bench_metrics(Exposition& out, const BenchSnapshot& s) {
                "Instrument state: 1 for the current state (connected, connecting, offline, error), 0 for the others.");
     for (const auto& i : s.instruments)
         for (auto st : kInstrumentStates) out.sample(i.state == st ? 1.0 : 0.0, {{"instrument", i.name}, {"state", st}});
+    out.family("cellbench_instrument_faults_total", MetricType::counter,
+               "Faults reported by or about the instrument (lost connection, timeout, malformed frame, alarm, ...).");
+    for (const auto& i : s.instruments) out.sample(i.faults, {{"instrument", i.name}});
+    out.family("cellbench_instrument_reconnects_total", MetricType::counter,
+               "Times the instrument came back (connected again after having been connected).");
+    for (const auto& i : s.instruments) out.sample(i.reconnects, {{"instrument", i.name}});
+    out.family("cellbench_instrument_lost_frames_total", MetricType::counter,
+               "Frames lost: DAQ CAN frame counter gaps; cycler answers that never came or did not parse.");
+    for (const auto& i : s.instruments)
+        if (i.lost_frames) out.sample(*i.lost_frames, {{"instrument", i.name}});
     bool any_sim = false;
     for (const auto& i : s.instruments) any_sim = any_sim || i.sim_requests.has_value();
     if (any_sim) {
@@ -219,8 +231,6 @@ void write_bench_metrics(Exposition& out, const BenchSnapshot& s) {
         out.gauge("cellbench_run_id", "Id of the latest run.", static_cast<double>(r.id));
         if (r.step_index) out.gauge("cellbench_run_step", "1-based index of the active run's current step.", *r.step_index);
         if (r.step_count) out.gauge("cellbench_run_steps", "Number of steps of the active run's program.", *r.step_count);
-        if (r.samples)
-            out.gauge("cellbench_run_samples", "Rows recorded in the latest run so far.", static_cast<double>(*r.samples));
     }
 
     // Latest readings (absent until an instrument has delivered one).

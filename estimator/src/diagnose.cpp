@@ -349,7 +349,13 @@ std::vector<ConditionError> locate_errors(const ParameterSet& params, const Reco
     // Per-row condition labels.
     std::vector<std::string> dir(n), crate(n), socb(n), rise(n), since(n), thr(n);
     double t_last_step = rec.time_s.empty() ? 0.0 : rec.time_s[0], ah = 0;
-    const double t0 = rec.has_surface() ? rec.surface_c[0] : kNaN;
+    double t0 = kNaN;  // the first surface reading (the first rows may have empty DAQ cells)
+    if (rec.has_surface())
+        for (double v : rec.surface_c)
+            if (std::isfinite(v)) {
+                t0 = v;
+                break;
+            }
     const double total_ah = [&] {
         double a = 0;
         for (std::size_t k = 1; k < n; ++k) a += std::abs(rec.current_a[k]) * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0;

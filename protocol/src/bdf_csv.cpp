@@ -358,6 +358,36 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     return rec;
 }
 
+// Writer: decimal places kept per column, chosen from the unit of its label (finer than any instrument of the
+// bench resolves: 0.1 ms, 1 uV, 1 uA, 0.1 mK, 1 mW/m^2), so a value computed by arithmetic (0.1 + 0.2) is written
+// as what was measured (0.3), not with its float noise (0.30000000000000004). -1: written as is.
+namespace {
+
+int writer_decimals(std::string_view label) {
+    const auto slash = label.rfind(" / ");
+    if (slash == std::string_view::npos) return -1;
+    const std::string_view unit = label.substr(slash + 3);
+    if (unit == "s") return 4;
+    if (unit == "V" || unit == "A" || unit == "V/K") return 6;
+    if (unit == "degC" || unit == "K") return 4;
+    if (unit == "W/m^2" || unit == "W") return 3;
+    if (unit == "Ah" || unit == "Wh") return 7;
+    if (unit == "1") return 6;
+    return -1;
+}
+
+// Appends v rounded to `decimals` places (-1: unrounded) in its shortest round-trip form; "-0" is written "0".
+void append_number(std::string& buf, double v, int decimals) {
+    static constexpr double kScale[] = {1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7};
+    if (decimals >= 0 && std::abs(v) < 1e15) v = std::round(v * kScale[decimals]) / kScale[decimals];
+    if (v == 0.0) v = 0.0;  // -0 -> 0
+    std::array<char, 64> num{};  // always holds a shortest-form double, so to_chars cannot fail here
+    const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v);
+    if (ec == std::errc{}) buf.append(num.data(), static_cast<std::size_t>(ptr - num.data()));
+}
+
+}  // namespace
+
 void write_bdf_csv(std::ostream& out, const Recording& rec, const std::vector<ExtraColumn>& extra) {
     const std::size_t n = rec.size();
     std::vector<const Label*> present;
@@ -403,7 +433,9 @@ void write_bdf_csv(std::ostream& out, const Recording& rec, const std::vector<Ex
     }
     buf.push_back('\n');
 
-    std::array<char, 64> num{};
+    std::vector<int> decimals, extra_decimals;
+    for (const Label* l : present) decimals.push_back(writer_decimals(l->label));
+    for (const auto& e : extra) extra_decimals.push_back(writer_decimals(e.label));
     for (std::size_t row = 0; row < n; ++row) {
         for (std::size_t k = 0; k < present.size(); ++k) {
             if (k > 0) buf.push_back(',');
@@ -414,16 +446,13 @@ void write_bdf_csv(std::ostream& out, const Recording& rec, const std::vector<Ex
             }
             const double v = (rec.*(l.values))[row];
             if (std::isnan(v)) continue;  // empty cell
-            // 64 chars always hold a shortest-form double, so to_chars cannot fail here.
-            const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v);
-            if (ec == std::errc{}) buf.append(num.data(), static_cast<std::size_t>(ptr - num.data()));
+            append_number(buf, v, decimals[k]);
         }
-        for (const auto& e : extra) {
+        for (std::size_t k = 0; k < extra.size(); ++k) {
             buf.push_back(',');
-            const double v = (*e.values)[row];
+            const double v = (*extra[k].values)[row];
             if (std::isnan(v)) continue;
-            const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v);
-            if (ec == std::errc{}) buf.append(num.data(), static_cast<std::size_t>(ptr - num.data()));
+            append_number(buf, v, extra_decimals[k]);
         }
         buf.push_back('\n');
         if (buf.size() > (1 << 16) - 1024) {

@@ -158,6 +158,18 @@ private:
 
 #define DUMP(b) "events: " << (b).events().dump(1)
 
+// One sample of GET /metrics (what Prometheus scrapes), e.g. `cellbench_instrument_faults_total{instrument="neware"}`;
+// -1 when the series is absent.
+double metric(FaultBench& b, const std::string& series) {
+    const std::string text = b.d().metrics_text();
+    for (std::size_t at = text.find(series + " "); at != std::string::npos; at = text.find(series + " ", at + 1))
+        if (at == 0 || text[at - 1] == '\n') return std::stod(text.substr(at + series.size() + 1));
+    return -1.0;
+}
+std::string series(const std::string& family, const std::string& instrument) {
+    return family + "{instrument=\"" + instrument + "\"}";
+}
+
 }  // namespace
 
 // ---- Neware ----------------------------------------------------------------------------------------------
@@ -165,9 +177,17 @@ private:
 TEST(DaemonFaults, NewareConnectionDroppedReconnectsAndTheRunContinues) {
     FaultBench b("neware-drop");
     ASSERT_TRUE(b.start_discharging());
+    const double faults0 = metric(b, series("cellbench_instrument_faults_total", "neware"));
+    const double reconnects0 = metric(b, series("cellbench_instrument_reconnects_total", "neware"));
+    ASSERT_GE(faults0, 0.0) << b.d().metrics_text();
+    ASSERT_GE(reconnects0, 0.0);
     b.neware().drop_connections();
     ASSERT_TRUE(b.wait_for("fault", "neware")) << DUMP(b);
     ASSERT_TRUE(b.wait_for("recovery", "neware")) << DUMP(b);
+    // /metrics counts the fault and the reconnect.
+    EXPECT_GT(metric(b, series("cellbench_instrument_faults_total", "neware")), faults0);
+    EXPECT_TRUE(eventually([&] { return metric(b, series("cellbench_instrument_reconnects_total", "neware")) > reconnects0; }, 10s))
+        << b.d().metrics_text();
     const auto f = b.find("fault", "neware").front();
     EXPECT_EQ(f["level"], "warning");
     EXPECT_EQ(f["detail"]["action"], "reconnect");
@@ -260,8 +280,11 @@ TEST(DaemonFaults, NewareStalledBeyondGraceAbortsWithCurrentOff) {
 TEST(DaemonFaults, NewareMalformedFramesAreFaultsAndTheRunContinuesWhenTheyStop) {
     FaultBench b("neware-malformed");
     ASSERT_TRUE(b.start_discharging());
+    const double lost0 = metric(b, series("cellbench_instrument_lost_frames_total", "neware"));
+    ASSERT_GE(lost0, 0.0) << b.d().metrics_text();
     b.neware().set_malformed_responses(true);
     ASSERT_TRUE(b.wait_for("fault", "neware", "protocol_error")) << DUMP(b);
+    EXPECT_GT(metric(b, series("cellbench_instrument_lost_frames_total", "neware")), lost0);
     std::this_thread::sleep_for(300ms);
     b.neware().set_malformed_responses(false);
     ASSERT_TRUE(b.wait_for("recovery", "neware")) << DUMP(b);
@@ -385,10 +408,15 @@ TEST(DaemonFaults, DeweSilenceBeyondGraceAbortsForWantOfCellTemperature) {
 TEST(DaemonFaults, DeweSilenceWithinGraceRecovers) {
     FaultBench b("dewe-silence-short");
     ASSERT_TRUE(b.start_discharging());
+    const double faults0 = metric(b, series("cellbench_instrument_faults_total", "dewe"));
+    const double reconnects0 = metric(b, series("cellbench_instrument_reconnects_total", "dewe"));
     b.dewe().set_silent(true);
     ASSERT_TRUE(b.wait_for("fault", "dewe", "silence")) << DUMP(b);
+    EXPECT_GT(metric(b, series("cellbench_instrument_faults_total", "dewe")), faults0) << b.d().metrics_text();
     b.dewe().set_silent(false);
     ASSERT_TRUE(b.wait_for("recovery", "dewe")) << DUMP(b);
+    EXPECT_TRUE(eventually([&] { return metric(b, series("cellbench_instrument_reconnects_total", "dewe")) > reconnects0; }, 10s))
+        << b.d().metrics_text();
     EXPECT_TRUE(b.still_running());
     b.stop();
 }
@@ -407,6 +435,8 @@ json loss_event(FaultBench& b, const std::function<bool(const json&)>& pred) {
 TEST(DaemonFaults, DeweLostFramesAreCountedInAnEvent) {
     FaultBench b("dewe-lost", [](daemon::BenchConfig& c) { c.faults.daq.loss_event_interval_s = 0.5; });
     ASSERT_TRUE(b.start_discharging());
+    const double lost0 = metric(b, series("cellbench_instrument_lost_frames_total", "dewe"));
+    ASSERT_GE(lost0, 0.0) << b.d().metrics_text();
     b.dewe().drop_samples(5);
     // 5 samples of 2 frames each missing from the counters (all in one event, or spread over a few).
     const json e = loss_event(b, [](const json& d) { return d["total_lost_samples"].get<int>() >= 5; });
@@ -416,6 +446,7 @@ TEST(DaemonFaults, DeweLostFramesAreCountedInAnEvent) {
     int lost = 0;
     for (const auto& x : b.find("fault", "dewe", "data_loss")) lost += x["detail"]["lost_samples"].get<int>();
     EXPECT_GE(lost, 5);
+    EXPECT_GE(metric(b, series("cellbench_instrument_lost_frames_total", "dewe")), lost0 + 10) << b.d().metrics_text();
     EXPECT_TRUE(b.still_running());
     EXPECT_GE(b.d().status()["live"]["surface_c"].get<double>(), 20.0);
     b.stop();

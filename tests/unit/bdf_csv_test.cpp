@@ -248,25 +248,28 @@ TEST(BdfCsv, WriteRejectsChannelsOfTheWrongLength) {
     EXPECT_THROW(write_bdf_csv(out, rec), std::invalid_argument);
 }
 
-TEST(BdfCsv, WriteThenParseRoundTripsBitExactly) {
+// Values at the writer's resolution (what instruments measure: 0.1 ms, 1 uV, 1 uA, 0.1 mK, 1 mW/m^2) read back
+// bit-exactly; finer float noise from arithmetic is written clean (0.30000000000000004 -> 0.3, -0 -> 0).
+TEST(BdfCsv, WriteThenParseRoundTripsBitExactlyAtTheResolution) {
+    auto at = [](double v, double scale) { return std::round(v * scale) / scale; };
     Recording rec;
     rec.source = "round.bdf.csv";
     const std::size_t n = 2000;
     std::mt19937_64 rng(42);
     std::uniform_real_distribution<double> u(-1.0, 1.0);
     for (std::size_t i = 0; i < n; ++i) {
-        rec.time_s.push_back(static_cast<double>(i) * 0.1);  // 0.1 s steps, as the bench records
-        rec.voltage_v.push_back(3.6 + 0.5 * u(rng));
-        rec.current_a.push_back(i % 7 == 0 ? -0.0 : 18.0 * u(rng));
-        rec.unix_time_s.push_back(1747992938.0 + static_cast<double>(i) * 0.1);
+        rec.time_s.push_back(at(static_cast<double>(i) * 0.1, 1e4));  // 0.1 s steps, as the bench records
+        rec.voltage_v.push_back(at(3.6 + 0.5 * u(rng), 1e6));
+        rec.current_a.push_back(i % 7 == 0 ? 0.0 : at(18.0 * u(rng), 1e6));
+        rec.unix_time_s.push_back(at(1747992938.0 + static_cast<double>(i) * 0.1, 1e4));
         rec.step_count.push_back(static_cast<double>(i / 100 + 1));
         rec.cycle_count.push_back(i % 3 == 0 ? cellbench::kNaN : 1.0);
         rec.step_type.push_back(i % 5 == 0 ? "CC, \"odd\"" : (i % 5 == 1 ? "" : (i % 5 == 2 ? " padded " : "Rest")));
-        rec.ambient_c.push_back(30.0 + u(rng) * 1e-12);
-        rec.surface_c.push_back(i % 11 == 0 ? cellbench::kNaN : 29.0 + u(rng));
-        rec.t1_c.push_back(i % 13 == 0 ? 5e-324 : u(rng) * 1e300);
-        rec.t2_c.push_back(0.30000000000000004);
-        rec.heat_flux_w_per_m2.push_back(u(rng) * 400.0);
+        rec.ambient_c.push_back(at(30.0 + u(rng), 1e4));
+        rec.surface_c.push_back(i % 11 == 0 ? cellbench::kNaN : at(29.0 + u(rng), 1e4));
+        rec.t1_c.push_back(u(rng) * 1e300);  // beyond rounding: written as it is
+        rec.t2_c.push_back(at(25.0 + u(rng), 1e4));
+        rec.heat_flux_w_per_m2.push_back(at(u(rng) * 400.0, 1e3));
     }
     std::ostringstream out;
     write_bdf_csv(out, rec);
@@ -297,6 +300,20 @@ TEST(BdfCsv, WriteThenParseRoundTripsBitExactly) {
     expect_same(rec.t1_c, back.t1_c, "t1");
     expect_same(rec.t2_c, back.t2_c, "t2");
     expect_same(rec.heat_flux_w_per_m2, back.heat_flux_w_per_m2, "heat flux");
+}
+
+TEST(BdfCsv, WriterDropsFloatNoiseAndNegativeZero) {
+    Recording rec;
+    rec.time_s = {0.1 + 0.2, 1.0000000000000002};
+    rec.voltage_v = {4.0997000000000003, 3.7 - 1e-12};
+    rec.current_a = {-0.0, -1e-9};
+    rec.surface_c = {30.000000000000004, 29.99999999};
+    std::ostringstream out;
+    write_bdf_csv(out, rec);
+    EXPECT_EQ(out.str(),
+              "Test Time / s,Voltage / V,Current / A,Surface Temperature / degC\n"
+              "0.3,4.0997,0,30\n"
+              "1,3.7,0,30\n");
 }
 
 // Mangled input must end in a result or an InputError, never a crash or another exception type

@@ -145,9 +145,11 @@ TEST(MetricsRate, SlidingWindowRate) {
 TEST(MetricsBench, SnapshotExposesInstrumentsStreamStoreAndRun) {
     BenchSnapshot s;
     s.uptime_s = 12.5;
-    s.instruments = {{"neware", "cycler", "connected", true, 42},
-                     {"chamber", "chamber", "offline", false, std::nullopt},
-                     {"dewe", "daq", "connected", true, std::nullopt}};
+    s.version = "1.2.3";
+    s.git = "abc1234-dirty";
+    s.instruments = {{"neware", "cycler", "connected", true, 42, 5, 2, 3},
+                     {"chamber", "chamber", "offline", false, std::nullopt, 1, 0, std::nullopt},
+                     {"dewe", "daq", "connected", true, std::nullopt, 0, 1, 7}};
     cellbench::protocol::DeweStreamStats d;
     d.frames = 1000;
     d.lost_frames = 7;
@@ -189,6 +191,16 @@ TEST(MetricsBench, SnapshotExposesInstrumentsStreamStoreAndRun) {
     EXPECT_EQ(value_of(text, "cellbench_instrument_state{instrument=\"chamber\",state=\"offline\"}"), 1);
     EXPECT_EQ(value_of(text, "cellbench_instrument_state{instrument=\"chamber\",state=\"connected\"}"), 0);
     EXPECT_EQ(value_of(text, "cellbench_sim_requests_total{instrument=\"neware\"}"), 42);
+    EXPECT_EQ(value_of(text, "cellbench_build_info{version=\"1.2.3\",git=\"abc1234-dirty\"}"), 1);
+    EXPECT_EQ(value_of(text, "cellbench_instrument_faults_total{instrument=\"neware\"}"), 5);
+    EXPECT_EQ(value_of(text, "cellbench_instrument_faults_total{instrument=\"dewe\"}"), 0);
+    EXPECT_EQ(value_of(text, "cellbench_instrument_reconnects_total{instrument=\"neware\"}"), 2);
+    EXPECT_EQ(value_of(text, "cellbench_instrument_lost_frames_total{instrument=\"neware\"}"), 3);
+    EXPECT_EQ(value_of(text, "cellbench_instrument_lost_frames_total{instrument=\"dewe\"}"), 7);
+    // The chamber has no frame counter: no lost-frames sample that would read as "none lost".
+    EXPECT_EQ(text.find("cellbench_instrument_lost_frames_total{instrument=\"chamber\"}"), std::string::npos);
+    // Rows of a run are counted by the store (cellbench_store_samples_written_total), not per run.
+    EXPECT_EQ(text.find("cellbench_run_samples"), std::string::npos);
     EXPECT_EQ(value_of(text, "cellbench_daq_can_frames_total"), 1000);
     EXPECT_EQ(value_of(text, "cellbench_daq_can_lost_frames_total"), 7);
     EXPECT_EQ(value_of(text, "cellbench_daq_lost_samples_total"), 2);

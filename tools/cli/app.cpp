@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include "cellbench/core/recording.hpp"
+#include "cellbench/core/version.hpp"
 #include "cli/commands.hpp"
 
 namespace cellbench::cli {
@@ -17,6 +18,7 @@ int run_cli(int argc, char** argv) {
 
     CLI::App app{"cellbench: electrothermal characterization of Li-ion cells (fit, simulate, diagnose recordings)"};
     app.require_subcommand(1);
+    app.set_version_flag("--version", cellbench::version_string(), "Print the version and exit");
     app.fallthrough();  // -v/-q work after the subcommand too
     bool verbose = false, quiet = false;
     app.add_flag("-v,--verbose", verbose, "More log output");
@@ -75,6 +77,20 @@ int run_cli(int argc, char** argv) {
     diag_cmd->add_option("--improved", diag.improved, "Write the parameter set with the accepted extensions");
     diag_cmd->add_option("--effects", diag.effects, "Only try these effect ids (default: the whole catalogue)");
 
+    ExportParamsOptions exp;
+    auto* exp_cmd = app.add_subcommand(
+        "export-params", "Write a parameter set for another modelling tool (PyBaMM's Thevenin equivalent-circuit model)");
+    exp_cmd->add_option("--format", exp.format, "Output format: pybamm (a Python module defining get_parameter_values())")
+        ->check(CLI::IsMember({"pybamm"}))
+        ->capture_default_str();
+    exp_cmd->add_option("params", exp.params, "Parameter set JSON (cellbench.params/1)")->required()->check(CLI::ExistingFile);
+    exp_cmd->add_option("-o,--output", exp.output, "Output file (e.g. p45b_pybamm.py)")->required();
+    exp_cmd->add_option("--initial-soc", exp.initial_soc, "\"Initial SoC\" of the exported set (0..1)")
+        ->check(CLI::Range(0.0, 1.0))
+        ->capture_default_str();
+    exp_cmd->add_option("--upper-cutoff", exp.upper_cutoff_v, "\"Upper voltage cut-off [V]\"")->capture_default_str();
+    exp_cmd->add_option("--lower-cutoff", exp.lower_cutoff_v, "\"Lower voltage cut-off [V]\"")->capture_default_str();
+
     const auto client = add_client_commands(app);  // status, runs, start, stop, pause, resume, export
 
     GenerateOptions gen;
@@ -119,6 +135,7 @@ int run_cli(int argc, char** argv) {
         if (const auto status = run_client_command(*client)) return *status;
         if (*diag_cmd) return run_diagnose(diag);
         if (*gen_cmd) return run_generate(gen);
+        if (*exp_cmd) return run_export_params(exp);
         if (*simb_cmd) return run_sim(simb);
         if (*steps_cmd) return run_steps(steps);
     } catch (const InputError& e) {

@@ -47,7 +47,9 @@ int run_diagnose(const DiagnoseCliOptions& o) {
     if (!o.json.empty()) outputs.write_json(o.json, estimator::diagnosis_to_json(d));
     if (!o.improved.empty()) outputs.write_json(o.improved, d.improved_params.to_json());
     if (!o.report.empty())
-        outputs.write(o.report, [&](std::ostream& out) { out << render_diagnosis_report(d, rec, o.recording); });
+        outputs.write(o.report, [&](std::ostream& out) {
+            out << render_diagnosis_report(d, rec, {o.recording, o.params, params.cell, {}});
+        });
     outputs.commit();
     return 0;
 }

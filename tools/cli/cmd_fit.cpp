@@ -18,14 +18,36 @@ void print_parameter_table(const estimator::Characterization& c) {
     std::printf("%5s %7s | %-36s | %-36s\n", "SOC", "OCV", "discharge R0  R1 mOhm  C1 F  R2 mOhm  C2 F",
                 "charge R0  R1 mOhm  C1 F  R2 mOhm  C2 F");
     for (std::size_t k = 0; k < p.soc.size(); ++k) {
-        auto row = [&](const estimator::RcTable& t) {
-            std::printf(" %6.3f %6.3f %6.0f %7.3f %6.0f |", t.r0_ohm[k] * 1e3, t.r1_ohm[k] * 1e3, t.c1_f[k],
-                        t.r2_ohm[k] * 1e3, t.c2_f[k]);
+        // A flagged value (implausible, uncertain or unidentified; fit --json says which) is marked, never shown
+        // as fine.
+        auto mark = [&](int dir, int q) -> char {
+            if (!c.global || k >= c.global->discharge.size()) return ' ';
+            const auto& v = (dir > 0 ? c.global->charge : c.global->discharge)[k][static_cast<std::size_t>(q)];
+            if (v.flags.empty()) return ' ';
+            for (const auto& f : v.flags)
+                if (f == "implausible") return '!';
+            return '?';
         };
-        std::printf("%5.1f %7.4f |", p.soc[k] * 100, p.ocv_v[k]);
-        row(p.discharge);
-        row(p.charge);
+        auto row = [&](const estimator::RcTable& t, int dir) {
+            std::printf(" %6.3f%c%6.3f%c%6.0f%c%7.3f%c%6.0f%c|", t.r0_ohm[k] * 1e3, mark(dir, 0), t.r1_ohm[k] * 1e3,
+                        mark(dir, 1), t.c1_f[k], mark(dir, 2), t.r2_ohm[k] * 1e3, mark(dir, 3), t.c2_f[k], mark(dir, 4));
+        };
+        const bool ocv_flag = c.global && k < c.global->ocv.size() && !c.global->ocv[k].flags.empty();
+        std::printf("%5.1f %7.4f%c|", p.soc[k] * 100, p.ocv_v[k], ocv_flag ? '?' : ' ');
+        row(p.discharge, -1);
+        row(p.charge, +1);
         std::printf("\n");
+    }
+    if (c.global) {
+        std::printf("global fit: RMS %.2f mV over %zu windows, smoothness %.0f (cross-validated), ",
+                    c.global->rms_v * 1e3, c.global->windows.size(), c.global->smoothness);
+        if (c.global->temperature_dependence)
+            std::printf("Ea %.1f +- %.1f kJ/mol, ", c.global->activation_energy_j_per_mol.value / 1e3,
+                        c.global->activation_energy_j_per_mol.sd / 1e3);
+        if (c.global->current_dependence)
+            std::printf("I0 %.2f +- %.2f A (ref %.2f A), ", c.global->exchange_current_a.value,
+                        c.global->exchange_current_a.sd, c.global->reference_current_a);
+        std::printf("%zu values flagged (? uncertain or unidentified, ! implausible)\n", c.global->flagged_count());
     }
     std::printf("pulse sets: %zu fitted;", c.pulse_fits.size());
     std::size_t joint = 0;

@@ -1,4 +1,6 @@
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 #include <spdlog/spdlog.h>
 
@@ -64,6 +66,47 @@ void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, doubl
         spdlog::warn("DAQ covers {} of {} cycler rows; the others have empty thermal cells", covered, rec.size());
 }
 
+// A cycler export's date column ("Unix Time / s") has whole seconds while its test time resolves the 0.1 s
+// samples: the date of each row is then the test time plus a clock offset, truncated to the second. The offset
+// is pinned between the rows where the date ticks over (floor(offset + t) = date for every row), so each row
+// gets its date to the test time's resolution, in line with the test time. Pieces where the two clocks jump
+// apart (a pause the test time does not count) get their own offset. Returns the rows refined.
+std::size_t refine_unix_time(Recording& rec) {
+    const std::size_t n = rec.unix_time_s.size();
+    if (n < 2 || rec.time_s.size() != n) return 0;
+    bool whole_seconds = true, finer_time = false;
+    for (std::size_t i = 0; i < n; ++i) {
+        if (std::isfinite(rec.unix_time_s[i]) && rec.unix_time_s[i] != std::floor(rec.unix_time_s[i])) whole_seconds = false;
+        if (rec.time_s[i] != std::floor(rec.time_s[i])) finer_time = true;
+    }
+    if (!whole_seconds || !finer_time) return 0;
+    std::size_t refined = 0;
+    for (std::size_t begin = 0; begin < n;) {
+        // One piece: (date - time) stays within 1 s of its first value.
+        std::size_t end = begin;
+        double first = NAN;
+        double lo = -INFINITY, hi = INFINITY, sum = 0.0;
+        std::size_t count = 0;
+        for (; end < n; ++end) {
+            const double d = rec.unix_time_s[end], t = rec.time_s[end];
+            if (!std::isfinite(d)) continue;
+            if (std::isnan(first)) first = d - t;
+            if (std::abs((d - t) - first) > 1.5) break;
+            lo = std::max(lo, d - t);
+            hi = std::min(hi, d + 1.0 - t);
+            sum += d - t;
+            ++count;
+        }
+        if (count > 0) {
+            const double offset = lo < hi ? 0.5 * (lo + hi) : sum / static_cast<double>(count) + 0.5;
+            for (std::size_t i = begin; i < end; ++i)
+                if (std::isfinite(rec.unix_time_s[i])) rec.unix_time_s[i] = rec.time_s[i] + offset, ++refined;
+        }
+        begin = std::max(end, begin + 1);
+    }
+    return refined;
+}
+
 }  // namespace
 
 int run_import(const ImportOptions& o) {
@@ -78,6 +121,9 @@ int run_import(const ImportOptions& o) {
     }
     if (rec.repaired_timestamps > 0)
         spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.neware, rec.repaired_timestamps);
+    if (const auto refined = refine_unix_time(rec); refined > 0)
+        spdlog::info("{}: Unix Time of {} rows set from the test time (the export's dates have whole seconds)", o.neware,
+                     refined);
     if (!o.bdf.empty()) {
         protocol::BdfReadReport report;
         Recording bdf = protocol::parse_bdf_csv(read_file(o.bdf), o.bdf, &report);

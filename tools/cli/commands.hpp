@@ -68,6 +68,15 @@ struct StepsOptions {
     std::string program, cell, config = "config/bench.sim.json", output;
 };
 int run_steps(const StepsOptions& o);  // cmd_steps.cpp
+// export-params --format pybamm PARAMS.json -o FILE (cmd_export_params.cpp): a Python module for PyBaMM's
+// Thevenin model (get_parameter_values() with PyBaMM's ECM names and units).
+struct ExportParamsOptions {
+    std::string format = "pybamm";
+    std::string params, output;
+    double initial_soc = 1.0;
+    double upper_cutoff_v = 4.2, lower_cutoff_v = 2.5;
+};
+int run_export_params(const ExportParamsOptions& o);
 
 // The metrics JSON of INTERFACES.md ("cellbench.metrics/1"); an unmeasured quantity is null.
 nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);

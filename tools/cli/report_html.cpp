@@ -3,7 +3,14 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <ctime>
+#include <filesystem>
+#include <map>
 #include <sstream>
+#include <utility>
+#include <vector>
+
+#include "cellbench/core/version.hpp"
 
 namespace cellbench::cli {
 
@@ -15,9 +22,31 @@ std::string fmt(const char* f, double x) {
     return b;
 }
 
+// Tick values 1-2-5 x 10^k covering [lo, hi] with about `count` intervals.
+std::vector<double> nice_ticks(double lo, double hi, int count, double& step) {
+    const double raw = (hi - lo) / std::max(1, count);
+    const double mag = std::pow(10.0, std::floor(std::log10(raw)));
+    const double r = raw / mag;
+    step = (r <= 1 ? 1 : r <= 2 ? 2 : r <= 5 ? 5 : 10) * mag;
+    std::vector<double> t;
+    for (double v = std::ceil(lo / step - 1e-9) * step; v <= hi + 1e-9 * step; v += step) t.push_back(std::abs(v) < step * 1e-9 ? 0.0 : v);
+    return t;
+}
+
+// A tick label with just the decimals the step needs.
+std::string tick_label(double v, double step) {
+    const int decimals = std::clamp(static_cast<int>(-std::floor(std::log10(step) + 1e-9)), 0, 6);
+    char b[48];
+    std::snprintf(b, sizeof b, "%.*f", decimals, v);
+    std::string s = b;
+    if (s == "-0" || s.find_first_not_of("-0.") == std::string::npos) s = "0";
+    return s;
+}
+
 struct Series {
     std::string label, color;
     std::vector<double> y;  // same length as t; NaN = gap
+    bool dashed = false;
 };
 
 // Min/max per pixel bucket, so that spikes survive the decimation (the estimator's decimate_rows, which the
@@ -25,54 +54,157 @@ struct Series {
 std::vector<std::pair<double, double>> decimate(const std::vector<double>& t, const std::vector<double>& y, int buckets) {
     std::vector<std::pair<double, double>> pts;
     for (const std::size_t k : estimator::decimate_rows(t, {&y}, 2 * static_cast<std::size_t>(buckets)))
-        pts.emplace_back(t[k], y[k]);
+        if (k < y.size() && std::isfinite(y[k])) pts.emplace_back(t[k], y[k]);
     return pts;
 }
 
-std::string chart(const std::string& title, const std::string& unit, const std::vector<double>& t,
+// One chart: title, labelled axes (y: quantity / unit; x: test time in s, min or h), 1-2-5 ticks, a legend
+// above the plot area.
+std::string chart(const std::string& title, const std::string& y_label, const std::vector<double>& t_s,
                   const std::vector<Series>& series) {
-    const int w = 960, h = 240, ml = 60, mr = 10, mt = 24, mb = 30;
-    if (t.empty()) return {};
+    const int w = 960, h = 260, ml = 72, mr = 12, mt = 40, mb = 44;
+    if (t_s.empty()) return {};
+    const double span_s = t_s.back() - t_s.front();
+    const double t_div = span_s > 3 * 3600 ? 3600.0 : span_s > 600 ? 60.0 : 1.0;
+    const char* t_unit = t_div == 3600.0 ? "h" : t_div == 60.0 ? "min" : "s";
+    std::vector<double> t(t_s.size());
+    for (std::size_t k = 0; k < t.size(); ++k) t[k] = t_s[k] / t_div;
     const double t0 = t.front(), t1 = std::max(t.back(), t0 + 1e-9);
     double ymin = INFINITY, ymax = -INFINITY;
     for (const auto& s : series)
         for (double v : s.y)
             if (std::isfinite(v)) ymin = std::min(ymin, v), ymax = std::max(ymax, v);
     if (!std::isfinite(ymin)) return {};
-    if (ymax - ymin < 1e-9) ymax = ymin + 1.0;
+    if (ymax - ymin < 1e-9) ymin -= 0.5, ymax += 0.5;
     const double pad = 0.05 * (ymax - ymin);
     ymin -= pad;
     ymax += pad;
     auto X = [&](double x) { return ml + (x - t0) / (t1 - t0) * (w - ml - mr); };
     auto Y = [&](double y) { return mt + (ymax - y) / (ymax - ymin) * (h - mt - mb); };
     std::ostringstream o;
-    o << "<svg viewBox='0 0 " << w << ' ' << h << "' width='100%' role='img' aria-label='" << html_escape(title) << "'>";
-    o << "<text x='" << ml << "' y='16' class='title'>" << html_escape(title) << " (" << html_escape(unit) << ")</text>";
-    for (int k = 0; k <= 4; ++k) {
-        const double yv = ymin + (ymax - ymin) * k / 4.0;
-        o << "<line x1='" << ml << "' x2='" << w - mr << "' y1='" << Y(yv) << "' y2='" << Y(yv) << "' class='grid'/>";
-        o << "<text x='" << ml - 4 << "' y='" << Y(yv) + 4 << "' class='tick' text-anchor='end'>" << fmt("%.4g", yv) << "</text>";
-        const double xv = t0 + (t1 - t0) * k / 4.0;
-        o << "<text x='" << X(xv) << "' y='" << h - 8 << "' class='tick' text-anchor='middle'>" << fmt("%.0f s", xv) << "</text>";
+    o << "<figure class='chart'><svg viewBox='0 0 " << w << ' ' << h << "' role='img' aria-label='" << html_escape(title)
+      << "'>";
+    o << "<text x='" << ml << "' y='16' class='title'>" << html_escape(title) << "</text>";
+    double ystep = 1, xstep = 1;
+    for (double yv : nice_ticks(ymin, ymax, 5, ystep)) {
+        o << "<line x1='" << ml << "' x2='" << w - mr << "' y1='" << fmt("%.1f", Y(yv)) << "' y2='" << fmt("%.1f", Y(yv))
+          << "' class='grid'/>";
+        o << "<text x='" << ml - 6 << "' y='" << fmt("%.1f", Y(yv) + 4) << "' class='tick' text-anchor='end'>"
+          << tick_label(yv, ystep) << "</text>";
     }
-    int lx = w - mr - 330;
+    for (double xv : nice_ticks(t0, t1, 8, xstep)) {
+        o << "<line x1='" << fmt("%.1f", X(xv)) << "' x2='" << fmt("%.1f", X(xv)) << "' y1='" << h - mb << "' y2='"
+          << h - mb + 4 << "' class='axis'/>";
+        o << "<text x='" << fmt("%.1f", X(xv)) << "' y='" << h - mb + 17 << "' class='tick' text-anchor='middle'>"
+          << tick_label(xv, xstep) << "</text>";
+    }
+    o << "<rect x='" << ml << "' y='" << mt << "' width='" << w - ml - mr << "' height='" << h - mt - mb
+      << "' class='frame'/>";
+    o << "<text x='" << (ml + w - mr) / 2 << "' y='" << h - 6 << "' class='axislabel' text-anchor='middle'>Test time / "
+      << t_unit << "</text>";
+    o << "<text transform='translate(16 " << (mt + h - mb) / 2 << ") rotate(-90)' class='axislabel' text-anchor='middle'>"
+      << html_escape(y_label) << "</text>";
+    int lx = ml;
     for (const auto& s : series) {
         const auto pts = decimate(t, s.y, 900);
         if (pts.empty()) continue;
-        o << "<polyline fill='none' stroke='" << s.color << "' stroke-width='1' points='";
-        for (const auto& [x, y] : pts) o << fmt("%.1f", X(x)) << ',' << fmt("%.1f", Y(y)) << ' ';
+        // Gaps (NaN) split the line.
+        o << "<path fill='none' stroke='" << s.color << "' stroke-width='1.2'" << (s.dashed ? " stroke-dasharray='4 3'" : "")
+          << " d='";
+        bool pen = false;
+        double prev_t = pts.front().first;
+        const double gap = (t1 - t0) / 200.0;
+        for (const auto& [x, y] : pts) {
+            o << (pen && x - prev_t < gap ? 'L' : 'M') << fmt("%.1f", X(x)) << ',' << fmt("%.1f", Y(y)) << ' ';
+            pen = true;
+            prev_t = x;
+        }
         o << "'/>";
-        o << "<rect x='" << lx << "' y='8' width='10' height='3' fill='" << s.color << "'/><text x='" << lx + 14
-          << "' y='13' class='tick'>" << html_escape(s.label) << "</text>";
-        lx += 110;
+        o << "<rect x='" << lx << "' y='25' width='14' height='3' fill='" << s.color << "'/><text x='" << lx + 18
+          << "' y='30' class='tick'>" << html_escape(s.label) << "</text>";
+        lx += 30 + 7 * static_cast<int>(s.label.size());
     }
-    o << "</svg>";
+    o << "</svg></figure>";
     return o.str();
 }
 
-std::string rms_cell(const std::optional<double>& x, double scale, const char* unit) {
-    return x ? fmt("%.3f", *x * scale) + " " + unit : "-";
+std::string rms_cell(const std::optional<double>& x, double scale, int decimals, const char* unit) {
+    if (!x) return "<span class='muted'>not measured</span>";
+    char b[64];
+    std::snprintf(b, sizeof b, "%.*f %s", decimals, *x * scale, unit);
+    return b;
 }
+
+std::string rms_cell_json(const nlohmann::json& j, const char* key, double scale, int decimals, const char* unit) {
+    if (!j.is_object() || !j.contains(key) || !j[key].is_number()) return rms_cell(std::nullopt, scale, decimals, unit);
+    return rms_cell(j[key].get<double>(), scale, decimals, unit);
+}
+
+const std::map<std::string, std::string>& effect_words() {
+    static const std::map<std::string, std::string> m = {
+        {"entropic_heat", "Reversible (entropic) heat I·T·dU/dT"},
+        {"thermal_second_order", "Core–surface temperature difference (two thermal nodes)"},
+        {"resistance_temperature", "Resistances depend on cell temperature (Arrhenius)"},
+        {"resistance_current", "Charge-transfer overpotential non-linear in current (Butler–Volmer)"},
+        {"ocv_hysteresis", "OCV hysteresis (depends on the last current direction)"},
+        {"extra_rc", "A slow diffusion time constant beyond the two RC pairs"},
+        {"capacity_error", "Usable capacity differs from the parameter set's"},
+        {"series_resistance_offset", "Extra series resistance (harness, contacts)"},
+        {"heat_flux_sensor_gain", "Heat flux sensor sensitivity or coverage differs"},
+        {"ambient_drift", "Ambient (chamber) temperature not constant"},
+    };
+    return m;
+}
+
+const std::map<std::string, std::string>& dimension_words() {
+    static const std::map<std::string, std::string> m = {
+        {"direction", "Current direction"},   {"c_rate", "C-rate"},
+        {"soc", "State of charge"},           {"temperature_rise", "Temperature rise since the start"},
+        {"since_step", "Time since a current step"}, {"throughput", "Charge throughput"},
+        {"combined", "Combined conditions"},
+    };
+    return m;
+}
+
+std::string kind_words(const std::string& kind) {
+    if (kind == "physics_missing") return "physics missing";
+    if (kind == "parameters_wrong") return "parameters wrong";
+    return kind;
+}
+
+std::string utc_now() {
+    const std::time_t now = std::time(nullptr);
+    char b[32];
+    std::strftime(b, sizeof b, "%Y-%m-%d %H:%M UTC", std::gmtime(&now));
+    return b;
+}
+
+const char* kStyle = R"CSS(
+*{box-sizing:border-box}
+body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",sans-serif;margin:0 auto;padding:24px;max-width:1000px;color:#1d232a;background:#fff}
+h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 10px;border-bottom:2px solid #e3e7ec;padding-bottom:4px}
+.meta{display:grid;grid-template-columns:max-content 1fr;gap:2px 14px;margin:10px 0 14px;font-size:13px}
+.meta dt{color:#5b6672}.meta dd{margin:0;overflow-wrap:anywhere}
+.summary{background:#f3f6f9;border-left:4px solid #2f6fb2;padding:10px 14px;margin:12px 0}
+table{border-collapse:collapse;width:100%;table-layout:auto}
+td,th{border-bottom:1px solid #e3e7ec;padding:5px 8px;text-align:left;vertical-align:top;overflow-wrap:anywhere}
+th{font-weight:600;color:#44505c;font-size:12.5px}td.num,th.num{text-align:right;white-space:nowrap}
+.cards{display:grid;grid-template-columns:repeat(auto-fill,minmax(300px,1fr));gap:12px}
+.card{border:1px solid #dde3e9;border-radius:8px;padding:12px 14px;break-inside:avoid;page-break-inside:avoid;min-width:0}
+.card h3{font-size:15px;margin:0 0 2px}.card .id{font:12px ui-monospace,monospace;color:#5b6672}
+.badges{margin:6px 0}.badge{display:inline-block;font-size:11.5px;border-radius:10px;padding:1px 8px;margin-right:4px;background:#eef1f4;color:#44505c}
+.badge.sig{background:#dcf3e6;color:#0b6b3a;font-weight:600}.badge.no{background:#eef1f4;color:#6b7580}
+.badge.wrong{background:#fdeedd;color:#8a4b00}
+.card p{margin:6px 0;overflow-wrap:anywhere}.card table td,.card table th{padding:2px 4px;font-size:12.5px}
+.evidence{font-size:12.5px;color:#44505c}
+.muted{color:#8a939c}.bar{fill:#c2463a}
+figure.chart{margin:8px 0 14px;break-inside:avoid;page-break-inside:avoid}
+figure.chart svg{width:100%;height:auto;display:block}
+.title{font:600 13px system-ui,sans-serif;fill:#1d232a}.tick{font:11px system-ui,sans-serif;fill:#44505c}
+.axislabel{font:12px system-ui,sans-serif;fill:#1d232a}.grid{stroke:#edf0f3}.axis{stroke:#8a939c}.frame{fill:none;stroke:#c9d0d7}
+footer{margin-top:28px;font-size:12px;color:#6b7580}
+@media print{body{padding:0;max-width:none;font-size:12px}h2{break-after:avoid;page-break-after:avoid}@page{size:A4;margin:14mm}}
+)CSS";
 
 }  // namespace
 
@@ -92,79 +224,176 @@ std::string html_escape(const std::string& s) {
     return o;
 }
 
-std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recording& rec, const std::string& source) {
+std::string round_sig(double x, int digits) {
+    if (!std::isfinite(x)) return "–";
+    if (x == 0.0) return "0";
+    const int mag = static_cast<int>(std::floor(std::log10(std::abs(x))));
+    const int decimals = std::max(0, digits - 1 - mag);
+    char b[64];
+    if (mag >= 6 || mag <= -5) {
+        std::snprintf(b, sizeof b, "%.*e", digits - 1, x);
+        return b;
+    }
+    std::snprintf(b, sizeof b, "%.*f", decimals, x);
+    std::string s = b;
+    if (s.find('.') != std::string::npos) {
+        while (s.back() == '0') s.pop_back();
+        if (s.back() == '.') s.pop_back();
+    }
+    return s;
+}
+
+std::pair<std::string, std::string> parameter_name_and_unit(const std::string& name) {
+    static const std::vector<std::pair<std::string, std::string>> suffixes = {
+        {"_j_per_mol", "J/mol"}, {"_v_per_k", "V/K"}, {"_k_per_w", "K/W"}, {"_j_per_k", "J/K"},
+        {"_c_per_h", "°C/h"},    {"_w_per_m2", "W/m²"}, {"_per_capacity", "per capacity"}, {"_ohm", "Ω"},
+        {"_m2", "m²"},           {"_s", "s"},          {"_v", "V"},     {"_a", "A"},
+        {"_c", "°C"},            {"_f", "F"},          {"_w", "W"},
+    };
+    for (const auto& [suffix, unit] : suffixes)
+        if (name.size() > suffix.size() && name.ends_with(suffix)) {
+            std::string base = name.substr(0, name.size() - suffix.size());
+            std::replace(base.begin(), base.end(), '_', ' ');
+            return {base, unit};
+        }
+    std::string base = name;
+    std::replace(base.begin(), base.end(), '_', ' ');
+    return {base, ""};
+}
+
+std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recording& rec, const ReportSources& src) {
+    const nlohmann::json dj = estimator::diagnosis_to_json(d);  // the JSON users also get (kind, unexplained, ...)
+    const std::string rec_name = std::filesystem::path(src.recording).filename().string();
     std::ostringstream o;
-    o << "<!doctype html><html lang='en'><head><meta charset='utf-8'><title>cellbench diagnosis: "
-      << html_escape(source) << "</title><style>"
-      << "body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1000px;color:#222}"
-      << "h1{font-size:20px}h2{font-size:16px;margin-top:28px}table{border-collapse:collapse;width:100%}"
-      << "td,th{border-bottom:1px solid #ddd;padding:4px 6px;text-align:left;vertical-align:top}"
-      << ".sig{color:#0a6;font-weight:600}.no{color:#888}.title{font:600 12px sans-serif}"
-      << ".tick{font:11px sans-serif;fill:#555}.grid{stroke:#eee}.bar{fill:#c33}.summary{background:#f5f5f0;padding:10px}"
-      << "</style></head><body>";
-    o << "<h1>Diagnosis of " << html_escape(source) << "</h1>";
+    o << "<!doctype html><html lang='en'><head><meta charset='utf-8'>"
+      << "<meta name='viewport' content='width=device-width,initial-scale=1'><title>cellbench diagnosis: "
+      << html_escape(rec_name) << "</title><style>" << kStyle << "</style></head><body>";
+
+    // Header: what produced this page.
+    o << "<header><h1>Model diagnosis: " << html_escape(rec_name) << "</h1><dl class='meta'>";
+    const double dur_s = rec.empty() ? 0.0 : rec.time_s.back() - rec.time_s.front();
+    std::string measured = "voltage, current";
+    if (rec.has_surface()) measured += ", surface temperature";
+    if (rec.has_heat_flux()) measured += ", heat flux";
+    if (rec.has_ambient()) measured += ", ambient temperature";
+    o << "<dt>Recording</dt><dd>" << html_escape(src.recording) << " — " << rec.size() << " rows, "
+      << (dur_s >= 3600 ? fmt("%.2f h", dur_s / 3600) : fmt("%.0f s", dur_s)) << "; measures " << measured << "</dd>";
+    o << "<dt>Parameter set</dt><dd>" << html_escape(src.params)
+      << (src.cell.empty() ? "" : " — " + html_escape(src.cell)) << "</dd>";
+    o << "<dt>Date</dt><dd>" << html_escape(src.date_utc.empty() ? utc_now() : src.date_utc) << "</dd>";
+    o << "<dt>Produced by</dt><dd>cellbench " << html_escape(cellbench::version_string()) << " (diagnose --report)</dd>";
+    o << "</dl></header>";
     o << "<p class='summary'>" << html_escape(d.summary) << "</p>";
 
-    o << "<h2>Errors (RMS, simulated minus measured)</h2><table><tr><th></th><th>voltage</th><th>surface temperature</th>"
-         "<th>heat flux</th></tr>";
-    o << "<tr><td>baseline</td><td>" << rms_cell(d.baseline.voltage_v, 1e3, "mV") << "</td><td>"
-      << rms_cell(d.baseline.temperature_c, 1, "degC") << "</td><td>" << rms_cell(d.baseline.heat_flux_w, 1, "W") << "</td></tr>";
-    o << "<tr><td>improved (" << html_escape(d.accepted.empty() ? std::string("nothing accepted") : [&] {
-        std::string s;
-        for (const auto& a : d.accepted) s += (s.empty() ? "" : " + ") + a;
-        return s;
-    }()) << ")</td><td>" << rms_cell(d.improved.voltage_v, 1e3, "mV") << "</td><td>"
-      << rms_cell(d.improved.temperature_c, 1, "degC") << "</td><td>" << rms_cell(d.improved.heat_flux_w, 1, "W")
-      << "</td></tr></table>";
+    o << "<h2>Model error (RMS, simulated minus measured)</h2><table><tr><th>model</th><th class='num'>voltage</th>"
+         "<th class='num'>surface temperature</th><th class='num'>heat flow</th></tr>";
+    o << "<tr><td>parameter set as given</td><td class='num'>" << rms_cell(d.baseline.voltage_v, 1e3, 1, "mV")
+      << "</td><td class='num'>" << rms_cell(d.baseline.temperature_c, 1, 2, "°C") << "</td><td class='num'>"
+      << rms_cell(d.baseline.heat_flux_w, 1, 3, "W") << "</td></tr>";
+    std::string accepted;
+    for (const auto& a : d.accepted) accepted += (accepted.empty() ? "" : " + ") + a;
+    o << "<tr><td>with " << html_escape(accepted.empty() ? std::string("nothing accepted") : accepted)
+      << "</td><td class='num'>" << rms_cell(d.improved.voltage_v, 1e3, 1, "mV") << "</td><td class='num'>"
+      << rms_cell(d.improved.temperature_c, 1, 2, "°C") << "</td><td class='num'>"
+      << rms_cell(d.improved.heat_flux_w, 1, 3, "W") << "</td></tr></table>";
 
+    // Findings as cards.
+    o << "<h2>Findings</h2>";
+    if (dj["findings"].empty()) o << "<p class='muted'>No candidate physics was tried.</p>";
+    o << "<div class='cards'>";
+    for (const auto& f : dj["findings"]) {
+        const std::string effect = f.value("effect", "");
+        const auto words = effect_words().find(effect);
+        const std::string kind = f.value("kind", std::string("physics_missing"));
+        const bool sig = f.value("significant", false);
+        o << "<section class='card'><h3>" << html_escape(words != effect_words().end() ? words->second : effect)
+          << "</h3><div class='id'>" << html_escape(effect) << "</div><div class='badges'><span class='badge "
+          << (sig ? "sig'>significant" : "no'>not significant") << "</span><span class='badge"
+          << (kind == "parameters_wrong" ? " wrong" : "") << "'>" << html_escape(kind_words(kind)) << "</span></div>";
+        const double score = f.value("score", 0.0);
+        o << "<div class='evidence'>" << (score >= 0 ? "Removes " + fmt("%.0f %%", 100 * score) + " of the held-out error"
+                                                     : "Makes the held-out error " + fmt("%.0f %%", -100 * score) + " worse")
+          << "; improves " << f.value("folds_improved", 0) << " time blocks; ΔBIC "
+          << fmt("%.0f", f.value("delta_bic", 0.0)) << "</div>";
+        const auto& params = f.contains("parameters") && f["parameters"].is_object() ? f["parameters"] : nlohmann::json::object();
+        if (!params.empty()) {
+            o << "<table><tr><th>fitted parameter</th><th class='num'>value</th><th>unit</th></tr>";
+            for (const auto& [name, value] : params.items()) {
+                if (name.ends_with("_sd") || !value.is_number()) continue;
+                const auto [label, unit] = parameter_name_and_unit(name);
+                std::string shown = round_sig(value.get<double>(), 3);
+                if (params.contains(name + "_sd") && params[name + "_sd"].is_number())
+                    shown += " ± " + round_sig(params[name + "_sd"].get<double>(), 2);
+                o << "<tr><td>" << html_escape(label) << "</td><td class='num'>" << html_escape(shown) << "</td><td>"
+                  << html_escape(unit) << "</td></tr>";
+            }
+            o << "</table>";
+        }
+        const auto& imp = f.contains("improved") ? f["improved"] : nlohmann::json();
+        o << "<div class='evidence'>RMS with it: " << rms_cell_json(imp, "voltage_rms_v", 1e3, 1, "mV") << " · "
+          << rms_cell_json(imp, "temperature_rms_c", 1, 2, "°C") << " · " << rms_cell_json(imp, "heat_flux_rms_w", 1, 3, "W")
+          << "</div>";
+        o << "<p>" << html_escape(f.value("explanation", "")) << "</p></section>";
+    }
+    o << "</div>";
+    if (dj.contains("unexplained") && dj["unexplained"].is_object())
+        o << "<p class='summary'><b>Unexplained error:</b> " << html_escape(dj["unexplained"].dump()) << "</p>";
+
+    // Traces.
     o << "<h2>Traces</h2>";
     const double area = d.improved_params.thermal.area_m2;
-    std::vector<double> q_meas;
-    if (rec.has_heat_flux())
-        for (double q : rec.heat_flux_w_per_m2) q_meas.push_back(q * area);
-    o << chart("Voltage", "V", rec.time_s,
-               {{"measured", "#222", rec.voltage_v}, {"baseline", "#d33", d.baseline_trace.voltage_v},
-                {"improved", "#27c", d.improved_trace.voltage_v}});
-    if (rec.has_surface())
-        o << chart("Surface temperature", "degC", rec.time_s,
-                   {{"measured", "#222", rec.surface_c}, {"baseline", "#d33", d.baseline_trace.temperature_c},
-                    {"improved", "#27c", d.improved_trace.temperature_c}});
-    if (rec.has_heat_flux())
-        o << chart("Heat flow out (whole surface)", "W", rec.time_s,
-                   {{"measured", "#222", q_meas}, {"baseline", "#d33", d.baseline_trace.heat_flow_out_w},
-                    {"improved", "#27c", d.improved_trace.heat_flow_out_w}});
+    o << chart("Terminal voltage", "Voltage / V", rec.time_s,
+               {{"measured", "#1d232a", rec.voltage_v}, {"parameter set", "#c2463a", d.baseline_trace.voltage_v, true},
+                {"with accepted effects", "#2f6fb2", d.improved_trace.voltage_v}});
     {
-        std::vector<double> eb(rec.size()), ei(rec.size());
+        std::vector<double> eb(rec.size(), NAN), ei(rec.size(), NAN);
         for (std::size_t k = 0; k < rec.size(); ++k) {
-            eb[k] = d.baseline_trace.voltage_v[k] - rec.voltage_v[k];
-            ei[k] = d.improved_trace.voltage_v[k] - rec.voltage_v[k];
+            if (k < d.baseline_trace.voltage_v.size()) eb[k] = (d.baseline_trace.voltage_v[k] - rec.voltage_v[k]) * 1e3;
+            if (k < d.improved_trace.voltage_v.size()) ei[k] = (d.improved_trace.voltage_v[k] - rec.voltage_v[k]) * 1e3;
         }
-        o << chart("Voltage error", "V", rec.time_s, {{"baseline", "#d33", eb}, {"improved", "#27c", ei}});
+        o << chart("Voltage error (simulated minus measured)", "Error / mV", rec.time_s,
+                   {{"parameter set", "#c2463a", eb}, {"with accepted effects", "#2f6fb2", ei}});
+    }
+    if (rec.has_surface())
+        o << chart("Surface temperature", "Temperature / °C", rec.time_s,
+                   {{"measured", "#1d232a", rec.surface_c}, {"parameter set", "#c2463a", d.baseline_trace.temperature_c, true},
+                    {"with accepted effects", "#2f6fb2", d.improved_trace.temperature_c}});
+    if (rec.has_heat_flux()) {
+        std::vector<double> q_meas;
+        for (double q : rec.heat_flux_w_per_m2) q_meas.push_back(q * area);
+        o << chart("Heat flow out of the cell (heat flux × " + round_sig(area * 1e4, 3) + " cm² surface)",
+                   "Heat flow / W", rec.time_s,
+                   {{"measured", "#1d232a", q_meas}, {"parameter set", "#c2463a", d.baseline_trace.heat_flow_out_w, true},
+                    {"with accepted effects", "#2f6fb2", d.improved_trace.heat_flow_out_w}});
     }
 
-    o << "<h2>Where the voltage error concentrates (baseline)</h2><table><tr><th>dimension</th><th>condition</th>"
-         "<th>share of squared error</th><th>share of time</th><th>RMS</th><th>bias</th><th>temperature RMS</th></tr>";
-    for (const auto& c : d.breakdown) {
-        const int bar = static_cast<int>(std::round(200 * c.share_of_voltage_error));
-        o << "<tr><td>" << html_escape(c.dimension) << "</td><td>" << html_escape(c.condition) << "</td><td><svg width='210' "
-          << "height='12'><rect class='bar' width='" << bar << "' height='12'/></svg> " << fmt("%.1f %%", 100 * c.share_of_voltage_error)
-          << "</td><td>" << fmt("%.1f %%", 100 * c.time_share) << "</td><td>" << fmt("%.1f mV", c.voltage_rms_v * 1e3)
-          << "</td><td>" << fmt("%+.1f mV", c.voltage_bias_v * 1e3) << "</td><td>"
-          << (c.temperature_rms_c ? fmt("%.2f degC", *c.temperature_rms_c) : std::string("-")) << "</td></tr>";
+    // Residual by condition.
+    o << "<h2>Where the voltage error sits (parameter set as given)</h2><table><tr><th>condition</th>"
+         "<th class='num'>share of squared error</th><th class='num'>share of time</th><th class='num'>RMS</th>"
+         "<th class='num'>bias</th><th class='num'>temperature RMS</th></tr>";
+    std::vector<std::string> order;
+    for (const auto& c : d.breakdown)
+        if (std::find(order.begin(), order.end(), c.dimension) == order.end()) order.push_back(c.dimension);
+    for (const auto& dim : order) {
+        const auto words = dimension_words().find(dim);
+        o << "<tr><th colspan='6'>" << html_escape(words != dimension_words().end() ? words->second : dim) << "</th></tr>";
+        for (const auto& c : d.breakdown) {
+            if (c.dimension != dim) continue;
+            const int bar = static_cast<int>(std::round(80 * c.share_of_voltage_error));
+            o << "<tr><td>" << html_escape(c.condition) << "</td><td class='num'><svg width='82' height='10'><rect class='bar' "
+              << "width='" << bar << "' height='10'/></svg> " << fmt("%.1f %%", 100 * c.share_of_voltage_error)
+              << "</td><td class='num'>" << fmt("%.1f %%", 100 * c.time_share) << "</td><td class='num'>"
+              << fmt("%.1f mV", c.voltage_rms_v * 1e3) << "</td><td class='num'>" << fmt("%+.1f mV", c.voltage_bias_v * 1e3)
+              << "</td><td class='num'>"
+              << (c.temperature_rms_c ? fmt("%.2f °C", *c.temperature_rms_c) : std::string("<span class='muted'>–</span>"))
+              << "</td></tr>";
+        }
     }
     o << "</table>";
-
-    o << "<h2>Candidate physics</h2><table><tr><th>effect</th><th>verdict</th><th>held-out error removed</th>"
-         "<th>blocks improved</th><th>&Delta;BIC</th><th>parameters</th><th>RMS with it</th><th>explanation</th></tr>";
-    for (const auto& f : d.findings) {
-        o << "<tr><td>" << html_escape(f.effect) << "</td><td class='" << (f.significant ? "sig'>significant" : "no'>not significant")
-          << "</td><td>" << fmt("%.1f %%", 100 * f.score) << "</td><td>" << f.folds_improved << "</td><td>"
-          << fmt("%.1f", f.delta_bic) << "</td><td>" << html_escape(f.parameters.dump()) << "</td><td>"
-          << rms_cell(f.improved.voltage_v, 1e3, "mV") << "<br>" << rms_cell(f.improved.temperature_c, 1, "degC") << "<br>"
-          << rms_cell(f.improved.heat_flux_w, 1, "W") << "</td><td>" << html_escape(f.explanation) << "</td></tr>";
-    }
-    o << "</table><p class='no'>Significant: removes at least 25 % of the error on held-out time blocks on average, improves "
-         "all but one block, and lowers BIC by more than 10. Generated by cellbench.</p></body></html>\n";
+    o << "<footer>A finding is significant when it removes at least 25 % of the error on held-out time blocks on "
+         "average, improves all but one block, and lowers BIC by more than 10. Errors are simulated minus measured; heat "
+         "flow is the heat flux density over the whole cell surface. Generated by cellbench "
+      << html_escape(cellbench::version_string()) << ".</footer></body></html>\n";
     return o.str();
 }
 

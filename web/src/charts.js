@@ -40,6 +40,12 @@ export function toColumns(resp, keys) {
   });
   return [x, ...ys];
 }
+// Y tick labels that fit the axis: 12000 -> "12k", 0.00314 -> "0.00314" (uPlot's own precision otherwise).
+export function compactTicks(u, splits) {
+  const span = Math.max(...splits.map(Math.abs));
+  if (span >= 1e4) return splits.map((v) => (v == null ? "" : +(v / 1e3).toPrecision(4) + "k"));
+  return splits.map((v) => (v == null ? "" : String(+v.toPrecision(6))));
+}
 const scaled = (k, v) => (v == null ? null : SERIES[k]?.scale ? v * SERIES[k].scale : v);
 
 let groupSerial = 0;
@@ -83,8 +89,8 @@ export class ChartGroup {
           })),
         ],
         axes: [
-          { values: (u, splits) => splits.map((v) => hms(v)), grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
-          { size: 64, grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
+          { label: "Test time (h:mm:ss)", labelSize: 18, values: (u, splits) => splits.map((v) => hms(v)), grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
+          { label: `${p.title.split(/[:,]/)[0]} / ${p.unit}`, labelSize: 18, size: 64, values: compactTicks, grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
         ],
         hooks: {
           setSelect: [(u) => {
@@ -179,8 +185,8 @@ export class FitCharts {
                                  value: (u, v) => (v == null ? "–" : v.toFixed(p.digits)) })),
         ],
         axes: [
-          { values: (u, splits) => splits.map((v) => v + " %"), grid: { stroke: "#eef1f5" } },
-          { size: 56, grid: { stroke: "#eef1f5" } },
+          { label: "SOC / %", labelSize: 18, values: (u, splits) => splits.map((v) => v + " %"), grid: { stroke: "#eef1f5" } },
+          { label: `${p.title} / ${p.unit}`, labelSize: 18, size: 60, values: compactTicks, grid: { stroke: "#eef1f5" } },
         ],
       }, [[], ...series.map(() => [])], el);
       return { el, plot, p, isOcv };
@@ -238,8 +244,8 @@ export class TraceCharts {
           })),
         ],
         axes: [
-          { values: (u, splits) => splits.map((v) => hms(v)), grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
-          { size: 64, grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
+          { label: "Test time (h:mm:ss)", labelSize: 18, values: (u, splits) => splits.map((v) => hms(v)), grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
+          { label: `${p.title.split(/[:,]/)[0]} / ${p.unit}`, labelSize: 18, size: 64, values: compactTicks, grid: { stroke: "#eef1f5" }, ticks: { stroke: "#e3e7ee" } },
         ],
         hooks: { setSelect: [(u) => {
           if (u.select.width < 4) return;

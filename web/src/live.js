@@ -1,5 +1,6 @@
 // Live page: the active run (or, when the bench is idle, the newest run) as it is being recorded.
 import { ChartGroup } from "./charts.js";
+import { controlCard } from "./control.js";
 import { fitsTable, instrumentList, liveTiles, stepBlock } from "./parts.js";
 import { duration, get, h, hms, isActive, pill, poller } from "./util.js";
 
@@ -32,7 +33,8 @@ export function liveView(app, setConn) {
   const instCard = h("div.card.instruments", null, h("h2", null, "Instruments"), h("div"));
   const faultCard = h("div.card", null, h("h2", null, "Latest warnings and faults"), h("div"));
   const fitsCard = h("div.card", null, h("h2", null, "Online fits (completed HPPC pulse sets)"), h("div"));
-  app.append(h("div.row", null, runCard, tilesCard), toolbar, chartsBox, h("div.grid2", null, instCard, faultCard), fitsCard);
+  const control = controlCard(() => { latestRunCheck = 0; refreshStatus().then(refreshSamples).catch(() => {}); });
+  app.append(h("div.row", null, runCard, tilesCard), control.card, toolbar, chartsBox, instCard, faultCard, fitsCard);
 
   const charts = new ChartGroup(chartsBox, undefined, {
     onZoom: (z) => {
@@ -45,7 +47,7 @@ export function liveView(app, setConn) {
   function renderRun(run, live) {
     runCard.replaceChildren();
     if (!run) {
-      runCard.append(h("h2", null, "No run"), h("div.muted", null, "The bench is idle and no run has been recorded yet. Start one with ",
+      runCard.append(h("h2", null, "No run"), h("div.muted", null, "The bench is idle and no run has been recorded yet. Start one under Run control below, or with ",
         h("code", null, "cellbench start --program hppc_short --cell p45b --server URL --token TOKEN"), "."));
       return;
     }
@@ -85,7 +87,10 @@ export function liveView(app, setConn) {
     runLink.replaceChildren(runId ? h("a", { href: `#/runs/${runId}` }, `run ${runId}: steps, events, fits, export →`) : "");
     runLink.href = runId ? `#/runs/${runId}` : "#/runs";
     tiles.replaceChildren(liveTiles(status.live));
-    instCard.lastChild.replaceWith(h("div", null, instrumentList(status.instruments)));
+    control.update(runActive ? run : null);
+    let metrics = "";
+    try { metrics = await (await fetch("/metrics")).text(); } catch { /* shown as – */ }
+    instCard.lastChild.replaceWith(h("div", null, instrumentList(status.instruments, status.live, metrics)));
   }
 
   async function refreshSamples() {

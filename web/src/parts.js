@@ -1,6 +1,6 @@
 // Pieces shared by the pages: fits table, events table, instrument list, live value tiles, run header.
 import { SERIES } from "./charts.js";
-import { dateTime, fmt, h, hms, pill } from "./util.js";
+import { dateTime, fmt, h, hms, pill, stepWords } from "./util.js";
 
 // One row per completed HPPC pulse set (GET /runs/{id}/fits).
 export function fitsTable(fits) {
@@ -29,11 +29,48 @@ export function eventsTable(events, { limit = 500, newestFirst = true } = {}) {
       h("td", null, e.message))))));
 }
 
-export function instrumentList(instruments) {
+// One sample of a Prometheus text exposition: value of `family{labels...}` whose labels include `want`.
+export function metricValue(text, family, want = {}) {
+  for (const line of (text || "").split("\n")) {
+    if (!line.startsWith(family)) continue;
+    const m = line.match(/^([a-z_:]+)(\{([^}]*)\})?\s+(\S+)$/i);
+    if (!m || m[1] !== family) continue;
+    const labels = Object.fromEntries([...(m[3] || "").matchAll(/(\w+)="([^"]*)"/g)].map((x) => [x[1], x[2]]));
+    if (Object.entries(want).every(([k, v]) => labels[k] === v)) return Number(m[4]);
+  }
+  return null;
+}
+
+const SOURCE = { neware: "cycler", dewe: "daq", chamber: "chamber" };
+
+// Instrument health: state, how old the newest reading is, samples per second (during a run), faults,
+// reconnects and lost frames since cellbenchd started (from /metrics), and the chamber's set point against
+// the air it measures.
+export function instrumentList(instruments, live = {}, metrics = "") {
   if (!instruments?.length) return h("div.empty", null, "no instruments configured");
-  return h("ul", null, instruments.map((i) => h("li", null,
-    h("span.name", null, i.name), h("span.muted.small", null, i.kind), pill(i.state),
-    h("span.detail", null, i.address, i.detail ? h("div", null, i.detail) : null))));
+  const age = live?.time_unix_s != null ? Math.max(0, Date.now() / 1000 - live.time_unix_s) : null;
+  const num = (v, d = 0) => (v == null ? "–" : fmt(v, d));
+  return h("div.scroll", null, h("table.health", { id: "instrument-health" },
+    h("thead", null, h("tr", null, ["instrument", "state", "data age", "samples/s", "faults", "reconnects", "lost frames", ""].map((t, i) =>
+      h(i >= 2 && i <= 6 ? "th.num" : "th", null, t)))),
+    h("tbody", null, instruments.map((i) => {
+      const m = (f) => metricValue(metrics, f, { instrument: i.name });
+      const rate = metricValue(metrics, "cellbench_samples_ingested_per_second", { source: SOURCE[i.name] || i.kind });
+      let extra = i.detail || "";
+      if (i.kind === "chamber" && live?.setpoint_c != null)
+        extra = `set point ${fmt(live.setpoint_c, 1)} °C, air ${fmt(live.ambient_c, 2)} °C` + (extra ? ` · ${extra}` : "");
+      if (i.kind === "cycler" && live?.voltage_v != null)
+        extra = `${fmt(live.voltage_v, 4)} V, ${fmt(live.current_a, 3)} A` + (extra ? ` · ${extra}` : "");
+      return h("tr", { "data-instrument": i.name },
+        h("td", null, h("b", null, i.name), h("div.small.muted", null, `${i.kind} · ${i.mode || ""} · ${i.address || ""}`)),
+        h("td", null, pill(i.state)),
+        h("td.num", null, i.kind === "cycler" && age != null ? `${fmt(age, 1)} s` : "–"),
+        h("td.num", null, rate != null ? fmt(rate, 1) : "–"),
+        h("td.num", { "data-metric": "faults" }, num(m("cellbench_instrument_faults_total"))),
+        h("td.num", null, num(m("cellbench_instrument_reconnects_total"))),
+        h("td.num", { "data-metric": "lost" }, num(m("cellbench_instrument_lost_frames_total"))),
+        h("td.detail", null, extra));
+    }))));
 }
 
 const TILE_KEYS = ["voltage_v", "current_a", "soc", "surface_c", "t1_c", "t2_c", "heat_flux_w_per_m2", "ambient_c"];
@@ -56,7 +93,7 @@ export function stepBlock(run) {
   return h("div", null,
     h("dl.step", null,
       h("dt", null, "step"), h("dd", { id: "step-index" }, `${st.index} of ${st.count}`),
-      h("dt", null, "kind"), h("dd", null, st.type || "–"),
+      h("dt", null, "kind"), h("dd", { id: "step-kind" }, stepWords(st.type)),
       h("dt", null, "in step"), h("dd", null, hms(st.elapsed_s))),
     h("div.progress", { title: "program position (steps)" }, h("div", { style: `width:${Math.min(100, (100 * st.index) / Math.max(1, st.count)).toFixed(1)}%` })));
 }

@@ -67,7 +67,26 @@ export const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", 
 
 // Numbers: fixed decimals, "–" for null/NaN.
 export function fmt(x, digits = 3, scale = 1) {
-  return x == null || !Number.isFinite(x) ? "–" : (x * scale).toFixed(digits);
+  if (x == null || !Number.isFinite(x)) return "–";
+  const s = (x * scale).toFixed(digits);
+  return /^-0(\.0*)?$/.test(s) ? s.slice(1) : s;  // never "-0.000"
+}
+
+// The tester's step kinds in words (Neware step types as the daemon reports them).
+const STEP_WORDS = {
+  rest: "rest", dc: "constant-current discharge", cc: "constant-current charge", cv: "constant-voltage charge",
+  cccv: "constant-current, constant-voltage charge", dcv: "constant-voltage discharge", cp: "constant-power charge",
+  dp: "constant-power discharge", cr: "constant-resistance discharge", pulse: "current pulse", end: "end of program",
+  cc_discharge: "constant-current discharge", cc_charge: "constant-current charge", cv_charge: "constant-voltage charge",
+  cccv_dc: "constant-current, constant-voltage discharge", cccv_dchg: "constant-current, constant-voltage discharge",
+  cc_dchg: "constant-current discharge", cc_chg: "constant-current charge", cv_chg: "constant-voltage charge",
+  cccv_chg: "constant-current, constant-voltage charge",
+};
+export function stepWords(kind) {
+  if (!kind) return "–";
+  const w = STEP_WORDS[String(kind).toLowerCase().replace(/[\s-]+/g, "_")];
+  if (!w) return String(kind);
+  return w.toLowerCase() === String(kind).toLowerCase() ? w : `${w} (${kind})`;
 }
 
 // Test time in seconds as h:mm:ss (or m:ss).
@@ -94,7 +113,7 @@ export function duration(run) {
 
 export const pill = (text, cls = text) => h("span.pill." + String(cls).replace(/[^a-z_-]/gi, ""), null, text);
 
-export function isActive(run) { return run && ["starting", "running", "paused"].includes(run.state); }
+export function isActive(run) { return run && ["starting", "waiting_equilibrium", "running", "paused", "stopping"].includes(run.state); }
 
 // A repeating poll that never overlaps itself; stop() cancels it.
 export function poller(fn, periodMs) {

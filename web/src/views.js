@@ -1,7 +1,7 @@
 // Runs list, run page and diagnosis page.
 import { ChartGroup, FitCharts, TraceCharts } from "./charts.js";
 import { eventsTable, fitsTable, stepBlock } from "./parts.js";
-import { API, apiToken, dateTime, duration, fmt, get, h, hms, isActive, pill, post, poller } from "./util.js";
+import { API, apiToken, dateTime, duration, fmt, get, h, hms, isActive, pill, post, poller, stepWords } from "./util.js";
 
 export function runsView(app) {
   const box = h("div.card", null, h("h2", null, "Runs"), h("div.empty", null, "loading…"));
@@ -14,7 +14,7 @@ export function runsView(app) {
       h("tbody", null, runs.map((r) => h("tr", null,
         h("td", null, h("a", { href: `#/runs/${r.id}` }, `#${r.id}`)), h("td", null, r.program), h("td", null, r.cell),
         h("td", null, pill(r.state)), h("td.num", null, dateTime(r.created_unix_s)), h("td.num", null, hms(duration(r))),
-        h("td.num", null, r.samples ?? "–"), h("td", null, r.step ? `${r.step.index}/${r.step.count} ${r.step.type}` : ""),
+        h("td.num", null, r.samples ?? "–"), h("td", null, r.step ? `${r.step.index}/${r.step.count} ${stepWords(r.step.type)}` : ""),
         h("td", null, h("a", { href: `${API}/runs/${r.id}/export.bdf.csv` }, "BDF CSV"))))))
       : h("div.empty", null, "no runs recorded yet"));
   }, 3000);
@@ -62,7 +62,7 @@ export function runView(app, id) {
         ? h("div.scroll", null, h("table", null,
             h("thead", null, h("tr", null, ["#", "step", "cycle", "type", "start", "duration", "Ah", "ended by"].map((t) => h("th", null, t)))),
             h("tbody", null, steps.map((x) => h("tr", null, h("td.num", null, x.index), h("td.num", null, x.step_id),
-              h("td.num", null, x.cycle), h("td", null, x.type), h("td.num", null, hms(x.started_s)),
+              h("td.num", null, x.cycle), h("td", null, stepWords(x.type)), h("td.num", null, hms(x.started_s)),
               h("td.num", null, x.ended_s != null ? hms(x.ended_s - x.started_s) : "…"),
               h("td.num", null, fmt(x.capacity_ah, 4)), h("td", null, x.end_reason || ""))))))
         : h("div.empty", null, "no steps recorded"));

@@ -86,6 +86,10 @@ struct InstrumentSnapshot {
     bool simulated = false;
     // Requests answered by the simulated instrument (its server side), when simulated.
     std::optional<std::uint64_t> sim_requests;
+    std::uint64_t faults = 0;      // fault occurrences since start (every report, not only episode openings)
+    std::uint64_t reconnects = 0;  // returns to "connected" after having been connected
+    // Frames lost on the way: DAQ CAN frame counter gaps; cycler answers lost (timeouts) or malformed.
+    std::optional<std::uint64_t> lost_frames;
 };
 
 struct RunSnapshot {
@@ -93,10 +97,10 @@ struct RunSnapshot {
     std::string state;  // the API's run state: starting, running, paused, completed, stopped, failed
     bool active = false;
     std::optional<int> step_index, step_count;
-    std::optional<std::uint64_t> samples;
 };
 
 struct BenchSnapshot {
+    std::string version, git;  // cellbench_build_info labels (core/version.hpp)
     double uptime_s = 0.0;
     std::vector<InstrumentSnapshot> instruments;
     std::optional<protocol::DeweStreamStats> daq_stream;  // the DEWE-43A CAN decoder's counters

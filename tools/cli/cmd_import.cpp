@@ -48,9 +48,10 @@ void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, doubl
 
     const auto al = estimator::estimate_clock_offset(rec.time_s, rec.current_a, daq.time_s, daq.type_t_c, q,
                                                      kAlignThermalCapacityJPerK, kCellAreaM2, max_offset_s);
+    if (!al.note.empty()) spdlog::info("alignment: {}", al.note);
+    estimator::check_clock_alignment(al, daq.source);  // weak or far-off evidence: refused with the numbers
     std::printf("clock offset applied to %s: %+.1f s (DAQ time + offset = cycler time; correlation %.3f)\n",
                 daq.source.c_str(), al.offset_s, al.correlation);
-    if (!al.note.empty()) spdlog::info("alignment: {}", al.note);
 
     std::vector<double> daq_time(daq.time_s.size());
     for (std::size_t k = 0; k < daq_time.size(); ++k) daq_time[k] = daq.time_s[k] + al.offset_s;
@@ -77,8 +78,7 @@ int run_import(const ImportOptions& o) {
     if (!o.bdf.empty()) {
         protocol::BdfReadReport report;
         Recording bdf = protocol::parse_bdf_csv(read_file(o.bdf), o.bdf, &report);
-        if (report.repaired_timestamps > 0)
-            spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.bdf, report.repaired_timestamps);
+        warn_bdf_report(o.bdf, report);
         if (rec.empty()) {
             rec = std::move(bdf);
         } else {
@@ -90,9 +90,18 @@ int run_import(const ImportOptions& o) {
             rec = estimator::splice_recordings(rec, bdf, al.offset_s);
         }
     }
-    if (!o.dewesoft.empty())
-        add_daq_channels(rec, protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft),
-                         o.sensitivity_v_per_w_per_m2, o.max_offset_s);
+    if (!o.dewesoft.empty()) {
+        const auto daq = protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft);
+        if (daq.repaired_timestamps > 0)
+            spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.dewesoft, daq.repaired_timestamps);
+        if (daq.dropped_values > 0)
+            spdlog::warn("{}: {} physically impossible values read as empty cells (first at line {})", o.dewesoft,
+                         daq.dropped_values, daq.first_dropped);
+        if (daq.gap_s > 0)
+            spdlog::warn("{}:{}: GAP in the DAQ record: time jumps forward by {:.6g} s (typical step {:.3g} s)",
+                         o.dewesoft, daq.gap_line, daq.gap_s, daq.typical_interval_s);
+        add_daq_channels(rec, daq, o.sensitivity_v_per_w_per_m2, o.max_offset_s);
+    }
     outputs.write(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec); });
     outputs.commit();
     spdlog::info("wrote {} rows ({:.0f} s) to {}", rec.size(), rec.time_s.back() - rec.time_s.front(), o.output);

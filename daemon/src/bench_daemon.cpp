@@ -32,6 +32,7 @@
 #include "cellbench/drivers/dewe_driver.hpp"
 #include "cellbench/drivers/neware_client.hpp"
 #include "cellbench/estimator/diagnose.hpp"
+#include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
 #include "cellbench/protocol/json_input.hpp"
@@ -330,6 +331,7 @@ struct BenchDaemon::Impl {
     std::deque<std::function<void()>> feed_q;
     bool feed_stop = false;
     std::thread feed_thread;
+    std::thread refit_thread;  // final fits redone at start (runs whose fit did not land before a stop)
 
     void feed(std::function<void()> job) {
         {
@@ -988,6 +990,7 @@ struct BenchDaemon::Impl {
         host_simulation();
         connect_drivers();
         recover();
+        redo_pending_fits();
 
         // Tick: silence and equilibrium timeouts; once per bench second, at most every 200 ms wall.
         tick_timer = std::make_unique<asio::steady_timer>(io);
@@ -1152,6 +1155,47 @@ struct BenchDaemon::Impl {
     // else is commanded meanwhile. The cycler is told to stop and the chamber to go to its safe set point, both
     // at once, each retried until the instrument acknowledges it (at most kRecoveryAttempts, each bounded by
     // the driver's own timeouts); then every such run gets a recovery event saying what was acknowledged.
+    // A completed run always gets a "fit" event from its final fit (the parameter set, or why there is none).
+    // A run without one was stopped (kill -9, power loss) before the fit landed: visible as a fit_pending
+    // event, and the fit is redone from the stored records on a worker thread (never on the run engine's).
+    void redo_pending_fits() {
+        std::vector<RunId> pending;
+        for (const auto& r : store->list_runs()) {
+            if (r.state != RunState::completed || r.cycler_samples <= 10) continue;
+            bool has_fit_event = false;
+            for (const auto& e : store->events(r.id))
+                if (e.kind == "fit" || e.kind == "fit_pending") has_fit_event = true;
+            if (!has_fit_event && !store->latest_parameter_set(r.id)) pending.push_back(r.id);
+        }
+        if (pending.empty()) return;
+        for (RunId id : pending)
+            bench_event(EventLevel::warning, "fit_pending",
+                        "the final fit of this run did not land before the daemon stopped; it is redone from the "
+                        "stored records",
+                        nullptr, id);
+        refit_thread = std::thread([this, pending] {
+            for (RunId id : pending) {
+                try {
+                    const auto run = store->get_run(id);
+                    const auto rec = store->export_recording(id);
+                    const auto c = estimator::characterize({rec});
+                    ParameterSetRecord r;
+                    r.run_id = id;
+                    r.created_unix_s = unix_now_s();
+                    r.cell = run ? run->cell : std::string();
+                    r.params = c.params.to_json();
+                    store->record_parameter_set(r);
+                    bench_event(EventLevel::info, "fit", "parameter set fitted from the run (redone at restart)",
+                                c.summary_json(), id);
+                    spdlog::info("run {}: final fit redone from the stored records", id);
+                } catch (const std::exception& e) {
+                    bench_event(EventLevel::warning, "fit",
+                                std::string("no parameter set for this run (redone at restart): ") + e.what(), nullptr, id);
+                }
+            }
+        });
+    }
+
     void recover() {
         const auto ids = store->mark_interrupted_runs();
         if (ids.empty()) return;
@@ -1409,6 +1453,7 @@ struct BenchDaemon::Impl {
         }
         feed_cv.notify_all();
         if (feed_thread.joinable()) feed_thread.join();
+        if (refit_thread.joinable()) refit_thread.join();
         if (store) {
             store->flush();
             store->close();

@@ -264,7 +264,8 @@ TEST(BdfCsv, WriteThenParseRoundTripsBitExactly) {
         rec.step_type.push_back(i % 5 == 0 ? "CC, \"odd\"" : (i % 5 == 1 ? "" : (i % 5 == 2 ? " padded " : "Rest")));
         rec.ambient_c.push_back(30.0 + u(rng) * 1e-12);
         rec.surface_c.push_back(i % 11 == 0 ? cellbench::kNaN : 29.0 + u(rng));
-        rec.t1_c.push_back(i % 13 == 0 ? 5e-324 : u(rng) * 1e300);
+        // Extreme magnitudes but physically possible ones (a temperature beyond -100..300 degC reads as empty).
+        rec.t1_c.push_back(i % 13 == 0 ? 5e-324 : (i % 17 == 0 ? -99.999999999999986 : 100.0 + u(rng) * 199.99999999999997));
         rec.t2_c.push_back(0.30000000000000004);
         rec.heat_flux_w_per_m2.push_back(u(rng) * 400.0);
     }

@@ -321,6 +321,11 @@ struct BenchDaemon::Impl {
     asio::io_context io;
     std::optional<asio::executor_work_guard<asio::io_context::executor_type>> guard;
     std::vector<std::thread> threads;
+    // The HTTP API on its own io_context and threads: a slow client, an expensive read (SQLite) or the accept
+    // loop never occupies a thread the instrument drivers and the run engine's timers need.
+    asio::io_context http_io;
+    std::optional<asio::executor_work_guard<asio::io_context::executor_type>> http_guard;
+    std::vector<std::thread> http_threads;
     std::unique_ptr<asio::steady_timer> tick_timer;
 
     // The sequencer is fed on its own thread, in arrival order. Its work at a step change (segmenting the run so
@@ -1001,8 +1006,10 @@ struct BenchDaemon::Impl {
         ho.port = static_cast<std::uint16_t>(cfg.listen.port);
         ho.token = opt.token;
         if (!opt.web_root.empty()) ho.static_dir = opt.web_root;
-        http = std::make_unique<HttpServer>(io, outer_backend(), ho);
+        http = std::make_unique<HttpServer>(http_io, outer_backend(), ho);
         http->start();
+        http_guard.emplace(http_io.get_executor());
+        for (int k = 0; k < std::max(1, opt.io_threads); ++k) http_threads.emplace_back([this] { http_io.run(); });
         bound_port = http->local_endpoint().port();
         spdlog::info("cellbenchd: API {} (bench time x{})", api_url(), scale);
     }
@@ -1427,6 +1434,11 @@ struct BenchDaemon::Impl {
         shut = true;
         stopping = true;
         if (http) http->stop();
+        http_guard.reset();
+        http_io.stop();
+        for (auto& t : http_threads)
+            if (t.joinable()) t.join();
+        http_threads.clear();
         if (auto c = active()) {
             spdlog::info("shutdown: stopping run {} (current off, chamber to {:.1f} degC)", c->id, cfg.chamber.safe_setpoint_c);
             c->seq->stop("the daemon is shutting down", now_s());

@@ -19,6 +19,7 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 #include <boost/asio/strand.hpp>
+#include <boost/asio/thread_pool.hpp>
 #include <boost/asio/write.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
@@ -219,6 +220,16 @@ struct HttpServer::State : std::enable_shared_from_this<HttpServer::State> {
     std::atomic<std::uint64_t> refused_connections{0};
     std::atomic<std::uint64_t> evicted_connections{0};  // slow header-pending sessions closed for a new one
     std::atomic<std::size_t> sample_reads{0};           // GET samples being served now
+    // Reads of the run records (SQLite) are routed here, off the io threads, so the cheap requests (health,
+    // status) never queue behind them.
+    // Created by HttpServer::start(), stopped and joined by stop() (never from one of its own threads).
+    std::unique_ptr<net::thread_pool> read_pool;
+    ~State() {
+        if (read_pool) {
+            read_pool->stop();
+            read_pool->join();
+        }
+    }
 
     // At the connection limit: closes the session that has waited longest for its request header. Returns
     // whether there was one.
@@ -896,14 +907,27 @@ private:
         send(std::move(r.res));
     }
 
+    // Requests that read run records from the database: routed on the read pool.
+    static bool reads_records(const Request& req) {
+        const std::string_view target(req.target().data(), req.target().size());
+        return target.rfind("/api/v1/runs", 0) == 0 || target.rfind("/api/v1/diagnos", 0) == 0;
+    }
+
     void handle_request() {
         request_ = parser_->release();
-        Reply r;
-        if (st_->stopping) {
-            r = Router::error(http::status::service_unavailable, "cellbenchd is shutting down");
-        } else {
-            r = route_guarded(*st_, request_);
+        if (st_->stopping) return send_reply(Router::error(http::status::service_unavailable, "cellbenchd is shutting down"));
+        if (st_->read_pool && reads_records(request_)) {
+            net::post(*st_->read_pool, [self = shared_from_this()] {
+                auto r = std::make_shared<Reply>(route_guarded(*self->st_, self->request_));
+                net::post(self->stream_.get_executor(), [self, r] { self->send_reply(std::move(*r)); });
+            });
+            return;
         }
+        send_reply(route_guarded(*st_, request_));
+    }
+
+    void send_reply(Reply&& reply) {
+        Reply r = std::move(reply);
         const bool keep = request_.keep_alive() && !st_->stopping;
         const bool head = request_.method() == http::verb::head;
         if (r.file) {
@@ -1159,6 +1183,7 @@ void HttpServer::start() {
         spdlog::info("http: no API token configured: starting, stopping, pausing and resuming runs over the API "
                      "is refused (set --token or CELLBENCH_TOKEN)");
 
+    st.read_pool = std::make_unique<net::thread_pool>(2);
     net::dispatch(st.acceptor.get_executor(), [s = state_] { s->do_accept(); });
 }
 
@@ -1216,6 +1241,10 @@ void HttpServer::stop() {
             if (auto s = weak.lock()) live.push_back(std::move(s));
     }
     for (auto& s : live) s->shutdown();
+    if (st->read_pool) {  // a read in progress finishes (bounded); queued ones are dropped with their sessions
+        st->read_pool->stop();
+        st->read_pool->join();
+    }
     if (st->bound.port() != 0) spdlog::info("http: stopped ({} connections closed)", live.size());
 }
 

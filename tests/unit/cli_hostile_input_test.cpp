@@ -152,3 +152,15 @@ TEST_F(CliHostileInput, DeeplyNestedOrOverflowingParameterFileIsAClearError) {
     r = run(kBin.string() + " simulate --params " + huge.string() + " " + rec.string());
     EXPECT_TRUE(fails_once_naming(r, "huge.json: invalid JSON")) << r.err;
 }
+
+TEST_F(CliHostileInput, ImportRefusesADaqRecordWithAGapInsteadOfMisaligningItsTail) {
+    const auto neware = write("neware.csv", kGoodNeware);
+    std::string daq = "Time,Thermal Flux Sensor Voltage (V),Temperature (C)\n";
+    for (int i = 0; i < 50; ++i) daq += std::to_string(i * 0.1) + ",1e-5,30\n";
+    for (int i = 0; i < 50; ++i) daq += std::to_string(3600 + i * 0.1) + ",1e-5,30\n";
+    const auto path = write("daq.csv", daq);
+    auto r = run(kBin.string() + " import --neware " + neware.string() + " --dewesoft " + path.string() + " -o " +
+                 at("out.bdf.csv"));
+    EXPECT_TRUE(fails_once_naming(r, "daq.csv:52: GAP in the DAQ record")) << r.err;
+    EXPECT_TRUE(only_inputs_left({"neware.csv", "daq.csv"}));
+}

@@ -46,8 +46,13 @@ void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, doubl
     }
     if (daq.type_t_c.empty()) throw InputError(daq.source + ": no sensor temperature column (Type-T)");
 
-    const auto al = estimator::estimate_clock_offset(rec.time_s, rec.current_a, daq.time_s, daq.type_t_c, q,
-                                                     kAlignThermalCapacityJPerK, kCellAreaM2, max_offset_s);
+    estimator::ClockAlignment al;
+    try {
+        al = estimator::estimate_clock_offset(rec.time_s, rec.current_a, daq.time_s, daq.type_t_c, q,
+                                              kAlignThermalCapacityJPerK, kCellAreaM2, max_offset_s);
+    } catch (const InputError& e) {
+        throw InputError(daq.source + ": " + e.what());  // the message names the file it is about
+    }
     if (!al.note.empty()) spdlog::info("alignment: {}", al.note);
     estimator::check_clock_alignment(al, daq.source);  // weak or far-off evidence: refused with the numbers
     std::printf("clock offset applied to %s: %+.1f s (DAQ time + offset = cycler time; correlation %.3f)\n",
@@ -97,9 +102,13 @@ int run_import(const ImportOptions& o) {
         if (daq.dropped_values > 0)
             spdlog::warn("{}: {} physically impossible values read as empty cells (first at line {})", o.dewesoft,
                          daq.dropped_values, daq.first_dropped);
+        // One clock offset is fitted for the whole DAQ record: across a gap (a stalled clock, two exports
+        // pasted together) the rows after it would land wrong by the size of the gap. Refused, never repaired.
         if (daq.gap_s > 0)
-            spdlog::warn("{}:{}: GAP in the DAQ record: time jumps forward by {:.6g} s (typical step {:.3g} s)",
-                         o.dewesoft, daq.gap_line, daq.gap_s, daq.typical_interval_s);
+            throw InputError(o.dewesoft + ":" + std::to_string(daq.gap_line) + ": GAP in the DAQ record: time jumps " +
+                             "forward by " + protocol::csv::format_number(daq.gap_s) + " s (typical step " +
+                             protocol::csv::format_number(daq.typical_interval_s) +
+                             " s); one clock offset cannot align both sides of it: export the parts separately");
         add_daq_channels(rec, daq, o.sensitivity_v_per_w_per_m2, o.max_offset_s);
     }
     outputs.write(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec); });

@@ -164,3 +164,16 @@ TEST_F(CliHostileInput, ImportRefusesADaqRecordWithAGapInsteadOfMisaligningItsTa
     EXPECT_TRUE(fails_once_naming(r, "daq.csv:52: GAP in the DAQ record")) << r.err;
     EXPECT_TRUE(only_inputs_left({"neware.csv", "daq.csv"}));
 }
+
+TEST_F(CliHostileInput, ImportRefusesImpossibleOrCutCyclerExports) {
+    std::string huge = kGoodNeware;
+    huge.replace(huge.find("0.0,4.0964,0.0,0.0,2025-05-23 09:35:39"), 3, "1e308");
+    const auto a = write("huge.csv", huge);
+    auto r = run(kBin.string() + " import --neware " + a.string() + " -o " + at("out.bdf.csv"));
+    EXPECT_TRUE(fails_once_naming(r, "huge.csv")) << r.err;
+    EXPECT_NE(r.err.find("1e+308"), std::string::npos) << r.err;
+    const auto cut = write("cut.csv", kGoodNeware.substr(0, kGoodNeware.size() - 8));
+    r = run(kBin.string() + " import --neware " + cut.string() + " -o " + at("out.bdf.csv"));
+    EXPECT_TRUE(fails_once_naming(r, "cut.csv")) << r.err;
+    EXPECT_TRUE(only_inputs_left({"huge.csv", "cut.csv"}));
+}

@@ -70,6 +70,26 @@ void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, doubl
         spdlog::warn("DAQ covers {} of {} cycler rows; the others have empty thermal cells", covered, rec.size());
 }
 
+// The CLI's own check of a cycler export as read (the Neware reader checks its cells too; this holds whatever
+// reader produced the rows): a text cut mid-line, and time, voltage or current outside what a bench can measure.
+void check_cycler_export(const std::string& text, const Recording& rec, const std::string& source) {
+    if (!text.empty() && text.back() != '\n' && text.back() != '\r')
+        throw InputError(source + ": the export ends mid-line (no line end after the last row): the file was cut "
+                                  "short; export it again");
+    const auto check = [&](const std::vector<double>& v, protocol::csv::PhysicalRange range, const char* what,
+                           const char* unit) {
+        for (std::size_t k = 0; k < v.size(); ++k)
+            if (!range.contains(v[k]))
+                throw InputError(source + ": data row " + std::to_string(k + 1) + ": impossible " + what + " " +
+                                 protocol::csv::format_number(v[k]) + " " + unit + " (expected " +
+                                 protocol::csv::format_number(range.lo) + ".." + protocol::csv::format_number(range.hi) +
+                                 " " + unit + ")");
+    };
+    check(rec.time_s, protocol::csv::kTestTimeRangeS, "time", "s");
+    check(rec.voltage_v, protocol::csv::kVoltageRangeV, "voltage", "V");
+    check(rec.current_a, protocol::csv::kCurrentRangeA, "current", "A");
+}
+
 }  // namespace
 
 int run_import(const ImportOptions& o) {
@@ -77,7 +97,11 @@ int run_import(const ImportOptions& o) {
         throw InputError("import: give a cycler recording (--neware and/or --bdf); --dewesoft alone has no current");
     OutputFiles outputs({o.output});  // the folder is checked before the work
     Recording rec;
-    if (!o.neware.empty()) rec = protocol::parse_neware_export(read_file(o.neware), o.neware);
+    if (!o.neware.empty()) {
+        const std::string text = read_file(o.neware);
+        rec = protocol::parse_neware_export(text, o.neware);
+        check_cycler_export(text, rec, o.neware);
+    }
     if (rec.repaired_timestamps > 0)
         spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.neware, rec.repaired_timestamps);
     if (!o.bdf.empty()) {

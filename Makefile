@@ -14,7 +14,7 @@ DEBS := cmake g++ make pkg-config ccache \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
         python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver poppler-utils clang libclang-rt-dev
 
-.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz fuzz-configure soak
+.PHONY: all deps configure build run test test-unit test-data bench prove clean install fuzz fuzz-configure soak mutate
 
 all: build
 
@@ -113,6 +113,14 @@ SOAK_SEED  ?= 6
 soak: build
 	cmake --build $(BUILD) -j$(JOBS) --target cellbench_soak
 	$(BIN)/cellbench_soak --hours $(SOAK_HOURS) --time-scale $(SOAK_SCALE) --seed $(SOAK_SEED) --report $(BUILD)/soak/report.md
+
+# The mutation campaign of the recording readers (issue 16): MUTATE_COUNT mutated files of each kind (BDF CSV,
+# Neware export, DewesoftX export) made from the real recordings, the CLI run on each with a 10 s timeout;
+# prints the table of crashes, hangs, clear errors, right successes and silently wrong successes.
+MUTATE_COUNT ?= 300
+MUTATE_JOBS ?= 1
+mutate: build
+	/usr/bin/python3 scripts/mutate_inputs.py --bin $(BIN) --data $(DATA) --count $(MUTATE_COUNT) --jobs $(MUTATE_JOBS)
 
 # The proof table of `cellbench diagnose` on generated recordings with hidden effects (SEEDS="1 2 3").
 SEEDS ?= 1 2 3

@@ -34,8 +34,10 @@
 #include "cellbench/drivers/dewe_driver.hpp"
 #include "cellbench/drivers/neware_client.hpp"
 #include "cellbench/estimator/diagnose.hpp"
+#include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
+#include "cellbench/protocol/json_input.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
 #include "cellbench/sequencer/sequencer.hpp"
 #include "cellbench/sim/chamber_server.hpp"
@@ -70,13 +72,9 @@ std::chrono::milliseconds wall_period(double bench_ms, double scale, double min_
 estimator::ParameterSet load_param_file(const std::filesystem::path& path) {
     std::ifstream in(path);
     if (!in) throw InputError(path.string() + ": cannot read the parameter set");
-    json j;
-    try {
-        j = json::parse(in);
-    } catch (const json::parse_error& e) {
-        throw InputError(path.string() + ": invalid JSON: " + e.what());
-    }
-    return estimator::ParameterSet::from_json(j, path.string());
+    std::stringstream text;
+    text << in.rdbuf();
+    return estimator::ParameterSet::from_json(protocol::parse_json_input(text.str(), path.string()), path.string());
 }
 
 sequencer::Program to_sequencer_program(const Program& p) {
@@ -325,6 +323,11 @@ struct BenchDaemon::Impl {
     asio::io_context io;
     std::optional<asio::executor_work_guard<asio::io_context::executor_type>> guard;
     std::vector<std::thread> threads;
+    // The HTTP API on its own io_context and threads: a slow client, an expensive read (SQLite) or the accept
+    // loop never occupies a thread the instrument drivers and the run engine's timers need.
+    asio::io_context http_io;
+    std::optional<asio::executor_work_guard<asio::io_context::executor_type>> http_guard;
+    std::vector<std::thread> http_threads;
     std::unique_ptr<asio::steady_timer> tick_timer;
 
     // The sequencer is fed on its own thread, in arrival order. Its work at a step change (segmenting the run so
@@ -335,6 +338,7 @@ struct BenchDaemon::Impl {
     std::deque<std::function<void()>> feed_q;
     bool feed_stop = false;
     std::thread feed_thread;
+    std::thread refit_thread;  // final fits redone at start (runs whose fit did not land before a stop)
 
     void feed(std::function<void()> job) {
         {
@@ -385,6 +389,10 @@ struct BenchDaemon::Impl {
 
     // Instruments' state and live values (leaf lock).
     mutable std::mutex live_m;
+    // The database's last write fault while it lasts (disk full, read-only, I/O error), for GET /health and
+    // POST /runs (503 with the reason); cleared when a write commits again. Guarded by live_m.
+    std::string db_fault;
+    std::uint64_t db_fault_batches = 0;  // samples committed when the fault was seen
     std::string neware_state = "connecting", chamber_state = "connecting", daq_state = "connecting";
     std::string neware_detail, chamber_detail, daq_detail;
     // /metrics: returns to "connected" after having been connected, per instrument (live_m).
@@ -983,10 +991,18 @@ struct BenchDaemon::Impl {
         so.on_fault = [this](const StoreFault& f) {
             spdlog::error("database: {}: {}", to_string(f.kind), f.message);
             if (f.kind == StoreFaultKind::overflow) return;
+            note_db_fault(std::string(to_string(f.kind)) + ": " + f.message);
             // Never on the writer thread: aborting records events, which the writer must commit.
             asio::post(io, [this, msg = f.message] { instrument_fault("database", msg, true); });
         };
-        if (!db_path.parent_path().empty()) std::filesystem::create_directories(db_path.parent_path());
+        if (!db_path.parent_path().empty()) {
+            std::error_code ec;
+            std::filesystem::create_directories(db_path.parent_path(), ec);
+            if (ec)
+                throw InputError(db_path.string() + ": cannot create the database folder " +
+                                 db_path.parent_path().string() + ": " + ec.message() +
+                                 " (choose a writable folder with --db)");
+        }
         store = RunStore::open(db_path, so);
         step_file_dir = std::filesystem::absolute(db_path).parent_path() / "stepfiles";
         diagnoses = std::make_unique<DiagnoseJobs>();
@@ -998,6 +1014,7 @@ struct BenchDaemon::Impl {
         host_simulation();
         connect_drivers();
         recover();
+        redo_pending_fits();
 
         // Tick: silence and equilibrium timeouts; once per bench second, at most every 200 ms wall.
         tick_timer = std::make_unique<asio::steady_timer>(io);
@@ -1008,10 +1025,28 @@ struct BenchDaemon::Impl {
         ho.port = static_cast<std::uint16_t>(cfg.listen.port);
         ho.token = opt.token;
         if (!opt.web_root.empty()) ho.static_dir = opt.web_root;
-        http = std::make_unique<HttpServer>(io, outer_backend(), ho);
+        http = std::make_unique<HttpServer>(http_io, outer_backend(), ho);
         http->start();
+        http_guard.emplace(http_io.get_executor());
+        for (int k = 0; k < std::max(1, opt.io_threads); ++k) http_threads.emplace_back([this] { http_io.run(); });
         bound_port = http->local_endpoint().port();
         spdlog::info("cellbenchd: API {} (bench time x{})", api_url(), scale);
+    }
+
+    void note_db_fault(const std::string& what) {
+        const auto written = store ? store->stats().samples_written : 0;
+        std::lock_guard l(live_m);
+        db_fault = what;
+        db_fault_batches = written;
+    }
+    // Under live_m: whether samples were committed since the fault was seen (then the fault is over).
+    bool db_writable_again() {
+        if (db_fault.empty()) return true;
+        if (store && store->stats().samples_written > db_fault_batches) {
+            db_fault.clear();
+            return true;
+        }
+        return false;
     }
 
     ApiBackend* backend = nullptr;  // the BenchDaemon (set by it)
@@ -1148,6 +1183,47 @@ struct BenchDaemon::Impl {
     // else is commanded meanwhile. The cycler is told to stop and the chamber to go to its safe set point, both
     // at once, each retried until the instrument acknowledges it (at most kRecoveryAttempts, each bounded by
     // the driver's own timeouts); then every such run gets a recovery event saying what was acknowledged.
+    // A completed run always gets a "fit" event from its final fit (the parameter set, or why there is none).
+    // A run without one was stopped (kill -9, power loss) before the fit landed: visible as a fit_pending
+    // event, and the fit is redone from the stored records on a worker thread (never on the run engine's).
+    void redo_pending_fits() {
+        std::vector<RunId> pending;
+        for (const auto& r : store->list_runs()) {
+            if (r.state != RunState::completed || r.cycler_samples <= 10) continue;
+            bool has_fit_event = false;
+            for (const auto& e : store->events(r.id))
+                if (e.kind == "fit" || e.kind == "fit_pending") has_fit_event = true;
+            if (!has_fit_event && !store->latest_parameter_set(r.id)) pending.push_back(r.id);
+        }
+        if (pending.empty()) return;
+        for (RunId id : pending)
+            bench_event(EventLevel::warning, "fit_pending",
+                        "the final fit of this run did not land before the daemon stopped; it is redone from the "
+                        "stored records",
+                        nullptr, id);
+        refit_thread = std::thread([this, pending] {
+            for (RunId id : pending) {
+                try {
+                    const auto run = store->get_run(id);
+                    const auto rec = store->export_recording(id);
+                    const auto c = estimator::characterize({rec});
+                    ParameterSetRecord r;
+                    r.run_id = id;
+                    r.created_unix_s = unix_now_s();
+                    r.cell = run ? run->cell : std::string();
+                    r.params = c.params.to_json();
+                    store->record_parameter_set(r);
+                    bench_event(EventLevel::info, "fit", "parameter set fitted from the run (redone at restart)",
+                                c.summary_json(), id);
+                    spdlog::info("run {}: final fit redone from the stored records", id);
+                } catch (const std::exception& e) {
+                    bench_event(EventLevel::warning, "fit",
+                                std::string("no parameter set for this run (redone at restart): ") + e.what(), nullptr, id);
+                }
+            }
+        });
+    }
+
     void recover() {
         const auto ids = store->mark_interrupted_runs();
         if (ids.empty()) return;
@@ -1262,7 +1338,19 @@ struct BenchDaemon::Impl {
         nr.config = {{"program", program.to_json()}, {"cell", cell.to_json()}, {"bench", cfg.document},
                      {"time_scale", scale}};
         nr.state = RunState::running;
-        const RunId id = store->create_run(nr);
+        // create_run is also the probe of a database that failed before: it commits (the fault is over) or
+        // says why not.
+        RunId id = 0;
+        try {
+            id = store->create_run(nr);
+        } catch (const StoreError& e) {
+            note_db_fault(std::string(to_string(e.kind())) + ": " + e.what());
+            throw Unavailable(std::string("the database cannot record a run: ") + e.what());
+        }
+        {
+            std::lock_guard l(live_m);
+            db_fault.clear();
+        }
 
         // The previous run's fits must have reported before its context goes.
         if (auto old = current()) old->seq->wait_for_fits();
@@ -1374,6 +1462,11 @@ struct BenchDaemon::Impl {
         shut = true;
         stopping = true;
         if (http) http->stop();
+        http_guard.reset();
+        http_io.stop();
+        for (auto& t : http_threads)
+            if (t.joinable()) t.join();
+        http_threads.clear();
         if (auto c = active()) {
             spdlog::info("shutdown: stopping run {} (current off, chamber to {:.1f} degC)", c->id, cfg.chamber.safe_setpoint_c);
             c->seq->stop("the daemon is shutting down", now_s());
@@ -1400,6 +1493,7 @@ struct BenchDaemon::Impl {
         }
         feed_cv.notify_all();
         if (feed_thread.joinable()) feed_thread.join();
+        if (refit_thread.joinable()) refit_thread.join();
         if (store) {
             store->flush();
             store->close();
@@ -1466,10 +1560,15 @@ std::optional<RunId> BenchDaemon::active_run() const {
 
 json BenchDaemon::health() {
     std::lock_guard l(impl_->live_m);
-    const bool ok = impl_->neware_state == "connected" && impl_->chamber_state == "connected" && impl_->daq_state == "connected";
-    return {{"status", ok ? "ok" : "degraded"},
-            {"version", kVersion},
-            {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - impl_->started_at).count()}};
+    const bool db_ok = impl_->db_writable_again();
+    const bool ok = impl_->neware_state == "connected" && impl_->chamber_state == "connected" &&
+                    impl_->daq_state == "connected" && db_ok;
+    json j = {{"status", ok ? "ok" : "degraded"},
+              {"version", kVersion},
+              {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - impl_->started_at).count()},
+              {"database", {{"writable", db_ok}}}};
+    if (!db_ok) j["database"]["detail"] = impl_->db_fault;
+    return j;
 }
 
 json BenchDaemon::status() {
@@ -1646,11 +1745,9 @@ namespace {
 json read_json(const std::filesystem::path& path) {
     std::ifstream in(path);
     if (!in) throw InputError(path.string() + ": cannot read");
-    try {
-        return json::parse(in);
-    } catch (const json::parse_error& e) {
-        throw InputError(path.string() + ": invalid JSON: " + e.what());
-    }
+    std::stringstream text;
+    text << in.rdbuf();
+    return protocol::parse_json_input(text.str(), path.string());
 }
 
 // A parameter set as the diagnosis requests name it: config/cells/NAME.json, a cellbench.params/1 file, or a

@@ -14,6 +14,7 @@
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/protocol/chamber_modbus.hpp"
 #include "cellbench/protocol/dewe_can.hpp"
+#include "cellbench/protocol/json_input.hpp"
 
 namespace cellbench::daemon {
 
@@ -257,6 +258,10 @@ std::string read_text_file(const fs::path& file) {
     const auto status = fs::status(file, ec);
     if (fs::exists(status) && !fs::is_regular_file(status))
         throw InputError(file.string() + ": cannot read: not a regular file");
+    // Every config, program and cell is a few kB; a huge file is a mistake, not something to read into memory.
+    constexpr std::uintmax_t kMaxConfigBytes = 16u << 20;
+    if (fs::is_regular_file(status) && fs::file_size(file, ec) > kMaxConfigBytes && !ec)
+        throw InputError(file.string() + ": cannot read: larger than 16 MiB (not a cellbench JSON file)");
     std::ifstream in(file, std::ios::binary);
     if (!in) {
         const bool exists = fs::exists(file, ec);
@@ -268,15 +273,8 @@ std::string read_text_file(const fs::path& file) {
 }
 
 json parse_json_text(std::string_view text, const std::string& source) {
-    try {
-        return json::parse(text.begin(), text.end());
-    } catch (const json::parse_error& e) {
-        // nlohmann's message carries "parse error at line L, column C: ..."; drop its "[json.exception...]" tag.
-        std::string what = e.what();
-        if (const auto p = what.find("] "); what.rfind("[json.exception", 0) == 0 && p != std::string::npos)
-            what = what.substr(p + 2);
-        throw InputError(source + ": invalid JSON: " + what);
-    }
+    // Nesting bounded, numbers that overflow a double (1e400) rejected: InputError naming the file.
+    return protocol::parse_json_input(text, source);
 }
 
 json read_json_file(const fs::path& file) { return parse_json_text(read_text_file(file), file.string()); }
@@ -510,7 +508,20 @@ BenchConfig parse_bench_config(const json& j, const std::string& source, const f
     {
         Obj s(ctx, root.get("safety", true), "$.safety");
         auto& l = b.safety;
-        l.max_temperature_c = s.number("max_temperature_c", true, Range::closed(-40.0, 150.0)).value_or(l.max_temperature_c);
+        const auto tmax = s.number("max_temperature_c", true, Range::closed(-40.0, 150.0));
+        l.max_temperature_c = tmax.value_or(l.max_temperature_c);
+        // Limits against each other: a run that ends or aborts sends the chamber to safe_setpoint_c, and the
+        // simulated chamber starts at initial_temperature_c; either at or above the limit aborts every run at
+        // once and heats the cell past its maximum on the way out.
+        if (tmax && *tmax <= b.chamber.safe_setpoint_c)
+            ctx.add("$.safety.max_temperature_c", "expected above the chamber's safe_setpoint_c (" +
+                                                      format_number(b.chamber.safe_setpoint_c) + " degC), got " +
+                                                      format_number(*tmax) + " degC");
+        if (tmax && b.simulation && b.chamber.mode == ChamberConfig::Mode::simulated &&
+            *tmax <= b.simulation->initial_temperature_c)
+            ctx.add("$.safety.max_temperature_c", "expected above the simulated chamber's initial_temperature_c (" +
+                                                      format_number(b.simulation->initial_temperature_c) + " degC), got " +
+                                                      format_number(*tmax) + " degC");
         const auto vmin = s.number("min_voltage_v", true, Range{0.0, 10.0, false, false});
         const auto vmax = s.number("max_voltage_v", true, Range{0.0, 10.0, true, false});
         if (vmin) l.min_voltage_v = *vmin;
@@ -682,7 +693,15 @@ public:
     ExpressionParser(std::string_view text, const std::map<std::string, double>& names, bool allow_capacity_refs)
         : text_(text), names_(names), allow_refs_(allow_capacity_refs) {}
 
+    // Nesting of parentheses and unary signs (each one a recursion of factor()): deep enough for any real
+    // expression, far from the stack's end (20 000 '(' used to overflow it).
+    static constexpr int kMaxDepth = 64;
+    static constexpr std::size_t kMaxLength = 4096;
+
     Linear parse() {
+        if (text_.size() > kMaxLength)
+            throw InputError("expression of " + std::to_string(text_.size()) + " characters: longer than " +
+                             std::to_string(kMaxLength));
         skip_ws();
         if (pos_ >= text_.size()) fail("empty expression");
         Linear v = sum();
@@ -701,9 +720,11 @@ private:
     bool allow_refs_;
     std::size_t pos_ = 0;
     bool used_names_ = false;
+    int depth_ = 0;
 
     [[noreturn]] void fail(const std::string& what) const {
-        throw InputError("expression \"" + std::string(text_) + "\": " + what);
+        const std::string shown = text_.size() > 80 ? std::string(text_.substr(0, 77)) + "..." : std::string(text_);
+        throw InputError("expression \"" + shown + "\": " + what);
     }
     void skip_ws() {
         while (pos_ < text_.size() && std::isspace(static_cast<unsigned char>(text_[pos_]))) ++pos_;
@@ -759,6 +780,13 @@ private:
         }
     }
     Linear factor() {
+        struct Nest {
+            int& d;
+            ~Nest() { --d; }
+        } nest{++depth_};
+        if (depth_ > kMaxDepth)
+            fail("nested deeper than " + std::to_string(kMaxDepth) + " levels (parentheses and signs) at position " +
+                 std::to_string(pos_ + 1));
         skip_ws();
         if (eat('-')) {
             Linear v = factor();
@@ -792,6 +820,7 @@ private:
             if (name.size() > 1 && name[0] == 'C' &&
                 std::all_of(name.begin() + 1, name.end(), [](char d) { return std::isdigit(static_cast<unsigned char>(d)); })) {
                 if (!allow_refs_) fail("step capacity " + name + " is only allowed in cutoff_capacity_ah");
+                if (name.size() > 6) fail("step number out of range in " + name.substr(0, 20));
                 const int id = std::atoi(name.c_str() + 1);
                 if (id < 1) fail("expected a step number >= 1 in " + name);
                 return Linear{0.0, {{id, 1.0}}};
@@ -1067,6 +1096,13 @@ void check_limits(Ctx& ctx, const std::vector<ExpandedSegment>& segments, const 
 Program parse_program_impl(Ctx& ctx, const json& j, const CellConfig& cell, const ProgramOverrides& overrides,
                            const BenchConfig* bench) {
     Program prog;
+    // The end of every run (and any abort) sends the chamber to its safe set point: it must be one the cell
+    // tolerates.
+    if (bench && (bench->chamber.safe_setpoint_c >= cell.max_temperature_c ||
+                  bench->chamber.safe_setpoint_c < cell.min_temperature_c))
+        ctx.add("$", "the bench's chamber safe_setpoint_c (" + format_number(bench->chamber.safe_setpoint_c) +
+                         " degC) is outside the cell's temperature range " + format_number(cell.min_temperature_c) + ".." +
+                         format_number(cell.max_temperature_c) + " degC: a run's end or abort would take the cell there");
     Obj root(ctx, &j, "$");
     if (!root.ok()) return prog;
 
@@ -1164,8 +1200,9 @@ Program parse_program_impl(Ctx& ctx, const json& j, const CellConfig& cell, cons
             }
         }
     }
-    const std::size_t before_limits = ctx.count();
-    if (before_limits == 0) check_limits(ctx, expanded, cell, bench);
+    // The segments that parsed are checked against the limits even when others did not: every problem of the
+    // file at once, as for bench configs.
+    check_limits(ctx, expanded, cell, bench);
     for (auto& e : expanded) prog.segments.push_back(std::move(e.segment));
     return prog;
 }

@@ -20,10 +20,12 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 #include <boost/asio/strand.hpp>
+#include <boost/asio/thread_pool.hpp>
 #include <boost/asio/write.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
 #include <spdlog/spdlog.h>
+#include "cellbench/protocol/json_input.hpp"
 
 namespace cellbench::daemon {
 
@@ -41,6 +43,7 @@ using StringResponse = http::response<http::string_body>;
 constexpr const char* kServerName = "cellbenchd";
 constexpr std::string_view kApiPrefix = "/api/v1";
 constexpr const char* kJson = "application/json";
+constexpr std::size_t kMaxBodyDepth = 32;  // request bodies are flat objects; deeper is an attack, not a request
 // After an early error response (413, 400) the client may still be sending; read and drop at most this
 // much (for at most kDrainTime) before closing, so the kernel does not answer with a reset that can make
 // the client lose our response.
@@ -216,6 +219,22 @@ struct HttpServer::State : std::enable_shared_from_this<HttpServer::State> {
     // Counters for /metrics.
     std::atomic<std::uint64_t> open_connections{0};
     std::atomic<std::uint64_t> refused_connections{0};
+    std::atomic<std::uint64_t> evicted_connections{0};  // slow header-pending sessions closed for a new one
+    std::atomic<std::size_t> sample_reads{0};           // GET samples being served now
+    // Reads of the run records (SQLite) are routed here, off the io threads, so the cheap requests (health,
+    // status) never queue behind them.
+    // Created by HttpServer::start(), stopped and joined by stop() (never from one of its own threads).
+    std::unique_ptr<net::thread_pool> read_pool;
+    ~State() {
+        if (read_pool) {
+            read_pool->stop();
+            read_pool->join();
+        }
+    }
+
+    // At the connection limit: closes the session that has waited longest for its request header. Returns
+    // whether there was one.
+    bool evict_slowest_pending();
     std::array<std::atomic<std::uint64_t>, 6> responses_by_class{};  // index = status / 100
 
     void count(unsigned status) { responses_by_class[std::min(status / 100, 5u)].fetch_add(1, std::memory_order_relaxed); }
@@ -459,12 +478,20 @@ private:
 
     // The request body as a JSON object into `body`, else the 400 reply saying what was expected (`example`).
     std::optional<Reply> json_object_body(const std::string& example, nlohmann::json& body) {
+        if (req_.body().empty()) return error(http::status::bad_request, "empty request body: " + example);
+        // Bounded nesting; a number beyond a double (1e999, which nlohmann reports as out_of_range, not as a
+        // parse error) is a 400 like any other bad JSON.
+        if (protocol::json_nesting_depth(req_.body(), kMaxBodyDepth) > kMaxBodyDepth)
+            return error(http::status::bad_request, "request body nested deeper than " +
+                                                        std::to_string(kMaxBodyDepth) + " levels: " + example);
         try {
             body = nlohmann::json::parse(req_.body());
         } catch (const nlohmann::json::parse_error& e) {
-            return error(http::status::bad_request,
-                         req_.body().empty() ? "empty request body: " + example
-                                             : "invalid JSON at byte " + std::to_string(e.byte) + ": " + example);
+            return error(http::status::bad_request, "invalid JSON at byte " + std::to_string(e.byte) + ": " + example);
+        } catch (const nlohmann::json::exception& e) {
+            std::string what = e.what();
+            if (const auto p = what.find("] "); p != std::string::npos) what = what.substr(p + 2);
+            return error(http::status::bad_request, "invalid JSON (" + what.substr(0, 120) + "): " + example);
         }
         if (!body.is_object()) return error(http::status::bad_request, "request body: " + example);
         return std::nullopt;
@@ -592,6 +619,22 @@ private:
         }
         if (sq.from_s && sq.to_s && *sq.from_s > *sq.to_s)
             return error(http::status::bad_request, "\"from\" is after \"to\"");
+        // A bounded number at once: more readers would only queue on the database's reader pool.
+        struct Slot {
+            std::atomic<std::size_t>& n;
+            bool held;
+            ~Slot() {
+                if (held) n.fetch_sub(1);
+            }
+        } slot{st_.sample_reads, st_.sample_reads.fetch_add(1) < st_.opt.max_concurrent_sample_reads};
+        if (!slot.held) {
+            st_.sample_reads.fetch_sub(1);
+            Reply r = error(http::status::service_unavailable,
+                            "busy: " + std::to_string(st_.opt.max_concurrent_sample_reads) +
+                                " sample reads are being served; retry in a second");
+            r.res.set(http::field::retry_after, "1");
+            return r;
+        }
         return call([&] { return json(http::status::ok, st_.backend.samples(id, sq)); });
     }
 
@@ -744,6 +787,21 @@ private:
 // One connection: read a request, answer it, repeat while keep-alive. Everything runs on the socket's
 // strand, so the session needs no locks.
 
+// The handler boundary: whatever a request makes the router or a backend throw becomes a 500 for that
+// request; it never unwinds into the io_context threads (which would end the process and the run with it).
+Reply route_guarded(HttpServer::State& st, const HttpRequest& request) {
+    try {
+        return Router(st, request).route();
+    } catch (const std::exception& e) {
+        spdlog::error("http: {} {}: unhandled: {}", std::string(request.method_string()),
+                      std::string(request.target().substr(0, 200)), e.what());
+    } catch (...) {
+        spdlog::error("http: {} {}: unhandled non-standard exception", std::string(request.method_string()),
+                      std::string(request.target().substr(0, 200)));
+    }
+    return Router::error(http::status::internal_server_error, "internal error (details in the cellbenchd log)");
+}
+
 class Session : public std::enable_shared_from_this<Session> {
 public:
     Session(tcp::socket&& socket, std::shared_ptr<HttpServer::State> st)
@@ -756,6 +814,12 @@ public:
     }
 
     void run() { net::dispatch(stream_.get_executor(), beast::bind_front_handler(&Session::do_read, shared_from_this())); }
+
+    // Taken out of the eviction candidates at once (its close is posted to its strand).
+    void mark_evicted() { header_pending_since_.store(0); }
+
+    // Since when the session waits for a request header (steady clock ns), 0 when it is not waiting.
+    [[nodiscard]] std::int64_t header_pending_since() const { return header_pending_since_.load(); }
 
     // From HttpServer::stop(): cut the connection; pending operations complete with an error.
     void shutdown() {
@@ -775,15 +839,18 @@ private:
         // the limit of the endpoint.
         body_limit_ = std::max(st_->opt.max_body_bytes, st_->opt.max_upload_bytes);
         parser_->body_limit(body_limit_);
-        // One deadline for the whole request (header and body) and for the keep-alive idle time.
-        stream_.expires_after(st_->opt.request_timeout);
+        // The header (and the keep-alive idle time) has a short deadline; the body gets the request's.
+        stream_.expires_after(std::min(st_->opt.header_timeout, st_->opt.request_timeout));
+        header_pending_since_.store(std::max<std::int64_t>(1, std::chrono::steady_clock::now().time_since_epoch().count()));
         http::async_read_header(stream_, buffer_, *parser_,
                                 beast::bind_front_handler(&Session::on_header, shared_from_this()));
     }
 
     void on_header(beast::error_code ec, std::size_t) {
+        header_pending_since_.store(0);
         if (ec) return on_read_error(ec);
         started_ = std::chrono::steady_clock::now();
+        stream_.expires_after(st_->opt.request_timeout);
         {
             // Only an upload of a recording (POST /api/v1/diagnose) may carry a large body, and only with the
             // token: refuse before reading megabytes from a client that may not send them.
@@ -848,14 +915,27 @@ private:
         send(std::move(r.res));
     }
 
+    // Requests that read run records from the database: routed on the read pool.
+    static bool reads_records(const Request& req) {
+        const std::string_view target(req.target().data(), req.target().size());
+        return target.rfind("/api/v1/runs", 0) == 0 || target.rfind("/api/v1/diagnos", 0) == 0;
+    }
+
     void handle_request() {
         request_ = parser_->release();
-        Reply r;
-        if (st_->stopping) {
-            r = Router::error(http::status::service_unavailable, "cellbenchd is shutting down");
-        } else {
-            r = Router(*st_, request_).route();
+        if (st_->stopping) return send_reply(Router::error(http::status::service_unavailable, "cellbenchd is shutting down"));
+        if (st_->read_pool && reads_records(request_)) {
+            net::post(*st_->read_pool, [self = shared_from_this()] {
+                auto r = std::make_shared<Reply>(route_guarded(*self->st_, self->request_));
+                net::post(self->stream_.get_executor(), [self, r] { self->send_reply(std::move(*r)); });
+            });
+            return;
         }
+        send_reply(route_guarded(*st_, request_));
+    }
+
+    void send_reply(Reply&& reply) {
+        Reply r = std::move(reply);
         const bool keep = request_.keep_alive() && !st_->stopping;
         const bool head = request_.method() == http::verb::head;
         if (r.file) {
@@ -1020,6 +1100,7 @@ private:
     std::array<char, 8192> drain_buf_{};
     std::size_t drained_ = 0;
     std::size_t body_limit_ = 0;  // of the request being read
+    std::atomic<std::int64_t> header_pending_since_{0};
 };
 
 // ---------------------------------------------------------------------------------------------------------
@@ -1029,6 +1110,26 @@ bool HttpServer::State::add(const std::shared_ptr<Session>& s) {
     std::lock_guard lock(sessions_mutex);
     if (stopping) return false;
     sessions.emplace(s.get(), s);
+    return true;
+}
+
+bool HttpServer::State::evict_slowest_pending() {
+    std::shared_ptr<Session> oldest;
+    std::int64_t oldest_since = 0;
+    {
+        std::lock_guard lock(sessions_mutex);
+        for (auto& [ptr, weak] : sessions) {
+            const std::int64_t since = ptr->header_pending_since();
+            if (since == 0 || (oldest && since >= oldest_since)) continue;
+            if (auto s = weak.lock()) {
+                oldest = std::move(s);
+                oldest_since = since;
+            }
+        }
+    }
+    if (!oldest) return false;
+    oldest->mark_evicted();
+    oldest->shutdown();
     return true;
 }
 
@@ -1090,6 +1191,7 @@ void HttpServer::start() {
         spdlog::info("http: no API token configured: starting, stopping, pausing and resuming runs over the API "
                      "is refused (set --token or CELLBENCH_TOKEN)");
 
+    st.read_pool = std::make_unique<net::thread_pool>(2);
     net::dispatch(st.acceptor.get_executor(), [s = state_] { s->do_accept(); });
 }
 
@@ -1104,7 +1206,17 @@ void HttpServer::State::on_accept(beast::error_code ec, tcp::socket socket) {
         });
         return;
     }
-    if (open_connections.load() >= opt.max_connections) {
+    if (open_connections.load() >= opt.max_connections && evict_slowest_pending()) {
+        // The slow client's session closes on its own strand; the new connection is served meanwhile.
+        if (evicted_connections.fetch_add(1) % 1000 == 0)
+            spdlog::warn("http: {} connections open (the limit); closing the ones waiting longest for their "
+                         "request header to serve new ones",
+                         opt.max_connections);
+        beast::error_code ignored;
+        socket.set_option(tcp::no_delay(true), ignored);
+        auto session = std::make_shared<Session>(std::move(socket), shared_from_this());
+        if (add(session)) session->run();
+    } else if (open_connections.load() >= opt.max_connections) {
         if (refused_connections.fetch_add(1) % 1000 == 0)
             spdlog::warn("http: {} connections open (the limit); closing new ones", opt.max_connections);
         beast::error_code ignored;
@@ -1137,6 +1249,10 @@ void HttpServer::stop() {
             if (auto s = weak.lock()) live.push_back(std::move(s));
     }
     for (auto& s : live) s->shutdown();
+    if (st->read_pool) {  // a read in progress finishes (bounded); queued ones are dropped with their sessions
+        st->read_pool->stop();
+        st->read_pool->join();
+    }
     if (st->bound.port() != 0) spdlog::info("http: stopped ({} connections closed)", live.size());
 }
 
@@ -1154,7 +1270,7 @@ HttpResponse handle_http_request(const HttpRequest& request, ApiBackend& backend
         st.static_root = fs::canonical(options.static_dir, ec);
         if (ec || !fs::is_directory(st.static_root)) st.static_root.clear();
     }
-    Reply r = Router(st, request).route();
+    Reply r = route_guarded(st, request);
     const bool head = request.method() == http::verb::head;
     StringResponse res;
     if (r.file) {

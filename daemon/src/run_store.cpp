@@ -31,7 +31,12 @@
 #include "cellbench/daemon/run_store.hpp"
 #include "cellbench/daemon/metrics.hpp"
 
+#include <fcntl.h>
 #include <sqlite3.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
 
 #include <algorithm>
 #include <array>
@@ -319,7 +324,29 @@ struct ConnCloser {
 };
 using Conn = std::unique_ptr<sqlite3, ConnCloser>;
 
+// SQLite in WAL mode creates PATH-wal and PATH-shm beside the database, so a database opened for writing needs a
+// folder it can create files in. Checked by creating (and removing) a probe file, so the message says which
+// folder and why (an immutable or read-only folder used to read "No such file or directory").
+void check_folder_writable(const fs::path& path) {
+    const fs::path parent = path.parent_path().empty() ? fs::path(".") : path.parent_path();
+    std::error_code ec;
+    if (!fs::is_directory(parent, ec)) return;  // reported by the open with its own message
+    const fs::path probe = parent / (".cellbench-write-probe-" + std::to_string(::getpid()));
+    const int fd = ::open(probe.c_str(), O_CREAT | O_EXCL | O_WRONLY | O_CLOEXEC, 0600);
+    if (fd < 0) {
+        const int err = errno;
+        if (err == EEXIST) return;  // a leftover probe: the folder took files before
+        open_fail(path, "cannot create files in the folder " + parent.string() + " (" + std::strerror(err) +
+                            "): SQLite keeps " + path.filename().string() + "-wal and " + path.filename().string() +
+                            "-shm beside the database, so its folder must be writable (choose another --db or "
+                            "fix the folder's permissions)");
+    }
+    ::close(fd);
+    fs::remove(probe, ec);
+}
+
 Conn open_connection(const fs::path& path, int flags, std::chrono::milliseconds busy_timeout) {
+    if (flags & SQLITE_OPEN_CREATE) check_folder_writable(path);
     sqlite3* raw = nullptr;
     const int rc = sqlite3_open_v2(path.c_str(), &raw, flags | SQLITE_OPEN_NOMUTEX, nullptr);
     Conn db(raw);

@@ -354,6 +354,8 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
         if (s.c.r >= out.correlation - options.ridge_tolerance) lo = std::min(lo, s.c.offset_s), hi = std::max(hi, s.c.offset_s);
     out.uncertainty_s = std::max(0.05, 0.5 * (hi - lo));
     out.at_search_limit = std::abs(std::abs(out.offset_s) - max_offset_s) < 2.0 * bin_s;
+    out.start_mismatch_s = daq_time_s.front() + out.offset_s - cycler_time_s.front();
+    out.end_mismatch_s = daq_time_s.back() + out.offset_s - cycler_time_s.back();
 
     out.note = "heat balance correlation r = " + fmt("%.3f", out.correlation) + " at offset " +
                fmt("%+.2f", out.offset_s) + " s with a " + fmt("%.0f", out.lag_s) +
@@ -366,6 +368,27 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
         out.note += "; WEAK correlation: little current variation, or the two files are not of the same test";
     if (out.at_search_limit) out.note += "; best offset at the search limit: widen max_offset_s";
     return out;
+}
+
+void check_clock_alignment(const ClockAlignment& al, const std::string& what, const AlignOptions& options) {
+    const std::string found = "best offset " + fmt("%+.1f", al.offset_s) + " s, correlation r = " +
+                              fmt("%.3f", al.correlation) + ", offsets within " + fmt("%.1f", al.uncertainty_s) +
+                              " s fit as well; the DAQ record would start " + fmt("%+.1f", al.start_mismatch_s) +
+                              " s and end " + fmt("%+.1f", al.end_mismatch_s) + " s from the cycler's";
+    auto refuse = [&](const std::string& why) {
+        throw InputError(what + ": clock alignment refused: " + why + " (" + found +
+                         "); check that both files are complete exports of the same test");
+    };
+    if (!finite(al.offset_s) || !finite(al.correlation)) refuse("no alignment found");
+    if (al.correlation < options.min_correlation)
+        refuse("weak evidence: correlation below " + fmt("%.2f", options.min_correlation));
+    if (al.at_search_limit) refuse("the best offset is at the edge of the search range (widen --max-offset)");
+    if (al.uncertainty_s > options.max_uncertainty_s)
+        refuse("ambiguous: a ridge of equally good offsets wider than " + fmt("%.0f", options.max_uncertainty_s) + " s");
+    if (std::abs(al.start_mismatch_s) > options.max_end_mismatch_s &&
+        std::abs(al.end_mismatch_s) > options.max_end_mismatch_s)
+        refuse("neither end of the DAQ record lands within " + fmt("%.0f", options.max_end_mismatch_s) +
+               " s of the cycler's own first and last timestamps");
 }
 
 }  // namespace cellbench::estimator

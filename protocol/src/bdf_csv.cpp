@@ -36,6 +36,7 @@ bool RecordReader::next(std::vector<std::string_view>& fields) {
         unescaped_.clear();
         if (pos_ >= n) return false;
         line_ = next_line_;
+        const std::size_t record_begin = pos_;
         for (;;) {  // one cell per pass
             while (pos_ < n && is_blank(data[pos_])) ++pos_;
             if (pos_ < n && data[pos_] == '"') {
@@ -89,9 +90,16 @@ bool RecordReader::next(std::vector<std::string_view>& fields) {
             }
             break;
         }
+        if (pos_ - record_begin > kMaxRecordBytes)
+            fail("a line of " + std::to_string(pos_ - record_begin) + " bytes (the limit is " +
+                 std::to_string(kMaxRecordBytes) + "): not a CSV recording, or binary data");
         if (fields.size() == 1 && fields.front().empty()) continue;  // blank line
         return true;
     }
+}
+
+bool RecordReader::ends_mid_line() const {
+    return !text_.empty() && text_.back() != '\n' && text_.back() != '\r';
 }
 
 void RecordReader::fail(std::string_view what) const {
@@ -181,7 +189,27 @@ std::string quote_cells(const std::vector<std::string_view>& cells) {
     return out;
 }
 
+double read_physical(const RecordReader& reader, std::string_view cell, std::string_view column, PhysicalRange range,
+                     std::string_view unit) {
+    const double v = read_number(reader, cell, column, true);
+    if (!range.contains(v))
+        reader.fail_column(column, "impossible value " + quote_cell(cell) + " (expected " + format_number(range.lo) +
+                                       ".." + format_number(range.hi) + " " + std::string(unit) + ")");
+    return v;
+}
+
+double DroppedValues::check(double v, PhysicalRange range, const RecordReader& reader, std::string_view column) {
+    if (std::isnan(v) || range.contains(v)) return v;
+    if (count++ == 0)
+        first = std::to_string(reader.line()) + ": column \"" + std::string(column) + "\": " + format_number(v);
+    return kNaN;
+}
+
 void TimeStepGuard::check(double time_s, const RecordReader& reader) {
+    if (time_s - latest_s_ > largest_step_s_ && std::isfinite(latest_s_)) {
+        largest_step_s_ = time_s - latest_s_;
+        largest_step_line_ = reader.line();
+    }
     if (latest_s_ - time_s >= kMaxRepairableBackwardStepS) {
         // The step itself rounded to 6 digits: 5 - 3.9 reads 1.1, not 1.0999999999999996.
         std::array<char, 64> buf{};
@@ -208,6 +236,18 @@ double typical_interval_s(const std::vector<double>& t) {
     return *mid;
 }
 }  // namespace
+
+TimeGap find_time_gap(const std::vector<double>& time_s, const TimeStepGuard& guard) {
+    TimeGap g;
+    const double largest = guard.largest_step_s();
+    if (!(largest > kMinGapS)) return g;  // the common case: no need for the median
+    g.typical_interval_s = typical_interval_s(time_s);
+    if (largest > kGapFactor * g.typical_interval_s) {
+        g.gap_s = largest;
+        g.line = guard.largest_step_line();
+    }
+    return g;
+}
 
 std::size_t repair_timestamps(std::vector<double>& t, const std::string& source, std::string_view column) {
     const std::size_t n = t.size();
@@ -334,6 +374,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     }
 
     csv::TimeStepGuard guard{std::string(kBdfTestTime)};
+    csv::DroppedValues dropped;
     while (reader.next(fields)) {
         reader.check_width(fields, width);
         for (const auto& u : used) {
@@ -342,8 +383,26 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
                 rec.step_type.emplace_back(cell);
                 continue;
             }
-            const double v = csv::read_number(reader, cell, u.label->label, u.label->required);
-            if (u.label->channel == Channel::time) guard.check(v, reader);
+            const std::string_view column = u.label->label;
+            double v = kNaN;
+            switch (u.label->channel) {
+                case Channel::time:
+                    v = csv::read_physical(reader, cell, column, csv::kTestTimeRangeS, "s");
+                    guard.check(v, reader);
+                    break;
+                case Channel::voltage: v = csv::read_physical(reader, cell, column, csv::kVoltageRangeV, "V"); break;
+                case Channel::current: v = csv::read_physical(reader, cell, column, csv::kCurrentRangeA, "A"); break;
+                default: {
+                    v = csv::read_number(reader, cell, column, false);
+                    const auto range = u.label->channel == Channel::heat_flux   ? csv::kHeatFluxRangeWPerM2
+                                       : u.label->channel == Channel::unix_time ? csv::kUnixTimeRangeS
+                                       : (u.label->channel == Channel::step_count ||
+                                          u.label->channel == Channel::cycle_count)
+                                           ? csv::kCountRange
+                                           : csv::kTemperatureRangeC;
+                    v = dropped.check(v, range, reader, column);
+                }
+            }
             (rec.*(u.label->values)).push_back(v);
         }
     }
@@ -354,6 +413,13 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
         report->rows = rec.size();
         report->repaired_timestamps = rec.repaired_timestamps;
         report->ignored_columns = std::move(ignored);
+        report->dropped_values = dropped.count;
+        report->first_dropped = std::move(dropped.first);
+        const auto gap = csv::find_time_gap(rec.time_s, guard);
+        report->gap_s = gap.gap_s;
+        report->gap_line = gap.line;
+        report->typical_interval_s = gap.typical_interval_s;
+        report->ends_mid_line = reader.ends_mid_line();
     }
     return rec;
 }

@@ -139,18 +139,36 @@ DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& s
     out.time_s.reserve(expected_rows);
     for (Column* c : data_columns) c->values->reserve(expected_rows);
 
+    std::vector<csv::PhysicalRange> ranges;
+    for (const Column* c : data_columns)
+        ranges.push_back(c == &thermopile  ? csv::kVoltageRangeV
+                         : c == &heat_flux ? csv::kHeatFluxRangeWPerM2
+                                           : csv::kTemperatureRangeC);
     csv::TimeStepGuard guard{time.name};
+    csv::DroppedValues dropped;
     while (reader.next(fields)) {
         reader.check_width(fields, width);
-        const double t = csv::read_number(reader, fields[time.index], time.name, true);
+        const double t = csv::read_physical(reader, fields[time.index], time.name, csv::kTestTimeRangeS, "s");
         guard.check(t, reader);
         out.time_s.push_back(t);
-        for (Column* c : data_columns)
-            c->values->push_back(csv::read_number(reader, fields[c->index], c->name, false) * c->scale);
+        for (std::size_t k = 0; k < data_columns.size(); ++k) {
+            const Column* c = data_columns[k];
+            const double v = csv::read_number(reader, fields[c->index], c->name, false) * c->scale;
+            c->values->push_back(dropped.check(v, ranges[k], reader, c->name));
+        }
     }
     if (out.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
+    if (reader.ends_mid_line())
+        reader.fail("the export ends mid-line (no line end after the last row): the file was cut short; "
+                    "export it again");
 
     out.repaired_timestamps = csv::repair_timestamps(out.time_s, source, time.name);
+    out.dropped_values = dropped.count;
+    out.first_dropped = std::move(dropped.first);
+    const auto gap = csv::find_time_gap(out.time_s, guard);
+    out.gap_s = gap.gap_s;
+    out.gap_line = gap.line;
+    out.typical_interval_s = gap.typical_interval_s;
     return out;
 }
 

@@ -267,7 +267,7 @@ TEST(BdfCsv, WriteThenParseRoundTripsBitExactlyAtTheResolution) {
         rec.step_type.push_back(i % 5 == 0 ? "CC, \"odd\"" : (i % 5 == 1 ? "" : (i % 5 == 2 ? " padded " : "Rest")));
         rec.ambient_c.push_back(at(30.0 + u(rng), 1e4));
         rec.surface_c.push_back(i % 11 == 0 ? cellbench::kNaN : at(29.0 + u(rng), 1e4));
-        rec.t1_c.push_back(u(rng) * 1e300);  // beyond rounding: written as it is
+        rec.t1_c.push_back(at(100.0 + u(rng) * 199.0, 1e4));  // physically possible (beyond -100..300 degC reads as empty)
         rec.t2_c.push_back(at(25.0 + u(rng), 1e4));
         rec.heat_flux_w_per_m2.push_back(at(u(rng) * 400.0, 1e3));
     }

@@ -48,11 +48,17 @@ void add_daq_channels(Recording& rec, const protocol::DewesoftExport& daq, doubl
     }
     if (daq.type_t_c.empty()) throw InputError(daq.source + ": no sensor temperature column (Type-T)");
 
-    const auto al = estimator::estimate_clock_offset(rec.time_s, rec.current_a, daq.time_s, daq.type_t_c, q,
-                                                     kAlignThermalCapacityJPerK, kCellAreaM2, max_offset_s);
+    estimator::ClockAlignment al;
+    try {
+        al = estimator::estimate_clock_offset(rec.time_s, rec.current_a, daq.time_s, daq.type_t_c, q,
+                                              kAlignThermalCapacityJPerK, kCellAreaM2, max_offset_s);
+    } catch (const InputError& e) {
+        throw InputError(daq.source + ": " + e.what());  // the message names the file it is about
+    }
+    if (!al.note.empty()) spdlog::info("alignment: {}", al.note);
+    estimator::check_clock_alignment(al, daq.source);  // weak or far-off evidence: refused with the numbers
     std::printf("clock offset applied to %s: %+.1f s (DAQ time + offset = cycler time; correlation %.3f)\n",
                 daq.source.c_str(), al.offset_s, al.correlation);
-    if (!al.note.empty()) spdlog::info("alignment: {}", al.note);
 
     std::vector<double> daq_time(daq.time_s.size());
     for (std::size_t k = 0; k < daq_time.size(); ++k) daq_time[k] = daq.time_s[k] + al.offset_s;
@@ -107,6 +113,26 @@ std::size_t refine_unix_time(Recording& rec) {
     return refined;
 }
 
+// The CLI's own check of a cycler export as read (the Neware reader checks its cells too; this holds whatever
+// reader produced the rows): a text cut mid-line, and time, voltage or current outside what a bench can measure.
+void check_cycler_export(const std::string& text, const Recording& rec, const std::string& source) {
+    if (!text.empty() && text.back() != '\n' && text.back() != '\r')
+        throw InputError(source + ": the export ends mid-line (no line end after the last row): the file was cut "
+                                  "short; export it again");
+    const auto check = [&](const std::vector<double>& v, protocol::csv::PhysicalRange range, const char* what,
+                           const char* unit) {
+        for (std::size_t k = 0; k < v.size(); ++k)
+            if (!range.contains(v[k]))
+                throw InputError(source + ": data row " + std::to_string(k + 1) + ": impossible " + what + " " +
+                                 protocol::csv::format_number(v[k]) + " " + unit + " (expected " +
+                                 protocol::csv::format_number(range.lo) + ".." + protocol::csv::format_number(range.hi) +
+                                 " " + unit + ")");
+    };
+    check(rec.time_s, protocol::csv::kTestTimeRangeS, "time", "s");
+    check(rec.voltage_v, protocol::csv::kVoltageRangeV, "voltage", "V");
+    check(rec.current_a, protocol::csv::kCurrentRangeA, "current", "A");
+}
+
 }  // namespace
 
 int run_import(const ImportOptions& o) {
@@ -116,8 +142,10 @@ int run_import(const ImportOptions& o) {
     Recording rec;
     if (!o.neware.empty()) {
         protocol::NewareExportInfo layout;
-        rec = protocol::parse_neware_export(read_file(o.neware), o.neware, &layout);
+        const std::string text = read_file(o.neware);
+        rec = protocol::parse_neware_export(text, o.neware, &layout);
         spdlog::info("{}: {} (column \"{}\")", o.neware, protocol::to_string(layout.layout), layout.time_column);
+        check_cycler_export(text, rec, o.neware);
     }
     if (rec.repaired_timestamps > 0)
         spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.neware, rec.repaired_timestamps);
@@ -127,8 +155,7 @@ int run_import(const ImportOptions& o) {
     if (!o.bdf.empty()) {
         protocol::BdfReadReport report;
         Recording bdf = protocol::parse_bdf_csv(read_file(o.bdf), o.bdf, &report);
-        if (report.repaired_timestamps > 0)
-            spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.bdf, report.repaired_timestamps);
+        warn_bdf_report(o.bdf, report);
         if (rec.empty()) {
             rec = std::move(bdf);
         } else {
@@ -140,9 +167,22 @@ int run_import(const ImportOptions& o) {
             rec = estimator::splice_recordings(rec, bdf, al.offset_s);
         }
     }
-    if (!o.dewesoft.empty())
-        add_daq_channels(rec, protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft),
-                         o.sensitivity_v_per_w_per_m2, o.max_offset_s);
+    if (!o.dewesoft.empty()) {
+        const auto daq = protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft);
+        if (daq.repaired_timestamps > 0)
+            spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.dewesoft, daq.repaired_timestamps);
+        if (daq.dropped_values > 0)
+            spdlog::warn("{}: {} physically impossible values read as empty cells (first at line {})", o.dewesoft,
+                         daq.dropped_values, daq.first_dropped);
+        // One clock offset is fitted for the whole DAQ record: across a gap (a stalled clock, two exports
+        // pasted together) the rows after it would land wrong by the size of the gap. Refused, never repaired.
+        if (daq.gap_s > 0)
+            throw InputError(o.dewesoft + ":" + std::to_string(daq.gap_line) + ": GAP in the DAQ record: time jumps " +
+                             "forward by " + protocol::csv::format_number(daq.gap_s) + " s (typical step " +
+                             protocol::csv::format_number(daq.typical_interval_s) +
+                             " s); one clock offset cannot align both sides of it: export the parts separately");
+        add_daq_channels(rec, daq, o.sensitivity_v_per_w_per_m2, o.max_offset_s);
+    }
     outputs.write(o.output, [&](std::ostream& out) { protocol::write_bdf_csv(out, rec); });
     outputs.commit();
     spdlog::info("wrote {} rows ({:.0f} s) to {}", rec.size(), rec.time_s.back() - rec.time_s.front(), o.output);

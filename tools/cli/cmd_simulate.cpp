@@ -1,4 +1,6 @@
+#include <cmath>
 #include <cstdio>
+#include <utility>
 
 #include <spdlog/spdlog.h>
 
@@ -34,6 +36,16 @@ int run_simulate(const SimulateOptions& o) {
                  rec.time_s.back() - rec.time_s.front(), trace.initial_soc, trace.ambient_c,
                  rec.has_ambient() ? " (measured)" : " (constant)");
 
+    // A non-finite error (an overflowing input, a diverging model) is never printed as "RMS inf" nor written as
+    // null: it is an error saying which quantity.
+    for (const auto& [name, e] : {std::pair<const char*, const estimator::ErrorStats*>{"voltage", &metrics.voltage_v},
+                                  {"temperature", &metrics.temperature_c},
+                                  {"heat flux", &metrics.heat_flux_w}})
+        if (e->rms && (!std::isfinite(*e->rms) || !std::isfinite(*e->max_abs)))
+            throw InputError(o.recording + ": the " + name +
+                             " error of the simulation is not a finite number: the recording holds values the "
+                             "model cannot follow (check it for extreme values) or the parameters " +
+                             o.params + " make the model unstable");
     auto line = [](const char* name, const estimator::ErrorStats& e, double scale, const char* unit) {
         if (e.rms)
             std::printf("%-12s RMS %8.4f %-4s max |err| %8.4f %s\n", name, *e.rms * scale, unit, *e.max_abs * scale, unit);

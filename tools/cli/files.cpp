@@ -2,6 +2,7 @@
 
 #include <unistd.h>
 
+#include <array>
 #include <cstdio>
 #include <fstream>
 #include <random>
@@ -10,17 +11,63 @@
 #include <spdlog/spdlog.h>
 
 #include "cellbench/protocol/bdf_csv.hpp"
+#include "cellbench/protocol/json_input.hpp"
 #include "cellbench/protocol/neware_export.hpp"
 
 namespace cellbench::cli {
 
-std::string read_file(const std::filesystem::path& path) {
+std::string read_file(const std::filesystem::path& path, std::size_t max_line_bytes) {
+    // Streamed in blocks and checked as it comes: a device (/dev/zero, /dev/urandom), a binary file or a
+    // huge sparse file fails within its first block, long before it could fill the memory.
     std::ifstream in(path, std::ios::binary);
     if (!in) throw InputError(path.string() + ": cannot open for reading");
-    std::ostringstream ss;
-    ss << in.rdbuf();
+    std::error_code ec;
+    if (std::filesystem::is_directory(path, ec)) throw InputError(path.string() + ": is a folder, not a file");
+    std::string text;
+    if (const auto size = std::filesystem::file_size(path, ec); !ec && size <= kMaxInputFileBytes)
+        text.reserve(static_cast<std::size_t>(size));
+    std::array<char, 1 << 16> block{};
+    std::size_t line = 1, line_bytes = 0;
+    while (in) {
+        in.read(block.data(), static_cast<std::streamsize>(block.size()));
+        const auto n = static_cast<std::size_t>(in.gcount());
+        if (n == 0) break;
+        for (std::size_t k = 0; k < n; ++k) {
+            const char c = block[k];
+            if (c == '\n') {
+                ++line;
+                line_bytes = 0;
+            } else if (c == '\r') {  // CRLF, or a lone CR line end (old Mac exports)
+                line_bytes = 0;
+            } else if (c == '\0') {
+                throw InputError(path.string() + ":" + std::to_string(line) + ": binary data (a NUL byte at byte " +
+                                 std::to_string(text.size() + k + 1) + "): not a text file");
+            } else if (++line_bytes > max_line_bytes) {
+                throw InputError(path.string() + ":" + std::to_string(line) + ": a line longer than " +
+                                 std::to_string(max_line_bytes) + " bytes: not a recording or JSON file");
+            }
+        }
+        if (text.size() + n > kMaxInputFileBytes)
+            throw InputError(path.string() + ": larger than " + std::to_string(kMaxInputFileBytes >> 20) +
+                             " MiB: not a file cellbench reads");
+        text.append(block.data(), n);
+    }
     if (in.bad()) throw InputError(path.string() + ": read error");
-    return std::move(ss).str();
+    return text;
+}
+
+void warn_bdf_report(const std::string& source, const protocol::BdfReadReport& report) {
+    if (report.repaired_timestamps > 0)
+        spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", source, report.repaired_timestamps);
+    if (report.dropped_values > 0)
+        spdlog::warn("{}: {} physically impossible values in optional columns read as empty cells (first at line {})",
+                     source, report.dropped_values, report.first_dropped);
+    if (report.gap_s > 0)
+        spdlog::warn("{}:{}: GAP in the recording: time jumps forward by {:.6g} s (typical step {:.3g} s); the "
+                     "rows after it are used as recorded",
+                     source, report.gap_line, report.gap_s, report.typical_interval_s);
+    if (report.ends_mid_line)
+        spdlog::warn("{}: the file ends mid-line (no line end after the last row): was it cut short?", source);
 }
 
 namespace {
@@ -112,9 +159,16 @@ void write_json_file(const std::filesystem::path& path, const nlohmann::json& j)
 }
 
 nlohmann::json parse_json_file(const std::filesystem::path& path) {
-    const std::string text = read_file(path);
+    const std::string text = read_file(path, kMaxInputFileBytes);
+    if (protocol::json_nesting_depth(text) > protocol::kMaxJsonDepth)
+        throw InputError(path.string() + ": invalid JSON: nested deeper than " +
+                         std::to_string(protocol::kMaxJsonDepth) + " levels of objects and arrays");
     try {
         return nlohmann::json::parse(text);
+    } catch (const nlohmann::json::out_of_range& e) {  // a number beyond a double (1e999)
+        std::string what = e.what();
+        if (const auto p = what.find("] "); p != std::string::npos) what = what.substr(p + 2);
+        throw InputError(path.string() + ": invalid JSON: " + what);
     } catch (const nlohmann::json::parse_error& e) {
         // e.byte is the 1-based offset of the error; turn it into a line number.
         const std::size_t upto = std::min<std::size_t>(e.byte, text.size());
@@ -134,9 +188,7 @@ Recording load_recording(const std::filesystem::path& path) {
     if (header.find("Test Time / s") != std::string::npos) {
         protocol::BdfReadReport report;
         rec = protocol::parse_bdf_csv(text, path.string(), &report);
-        if (report.repaired_timestamps > 0)
-            spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", path.string(),
-                         report.repaired_timestamps);
+        warn_bdf_report(path.string(), report);
     } else if (header.find("Current(A)") != std::string::npos || header.find("Voltage(V)") != std::string::npos) {
         rec = protocol::parse_neware_export(text, path.string());
         if (rec.repaired_timestamps > 0)

@@ -12,10 +12,18 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/params.hpp"
+#include "cellbench/protocol/bdf_csv.hpp"
 
 namespace cellbench::cli {
 
-std::string read_file(const std::filesystem::path& path);
+// Text files only: refuses binary data (a NUL byte), a line longer than max_line_bytes and files larger than
+// kMaxInputFileBytes, each as soon as it is seen (InputError naming the file and line).
+inline constexpr std::size_t kMaxInputFileBytes = std::size_t{1} << 30;
+std::string read_file(const std::filesystem::path& path,
+                      std::size_t max_line_bytes = protocol::csv::kMaxRecordBytes);
+
+// Warnings for what the BDF reader accepted but the user must know (repairs, dropped values, gaps, a cut end).
+void warn_bdf_report(const std::string& source, const protocol::BdfReadReport& report);
 
 // Writes through a temporary file in the same folder and renames it into place when writer returns, so a
 // failed command leaves no half-written output behind.

@@ -36,10 +36,18 @@ struct HttpServerOptions {
     // POST /api/v1/diagnose carries a whole recording: its own limit (larger -> 413). Its bearer token is
     // checked on the header, before the body is read.
     std::size_t max_upload_bytes = kMaxUploadBytes;
-    std::size_t max_connections = 512;         // beyond this, new connections are closed at once
-    // A request must arrive completely within this time after the previous response (or the connection
-    // opening); it is also the keep-alive idle limit. Bounds slow-header ("slowloris") clients.
+    // Beyond this many open connections, a new one takes the place of the connection that has waited longest
+    // for its request header (a slow or idle client); only when none is waiting is the new one closed. So
+    // slow clients cannot lock out a client that sends its request at once (GET /health keeps answering).
+    std::size_t max_connections = 512;
+    // The request header must arrive within this time after the connection opens or the previous response
+    // (the keep-alive idle limit too): a few seconds, so slow-header ("slowloris") clients are dropped early.
+    std::chrono::milliseconds header_timeout{5'000};
+    // The whole request (header and body) must arrive within this time.
     std::chrono::milliseconds request_timeout{30'000};
+    // Expensive reads (GET /runs/{id}/samples) served at once; beyond, 503 with Retry-After, so readers
+    // cannot pile up on the database while a run records.
+    std::size_t max_concurrent_sample_reads = 4;
     std::chrono::milliseconds write_timeout{60'000};  // per response or export chunk
 };
 

@@ -32,6 +32,13 @@ struct AlignOptions {
     double max_lag_s = 60.0;               // largest response lag tried
     double min_overlap_fraction = 0.5;     // of the shorter recording's duration
     double ridge_tolerance = 0.005;        // correlation drop that defines uncertainty_s
+    // check_clock_alignment: evidence below this correlation is refused...
+    double min_correlation = 0.5;
+    // ...and so is an offset that puts both the DAQ's first and its last sample further than this from the
+    // cycler's own first and last timestamps (the bench starts and stops both instruments together; a cut or
+    // foreign DAQ file lands its best match anywhere).
+    double max_end_mismatch_s = 300.0;
+    double max_uncertainty_s = 30.0;       // ...and a ridge of equally good offsets wider than this
 };
 
 struct ClockAlignment {
@@ -44,6 +51,9 @@ struct ClockAlignment {
     double overlap_s = 0.0;          // compared duration at offset_s
     double joule_resistance_ohm = kNaN;  // slope of DAQ heat against lagged I^2 (an effective resistance)
     bool at_search_limit = false;    // best offset within 2 s of +-max_offset_s: widen the search
+    // Where the shifted DAQ record starts and ends relative to the cycler's record (+ = later), s.
+    double start_mismatch_s = kNaN;
+    double end_mismatch_s = kNaN;
     std::string note;
 };
 
@@ -53,5 +63,15 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
                                      const std::vector<double>& daq_time_s, const std::vector<double>& temperature_c,
                                      const std::vector<double>& heat_flux_w_per_m2, double c_th_j_per_k,
                                      double area_m2, double max_offset_s, const AlignOptions& options = {});
+
+}  // namespace cellbench::estimator
+
+namespace cellbench::estimator {
+
+// Refuses (InputError with the numbers) an alignment whose evidence is weak (correlation below
+// options.min_correlation, best offset at the search limit, an uncertainty ridge wider than max_uncertainty_s)
+// or that lands the DAQ record far from the cycler's (both ends further than max_end_mismatch_s). `what` names
+// the DAQ file for the message.
+void check_clock_alignment(const ClockAlignment& al, const std::string& what, const AlignOptions& options = {});
 
 }  // namespace cellbench::estimator

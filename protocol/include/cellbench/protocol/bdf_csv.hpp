@@ -34,12 +34,24 @@ struct BdfReadReport {
     std::size_t rows = 0;
     std::size_t repaired_timestamps = 0;
     std::vector<std::string> ignored_columns;  // header names of columns that are not BDF labels we use
+    // Values of optional columns outside what the quantity can physically be (see csv::physical_range),
+    // read as empty cells: how many, and the first one ("LINE: column "NAME": VALUE").
+    std::size_t dropped_values = 0;
+    std::string first_dropped;
+    // The largest forward step of the time column when it is a gap (csv::TimeGap), else gap_s = 0.
+    double gap_s = 0.0;
+    std::size_t gap_line = 0;
+    double typical_interval_s = 0.0;
+    bool ends_mid_line = false;  // the text does not end with a line end (a file cut short?)
 };
 
 // Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). Tolerates a
 // UTF-8 BOM, CRLF or LF line ends, blank lines, whitespace around cells and RFC 4180 quoted cells.
 // Empty cells are NaN in optional numeric columns and errors in required ones. Timestamps that repeat or
 // step back by less than 1 s are repaired (see csv::repair_timestamps); a step back of 1 s or more is an error.
+// Physically impossible values (csv::physical_range) are an error naming the line in the required columns
+// (time, voltage, current) and read as empty cells, counted in the report, in the optional ones. A forward
+// gap in the time column is reported (gap_s), never repaired.
 Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfReadReport* report = nullptr);
 
 // Writes a header of the BDF labels for the channels present (required ones always), then one row per
@@ -73,6 +85,8 @@ public:
     // 1-based line on which the record last returned by next() starts (the header is line 1).
     [[nodiscard]] std::size_t line() const { return line_; }
     [[nodiscard]] const std::string& source() const { return source_; }
+    // Whether the text ends without a line end after its last record (a file cut mid-line).
+    [[nodiscard]] bool ends_mid_line() const;
 
     // Throws InputError "SOURCE:LINE: what" for the current record.
     [[noreturn]] void fail(std::string_view what) const;
@@ -118,11 +132,59 @@ class TimeStepGuard {
 public:
     explicit TimeStepGuard(std::string column) : column_(std::move(column)) {}
     void check(double time_s, const RecordReader& reader);
+    // The largest forward step seen and the line of the row after it.
+    [[nodiscard]] double largest_step_s() const { return largest_step_s_; }
+    [[nodiscard]] std::size_t largest_step_line() const { return largest_step_line_; }
 
 private:
     std::string column_;
     double latest_s_ = -std::numeric_limits<double>::infinity();
+    double largest_step_s_ = 0.0;
+    std::size_t largest_step_line_ = 0;
 };
+
+// Longest record (line, or lines of one quoted record) the readers accept: recordings have lines of about
+// 100 bytes; binary junk or a file without line ends fails here instead of being held as one huge line.
+inline constexpr std::size_t kMaxRecordBytes = 64 * 1024;
+
+// What a measured quantity can physically be on this bench; outside is corrupt data, not a measurement.
+struct PhysicalRange {
+    double lo, hi;
+    [[nodiscard]] bool contains(double v) const { return v >= lo && v <= hi; }
+};
+inline constexpr PhysicalRange kVoltageRangeV{-10.0, 10.0};
+inline constexpr PhysicalRange kCurrentRangeA{-1e4, 1e4};
+inline constexpr PhysicalRange kTemperatureRangeC{-100.0, 300.0};
+inline constexpr PhysicalRange kHeatFluxRangeWPerM2{-1e6, 1e6};
+inline constexpr PhysicalRange kTestTimeRangeS{-1e9, 1e10};      // ~300 years of test time
+inline constexpr PhysicalRange kUnixTimeRangeS{0.0, 1e11};
+inline constexpr PhysicalRange kCountRange{-1e9, 1e9};           // step and cycle counts
+
+// Reads a required numeric cell (read_number) and checks it against `range`: outside is an error naming the
+// line, the column and the value.
+double read_physical(const RecordReader& reader, std::string_view cell, std::string_view column, PhysicalRange range,
+                     std::string_view unit);
+
+// Counts values of optional columns outside their physical range (they read as NaN).
+struct DroppedValues {
+    std::size_t count = 0;
+    std::string first;  // "LINE: column "NAME": VALUE"
+    // The value, or NaN (counted) when outside `range`.
+    double check(double v, PhysicalRange range, const RecordReader& reader, std::string_view column);
+};
+
+// The largest forward step of a (repaired, increasing) time column, and whether it is a gap: longer than
+// kGapFactor typical (median) intervals and than kMinGapS. Real recordings have such gaps (a logger that slows
+// down in a long rest), so it is reported, not an error; but never repaired away.
+struct TimeGap {
+    double gap_s = 0.0;          // 0 when there is no gap
+    std::size_t line = 0;        // line of the row after the gap
+    double typical_interval_s = 0.0;
+};
+inline constexpr double kGapFactor = 1000.0;
+inline constexpr double kMinGapS = 60.0;
+class TimeStepGuard;
+TimeGap find_time_gap(const std::vector<double>& time_s, const TimeStepGuard& guard);
 
 // Backward steps of at least this much are errors rather than repairable artefacts.
 inline constexpr double kMaxRepairableBackwardStepS = 1.0;

@@ -14,7 +14,9 @@
 //  - type_t_c: any other "Temperature" column (the Type-T inside the heat flux sensor), or one named "Type T".
 // Required: time, and either the thermopile voltage with the Type-T temperature or the heat flux density.
 // A channel the export lacks is an empty vector; present channels have one value per row, NaN for an empty
-// cell.
+// cell. A time outside +-1e10 s is an error naming the line; so is a text that ends mid-line (an export cut
+// short: DewesoftX ends every row with a line end), since a cut export silently shortens the record the clock
+// alignment works on.
 #include <cstddef>
 #include <string>
 #include <string_view>
@@ -27,6 +29,14 @@ struct DewesoftExport {
     std::vector<double> time_s, thermopile_v, type_t_c, heat_flux_w_per_m2;
     std::vector<double> t1_c, t2_c; /* empty if absent */
     std::size_t repaired_timestamps = 0;  // rows whose time stamp was repaired on reading
+    // Values outside what the quantity can physically be (csv::PhysicalRange: temperatures -100..300 degC,
+    // heat flux +-1e6 W/m^2, thermopile +-10 V), read as empty cells: how many, and the first one.
+    std::size_t dropped_values = 0;
+    std::string first_dropped;
+    // The largest forward step of the time column when it is a gap (csv::find_time_gap), else 0.
+    double gap_s = 0.0;
+    std::size_t gap_line = 0;
+    double typical_interval_s = 0.0;
 };
 
 DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& source);

@@ -249,7 +249,9 @@ struct Builder {
             p->SetParameterBlockConstant(&ea);
         }
         if (grid.current) {
-            p->SetParameterLowerBound(&log_i0, 0, std::log(0.02 * grid.i_ref_a));
+            // I0 below half the reference current would make the polarization at rest (factor 1/asinh_ratio) several
+            // times that under the pulses that measured it: the relaxation then passes for series resistance.
+            p->SetParameterLowerBound(&log_i0, 0, std::log(0.5 * grid.i_ref_a));
             p->SetParameterUpperBound(&log_i0, 0, std::log(1000.0 * grid.i_ref_a));
         } else {
             p->SetParameterBlockConstant(&log_i0);
@@ -784,6 +786,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double i0 = std::exp(b.log_i0);
         out.exchange_current_a = {i0, i0 * std::sqrt(cov(g1, g1)), {}};
         if (out.exchange_current_a.sd > i0) out.exchange_current_a.flags.push_back("uncertain");
+        if (i0 < 0.51 * b.grid.i_ref_a) out.exchange_current_a.flags.push_back("at_bound");
         if (i0 < 50.0 * b.grid.i_ref_a)  // above that the polarization is linear over the currents seen
             p.extensions.resistance_current = ResistanceCurrentExt{i0, b.grid.i_ref_a};
     } else {

@@ -442,13 +442,14 @@ int writer_decimals(std::string_view label) {
     return -1;
 }
 
-// Appends v rounded to `decimals` places (-1: unrounded) in its shortest round-trip form; "-0" is written "0".
-void append_number(std::string& buf, double v, int decimals) {
-    static constexpr double kScale[] = {1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7};
-    if (decimals >= 0 && std::abs(v) < 1e15) v = std::round(v * kScale[decimals]) / kScale[decimals];
-    if (v == 0.0) v = 0.0;  // -0 -> 0
-    std::array<char, 64> num{};  // always holds a shortest-form double, so to_chars cannot fail here
-    const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v);
+// Appends v with 15 significant digits, the shortest form that keeps them ("-0" is written "0"). Every digit an
+// instrument or an export carries survives (a 0.1 ms Unix time needs 14), while the binary noise of arithmetic in
+// the 16th-17th digit (0.1 + 0.2 = 0.30000000000000004) goes; so does a magnitude below 1e-12 (no bench quantity
+// is resolved that finely in SI units).
+void append_number(std::string& buf, double v, int /*decimals*/) {
+    if (std::abs(v) < 1e-12) v = 0.0;  // -0, and arithmetic residue far below any instrument's resolution
+    std::array<char, 64> num{};
+    const auto [ptr, ec] = std::to_chars(num.data(), num.data() + num.size(), v, std::chars_format::general, 15);
     if (ec == std::errc{}) buf.append(num.data(), static_cast<std::size_t>(ptr - num.data()));
 }
 

@@ -100,8 +100,8 @@ TEST(FitGeneralizes, EveryArrangementOfTheP45BFilesGivesTheSameParametersAndPred
         std::printf("arrangement %zu: Random Walk %.2f mV / %.3f degC, 4C discharge %.2f mV\n", a, 1e3 * v, t, 1e3 * v4);
         rw_v.push_back(v);
         EXPECT_LT(t, 1.0) << "Random Walk temperature RMS (issue 11: <= 1.0 degC)";
-        EXPECT_LT(v4, 0.050) << "4C discharge voltage RMS (before the global fit: 150 mV)";
-        EXPECT_LT(v, 0.036) << "Random Walk voltage RMS (before: 40.0 mV; issue 11's target 25 mV)";
+        EXPECT_LT(v4, 0.030) << "4C discharge voltage RMS (before the global fit: 150 mV)";
+        EXPECT_LT(v, 0.025) << "Random Walk voltage RMS (issue 11: <= 25 mV; before: 40.0 mV)";
     }
     for (std::size_t a = 1; a < params.size(); ++a) {
         EXPECT_NEAR(rw_v[a], rw_v[0], 1e-3);

@@ -37,7 +37,12 @@ Outcome run_case(const std::string& effect, std::uint32_t seed) {
     g.seed = seed;
     g.hidden_effect = effect;
     const auto c = generate_case(nominal_cell(), g);
-    const auto fit = characterize({c.characterization});
+    // The proof was designed with the per-pulse-set baseline. The global fit (the default) identifies current and
+    // temperature dependence from characterization data itself, so its baseline already holds part of what this
+    // catalogue looks for; proving diagnose on that baseline and on the independent plant is issue 13's work.
+    CharacterizationOptions co;
+    co.global_fit = false;
+    const auto fit = characterize({c.characterization}, co);
     Outcome o;
     {
         const CellModel m(fit.params);

@@ -305,9 +305,9 @@ TEST(BdfCsv, WriteThenParseRoundTripsBitExactlyAtTheResolution) {
 TEST(BdfCsv, WriterDropsFloatNoiseAndNegativeZero) {
     Recording rec;
     rec.time_s = {0.1 + 0.2, 1.0000000000000002};
-    rec.voltage_v = {4.0997000000000003, 3.7 - 1e-12};
-    rec.current_a = {-0.0, -1e-9};
-    rec.surface_c = {30.000000000000004, 29.99999999};
+    rec.voltage_v = {4.0997000000000003, 3.7000000000000002};
+    rec.current_a = {-0.0, 0.1 + 0.2 - 0.3};  // arithmetic noise of 5.6e-17 A, not a current
+    rec.surface_c = {30.000000000000004, 29.999999999999996};
     std::ostringstream out;
     write_bdf_csv(out, rec);
     EXPECT_EQ(out.str(),

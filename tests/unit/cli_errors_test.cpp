@@ -94,7 +94,7 @@ TEST_F(CliErrors, FitWithoutPulseSetsSaysWhatIsMissingAndWritesNothing) {
     const auto rec = write("rest.bdf.csv", text);
     const auto r = run("fit " + rec.string() + " -o " + (dir_ / "p.json").string());
     EXPECT_EQ(r.status, 1) << r.output;
-    EXPECT_NE(r.output.find("capacity"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("no recording holds pulses"), std::string::npos) << r.output;
     EXPECT_FALSE(fs::exists(dir_ / "p.json"));
 }
 

@@ -171,7 +171,7 @@ TEST_F(CliHostileInput, ImportRefusesImpossibleOrCutCyclerExports) {
     const auto a = write("huge.csv", huge);
     auto r = run(kBin.string() + " import --neware " + a.string() + " -o " + at("out.bdf.csv"));
     EXPECT_TRUE(fails_once_naming(r, "huge.csv")) << r.err;
-    EXPECT_NE(r.err.find("1e+308"), std::string::npos) << r.err;
+    EXPECT_TRUE(r.err.find("1e+308") != std::string::npos || r.err.find("1e308") != std::string::npos) << r.err;
     const auto cut = write("cut.csv", kGoodNeware.substr(0, kGoodNeware.size() - 8));
     r = run(kBin.string() + " import --neware " + cut.string() + " -o " + at("out.bdf.csv"));
     EXPECT_TRUE(fails_once_naming(r, "cut.csv")) << r.err;

@@ -42,7 +42,10 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
     std::string out;
     ASSERT_EQ(sh("-q import --neware " + d + "hppc_1c_30degC_neware.csv --bdf " + d + "hppc_1c_30degC.bdf.csv -o " + o + "hppc.bdf.csv", &out), 0) << out;
     ASSERT_EQ(sh("-q import --neware " + d + "rw_30degC_neware.csv --dewesoft " + d + "rw_30degC_dewesoft.csv -o " + o + "rw.bdf.csv", &out), 0) << out;
-    ASSERT_EQ(sh("-q fit " + o + "hppc.bdf.csv " + d + "cc_4c_30degC.bdf.csv -o " + o + "p.json", &out), 0) << out;
+    // The per-pulse-set baseline (40 mV on the Random Walk): the global fit's baseline already identifies the
+    // temperature and current dependence this finding is about (19 mV); diagnose on it is issue 13's work.
+    ASSERT_EQ(sh("-q fit --per-pulse-set " + o + "hppc.bdf.csv " + d + "cc_4c_30degC.bdf.csv -o " + o + "p.json", &out), 0)
+        << out;
     ASSERT_EQ(sh("-q diagnose --params " + o + "p.json " + o + "rw.bdf.csv --json " + o + "d.json --improved " + o +
                      "pi.json --report " + o + "report.html", &out), 0) << out;
     std::printf("%s\n", out.c_str());

@@ -44,7 +44,6 @@ struct Tick {
     double soc_start = 0, soc_end = 0;  // Coulomb-counted (before a window's fitted offset)
     double temperature_c = 0;
     double voltage_v = kNaN;            // NaN: no residual
-    double weight = 1.0;                // of its residual
 };
 
 struct WindowData {
@@ -143,7 +142,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         const T ocv = kv[jo - lo].ocv + wo * (kv[std::min(jo + 1, hi) - lo].ocv - kv[jo - lo].ocv);
         const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
         if (model_v) model_v[k] = scalar(v);
-        if (std::isfinite(tk.voltage_v)) residuals[r++] = tk.weight * (v - tk.voltage_v) / g.sigma_v;
+        if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
     }
 }
 
@@ -182,7 +181,6 @@ struct Builder {
     std::vector<std::array<double, 2>> offsets;  // per window (used when fit_offset): SOC offset, log capacity scale
     std::vector<std::unique_ptr<ceres::CostFunction>> window_costs;
     std::vector<std::unique_ptr<ceres::CostFunction>> smooth_costs;
-    double smooth_weight = 1.0;
 
     std::vector<double*> blocks_of(std::size_t w) {
         std::vector<double*> b;
@@ -207,7 +205,6 @@ struct Builder {
 
     void make_smooth(double weight, double ocv_rel) {
         smooth_costs.clear();
-        smooth_weight = weight;
         for (int j = 1; j + 1 < grid.n; ++j)
             smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<SmoothCost, 21, kKnotSize, kKnotSize, kKnotSize>(
                 new SmoothCost{std::sqrt(weight), std::sqrt(weight * ocv_rel)}));
@@ -334,7 +331,6 @@ std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_
                 if (std::abs(rec.current_a[j] - mean) > std::max(0.05, 0.05 * std::abs(mean))) break;
                 const double limit = std::min(30.0, 0.2 * (rec.time_s[j] - t_change));
                 if (span + dt > limit) break;
-                if (!std::isfinite(rec.voltage_v[j - 1])) {}  // a gap in voltage does not matter inside a tick
             }
             q += rec.current_a[j] * dt;
             span += dt;

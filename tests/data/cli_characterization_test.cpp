@@ -11,35 +11,19 @@
 
 #include <nlohmann/json.hpp>
 
+#include "data/cli_run.hpp"
+
 namespace fs = std::filesystem;
 using nlohmann::json;
 
 namespace {
 
 const fs::path kData = fs::path(CELLBENCH_SHARED_DIR) / "data" / "p45b";
-const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 
-struct CliRun {
-    int status;
-    std::string output;
-};
-
-CliRun run(const std::string& args) {
-    const std::string cmd = kBin.string() + " " + args + " 2>&1";
-    CliRun r{0, {}};
-    FILE* p = popen(cmd.c_str(), "r");
-    char buf[4096];
-    while (p && fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = p ? pclose(p) : -1;
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
-
-json read_json(const fs::path& p) {
-    std::ifstream in(p);
-    return json::parse(in);
-}
+using cellbench::test::CliRun;
+using cellbench::test::read_json;
+CliRun run(const std::string& args) { return cellbench::test::run_cli(args); }
 
 // One pipeline run shared by the tests of this file (it takes a few seconds).
 class Characterization : public ::testing::Test {

@@ -20,34 +20,18 @@
 
 #include <nlohmann/json.hpp>
 
+#include "data/cli_run.hpp"
+
 namespace fs = std::filesystem;
 using nlohmann::json;
 
 namespace {
 
 const fs::path kShared = fs::path(CELLBENCH_SHARED_DIR) / "data";
-const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 
-struct CliRun {
-    int status;
-    std::string output;
-};
-
-CliRun run(const std::string& args) {
-    const std::string cmd = kBin.string() + " " + args + " 2>&1";
-    CliRun r{0, {}};
-    FILE* p = popen(cmd.c_str(), "r");
-    char buf[4096];
-    while (p && fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = p ? pclose(p) : -1;
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
-
-json read_json(const fs::path& p) {
-    std::ifstream in(p);
-    return json::parse(in);
-}
+using cellbench::test::CliRun;
+using cellbench::test::read_json;
+CliRun run(const std::string& args) { return cellbench::test::run_cli(args); }
 
 fs::path temp_dir(const std::string& name) {
     auto d = fs::temp_directory_path() / ("cellbench-" + name + "-" + std::to_string(::getpid()));
@@ -148,7 +132,9 @@ void fit_and_predict(const std::string& temperature, const std::vector<std::stri
         std::printf("%s %s: voltage RMS %.2f mV, surface temperature RMS %.3f degC\n", c.c_str(), temperature.c_str(),
                     1e3 * v, t);
         EXPECT_LT(v, bound_v) << c;
-        if (check_temperature) EXPECT_LT(t, 1.0) << c;
+        if (check_temperature) {
+            EXPECT_LT(t, 1.0) << c;
+        }
     }
     std::error_code ec;
     fs::remove_all(o, ec);

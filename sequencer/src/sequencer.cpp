@@ -33,9 +33,25 @@ Sequencer::Sequencer(Cycler& cycler, Chamber& chamber, RunSink& sink, SequencerO
 
 Sequencer::~Sequencer() { wait_for_fits(); }
 
-void Sequencer::spawn(std::function<void()> job) {
+void Sequencer::spawn(std::function<std::function<void()>()> compute) {
     std::lock_guard<std::mutex> lock(workers_mutex_);
-    workers_.emplace_back(std::move(job));
+    auto delivered = std::make_shared<std::promise<void>>();
+    std::shared_future<void> previous = last_delivery_;
+    last_delivery_ = delivered->get_future().share();
+    workers_.emplace_back([compute = std::move(compute), previous, delivered] {
+        std::function<void()> deliver;
+        try {
+            deliver = compute();  // in parallel with earlier fits
+        } catch (...) {
+            // compute() reports its own failures through the sink; nothing to deliver
+        }
+        if (previous.valid()) previous.wait();  // results reach the sink in the order the fits were started
+        try {
+            if (deliver) deliver();
+        } catch (...) {
+        }
+        delivered->set_value();
+    });
 }
 
 void Sequencer::wait_for_fits() {
@@ -145,12 +161,14 @@ void Sequencer::finish_locked(RunState end_state, const std::string& reason, dou
     if (end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10) {
         Recording rec = rec_;
         const estimator::CharacterizationOptions co{};
-        spawn([this, rec = std::move(rec), t] {
+        spawn([this, rec = std::move(rec), t]() -> std::function<void()> {
             try {
-                const auto c = estimator::characterize({rec});
-                sink_.on_parameter_set(c.params, c.summary_json());
+                auto c = std::make_shared<estimator::Characterization>(estimator::characterize({rec}));
+                return [this, c] { sink_.on_parameter_set(c->params, c->summary_json()); };
             } catch (const std::exception& e) {
-                sink_.on_event(t, "warning", "fit", std::string("no parameter set for this run: ") + e.what());
+                return [this, t, what = std::string(e.what())] {
+                    sink_.on_event(t, "warning", "fit", "no parameter set for this run: " + what);
+                };
             }
         });
     }
@@ -290,12 +308,17 @@ void Sequencer::check_pulse_sets_locked() {
     }
     last_ocv_v_ = ocv_v;
     last_ocv_q_ah_ = q;
-    auto job = [this, window, pset = *ps, soc, po] {
-        auto fit = estimator::fit_pulse_set(window, pset, po);
-        fit.soc = soc;
-        sink_.on_pulse_fit(fit);
-    };
-    spawn(std::move(job));
+    spawn([this, window, pset = *ps, soc, po, t = last_cycler_s_]() -> std::function<void()> {
+        try {
+            auto fit = std::make_shared<estimator::PulseSetFit>(estimator::fit_pulse_set(window, pset, po));
+            fit->soc = soc;
+            return [this, fit] { sink_.on_pulse_fit(*fit); };
+        } catch (const std::exception& e) {
+            return [this, t, what = std::string(e.what())] {
+                sink_.on_event(t, "warning", "fit", "pulse set not fitted: " + what);
+            };
+        }
+    });
 }
 
 void Sequencer::on_daq(const DaqSample& s) {

@@ -10,6 +10,7 @@
 // instrument silent beyond its grace period -> the current is stopped, the chamber goes to its safe set
 // point, the reason is recorded and the run ends `aborted`. A run never continues blind.
 #include <functional>
+#include <future>
 #include <map>
 #include <memory>
 #include <limits>
@@ -117,7 +118,9 @@ private:
     void start_segment_locked(double t);
     void check_safety_locked(double t);
     void check_pulse_sets_locked();
-    void spawn(std::function<void()> job);
+    // Runs compute() on a worker; the callable it returns (the delivery to the sink) runs only after every
+    // earlier job's delivery, so fits reach the sink in the order the pulse sets completed.
+    void spawn(std::function<std::function<void()>()> compute);
 
     Cycler& cycler_;
     Chamber& chamber_;
@@ -147,6 +150,7 @@ private:
     double last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
     std::mutex workers_mutex_;
     std::vector<std::thread> workers_;
+    std::shared_future<void> last_delivery_;
 };
 
 }  // namespace cellbench::sequencer

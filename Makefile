@@ -4,7 +4,8 @@ JOBS    ?= $(shell nproc)
 SHARED  ?= $(abspath ../shared)
 DATA    := $(SHARED)/data/p45b
 BIN     := $(BUILD)/bin
-OUT     := $(BUILD)/run
+# Every `make run` writes into its own folder (two at once never share a file, a database or a port).
+OUT     := $(BUILD)/run/$(shell date -u +%Y%m%d-%H%M%S)-$(shell echo $$PPID)
 
 # Debian packages the build and the tests need (installed by `make deps` when missing). nodejs and npm build the
 # dashboard (web/), chromium and chromium-driver run its browser tests (poppler-utils renders the report's PDF); an npm that came with another nodejs
@@ -51,13 +52,19 @@ run: build
 	@# The daemon on the simulated bench (every instrument hosted by cellbenchd on loopback, 100x bench time):
 	@# a short HPPC through the client, then the fitted table from GET /runs/{id}/fits, then SIGTERM.
 	@echo "== cellbenchd on the simulated bench: short HPPC (config/programs/hppc_short.json) at 100x"
-	@set -e; port=18750; url=http://127.0.0.1:$$port; db=$(abspath $(OUT))/bench.sqlite; tok=run-$$$$; \
+	@# The daemon listens on a free port (--listen 127.0.0.1:0) and prints the address it bound; its simulated
+	@# instruments take free ports and a socket path of their own (in the log), the database is this run's.
+	@set -e; out=$(abspath $(OUT)); db=$$out/bench.sqlite; tok=run-$$$$; url=""; \
 	rm -f $$db $$db-wal $$db-shm; \
-	$(BIN)/cellbenchd --config config/bench.sim.json --listen 127.0.0.1:$$port --db $$db --token $$tok \
-	  --time-scale 100 > $(OUT)/cellbenchd.log 2>&1 & pid=$$!; \
+	$(BIN)/cellbenchd --config config/bench.sim.json --listen 127.0.0.1:0 --db $$db --token $$tok \
+	  --time-scale 100 > $$out/cellbenchd.out 2> $$out/cellbenchd.log & pid=$$!; \
 	trap 'kill -TERM $$pid 2>/dev/null || true; wait $$pid 2>/dev/null || true' EXIT; \
-	for i in $$(seq 100); do $(BIN)/cellbench status --server $$url > /dev/null 2>&1 && break; \
-	  kill -0 $$pid 2>/dev/null || { cat $(OUT)/cellbenchd.log; exit 1; }; sleep 0.1; done; \
+	for i in $$(seq 300); do url=$$(sed -n 's|^cellbenchd: API \(http://[^ ]*\)/api/v1$$|\1|p' $$out/cellbenchd.out); \
+	  [ -n "$$url" ] && $(BIN)/cellbench status --server $$url > /dev/null 2>&1 && break; \
+	  kill -0 $$pid 2>/dev/null || { cat $$out/cellbenchd.log; exit 1; }; sleep 0.1; done; \
+	[ -n "$$url" ] || { echo "cellbenchd printed no API address"; cat $$out/cellbenchd.log; exit 1; }; \
+	echo "cellbenchd at $$url/api/v1, database $$db"; \
+	sed -n 's/.*\(simulated [a-z]* (hosted) .*\)/  \1/p' $$out/cellbenchd.log; \
 	$(BIN)/cellbench start --program hppc_short --cell p45b --server $$url --token $$tok --follow; \
 	/usr/bin/python3 -c 'import json, sys, urllib.request as u; api = sys.argv[1] + "/api/v1"; \
 	get = lambda p: json.load(u.urlopen(api + p)); run = get("/runs")["runs"][0]; \
@@ -67,7 +74,7 @@ run: build
 	[print("%3d %6.3f %8.4f %s %s %s %s %s %s" % (x["pulse_set"], x["soc"], x["ocv_v"], f(x["discharge"], "r0_ohm", 1e3), \
 	  f(x["discharge"], "r1_ohm", 1e3), f(x["discharge"], "c1_f"), f(x["discharge"], "r2_ohm", 1e3), f(x["discharge"], "c2_f"), \
 	  f(x["charge"], "r0_ohm", 1e3))) for x in get("/runs/%s/fits" % run["id"])["fits"]]' $$url; \
-	echo "API $$url/api/v1 (token $$tok), database $$db, daemon log $(OUT)/cellbenchd.log"; \
+	echo "API $$url/api/v1 (token $$tok), database $$db, daemon log $$out/cellbenchd.log"; \
 	kill -TERM $$pid; wait $$pid; trap - EXIT; echo "cellbenchd stopped (SIGTERM)"
 
 # The fuzz targets compile (one job, clang, $(FUZZ_BUILD).build.log) while the tests run: the HIL tests leave

@@ -19,6 +19,8 @@
 #include <utility>
 #include <vector>
 
+#include <unistd.h>
+
 #include <boost/asio/executor_work_guard.hpp>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/post.hpp>
@@ -63,6 +65,11 @@ double unix_at(SteadyClock::time_point t) {
     return unix_now_s() - std::chrono::duration<double>(SteadyClock::now() - t).count();
 }
 json nullable(double x) { return std::isfinite(x) ? json(x) : json(nullptr); }
+
+// Paced bench time: the pacer runs every kPacePeriod; a call more than kPaceMaxStepWallS after the previous
+// one (the host starved the daemon) adds only kPaceMaxStepWallS x scale bench seconds.
+constexpr auto kPacePeriod = std::chrono::milliseconds(10);
+constexpr double kPaceMaxStepWallS = 0.1;
 
 // A bench-time period as a wall timer period (the simulation runs time_scale bench s per wall s), >= 1 ms.
 std::chrono::milliseconds wall_period(double bench_ms, double scale, double min_ms = 1.0) {
@@ -316,8 +323,13 @@ struct RunContext final : sequencer::RunSink {
 struct BenchDaemon::Impl {
     BenchConfig cfg;
     BenchDaemonOptions opt;
-    std::shared_ptr<const sim::BenchClock> clock;
+    std::shared_ptr<sim::BenchClock> clock;
     double scale = 1.0;
+    // Paced bench time (every instrument hosted): the pacer timer on the instruments' io_context is the only
+    // thing that moves bench time on, by a bounded step per call, so a starved daemon slows the simulated
+    // bench down instead of finding hundreds of bench seconds gone (and its instruments "silent").
+    SteadyClock::time_point pace_report_at{};
+    bool pace_slow_reported = false;
     SteadyClock::time_point started_at = SteadyClock::now();
 
     asio::io_context io;
@@ -329,6 +341,7 @@ struct BenchDaemon::Impl {
     std::optional<asio::executor_work_guard<asio::io_context::executor_type>> http_guard;
     std::vector<std::thread> http_threads;
     std::unique_ptr<asio::steady_timer> tick_timer;
+    std::unique_ptr<asio::steady_timer> pace_timer;  // paced bench time (see clock)
 
     // The sequencer is fed on its own thread, in arrival order. Its work at a step change (segmenting the run so
     // far, copying the window for a fit) takes tens of ms; on the drivers' strands that would delay the next
@@ -373,6 +386,13 @@ struct BenchDaemon::Impl {
     std::unique_ptr<sim::ChamberServer> chamber_server;
     std::unique_ptr<sim::DewePublisher> dewe_publisher;
     std::string daq_path;
+    // The hosted DAQ's datagram socket: per process and per daemon (daq_endpoint).
+    const std::string hosted_daq_path = [] {
+        static std::atomic<int> serial{0};
+        return (std::filesystem::temp_directory_path() /
+                ("cellbench-dewe-can-" + std::to_string(::getpid()) + "-" + std::to_string(serial++) + ".sock"))
+            .string();
+    }();
 
     // Drivers.
     std::unique_ptr<drivers::NewareClient> neware;
@@ -445,7 +465,13 @@ struct BenchDaemon::Impl {
         // from config/bench.hil.json must run its clock, polls and grace periods at the same scale.
         scale = opt.time_scale.value_or(cfg.simulation ? cfg.simulation->time_scale : 1.0);
         if (!(scale > 0) || !std::isfinite(scale)) throw InputError("time scale: expected a positive number");
-        clock = std::make_shared<const sim::BenchClock>(scale, 0.0);
+        const bool all_hosted = cfg.cycler.mode == CyclerConfig::Mode::simulated &&
+                                cfg.chamber.mode == ChamberConfig::Mode::simulated &&
+                                cfg.daq.mode == DaqConfig::Mode::simulated;
+        // A daemon driving instruments in another process (`cellbench sim`, real ones) keeps wall x scale: both
+        // sides must agree on durations. A daemon hosting the whole bench paces it.
+        clock = all_hosted ? std::make_shared<sim::BenchClock>(scale, 0.0, sim::BenchClock::Paced{kPaceMaxStepWallS})
+                           : std::make_shared<sim::BenchClock>(scale, 0.0);
         db_path = opt.db_path.value_or(cfg.database.path);
         if (opt.listen) cfg.listen = *opt.listen;
     }
@@ -1010,6 +1036,11 @@ struct BenchDaemon::Impl {
         feed_thread = std::thread([this] { feed_loop(); });
         guard.emplace(io.get_executor());
         for (int k = 0; k < std::max(1, opt.io_threads); ++k) threads.emplace_back([this] { io.run(); });
+        if (clock->paced()) {  // before the simulated instruments start: their time stands still without it
+            pace_timer = std::make_unique<asio::steady_timer>(io);
+            pace_report_at = SteadyClock::now() + std::chrono::seconds(10);
+            schedule_pace();
+        }
 
         host_simulation();
         connect_drivers();
@@ -1030,7 +1061,8 @@ struct BenchDaemon::Impl {
         http_guard.emplace(http_io.get_executor());
         for (int k = 0; k < std::max(1, opt.io_threads); ++k) http_threads.emplace_back([this] { http_io.run(); });
         bound_port = http->local_endpoint().port();
-        spdlog::info("cellbenchd: API {} (bench time x{})", api_url(), scale);
+        spdlog::info("cellbenchd: API {} (bench time x{}{})", api_url(), scale,
+                     clock->paced() ? ", paced: slows down when the host is starved" : "");
     }
 
     void note_db_fault(const std::string& what) {
@@ -1065,8 +1097,10 @@ struct BenchDaemon::Impl {
 
         if (cfg.cycler.mode == CyclerConfig::Mode::simulated) {
             sim::NewareServerOptions no;
+            // Hosted: an ephemeral port (the configured one is for a tester outside the daemon), so two
+            // daemons, or a daemon beside `cellbench sim`, never collide.
             no.host = cfg.cycler.endpoint.host;
-            no.port = cfg.cycler.endpoint.port;
+            no.port = 0;
             no.max_channel_current_a = cfg.cycler.channel_max_current_a;
             no.cell_channels.clear();
             for (const auto& ch : cfg.cycler.channels) no.cell_channels.push_back(ch.chlid);
@@ -1083,18 +1117,18 @@ struct BenchDaemon::Impl {
                 wall_period(cfg.cycler.poll_period_ms, scale).count(), 1, 5));
             neware_server = std::make_unique<sim::NewareServer>(*plant, clock, no);
             neware_server->start();
-            spdlog::info("simulated neware {}", neware_server->description());
+            spdlog::info("simulated neware (hosted) listening on {}", neware_server->description());
         }
         if (cfg.chamber.mode == ChamberConfig::Mode::simulated) {
             sim::ChamberServerOptions co;
             co.host = cfg.chamber.endpoint.host;
-            co.port = cfg.chamber.endpoint.port;
+            co.port = 0;  // hosted: an ephemeral port (see the cycler)
             if (!cfg.chamber.register_map.is_null() && !cfg.chamber.register_map.empty())
                 co.map = protocol::ChamberRegisterMap::from_json(cfg.chamber.register_map,
                                                                  cfg.source.string() + " $.instruments.chamber.register_map");
             chamber_server = std::make_unique<sim::ChamberServer>(*plant, clock, co);
             chamber_server->start();
-            spdlog::info("simulated chamber {}", chamber_server->description());
+            spdlog::info("simulated chamber (hosted) listening on {}", chamber_server->description());
         }
         if (cfg.daq.mode == DaqConfig::Mode::simulated) {
             drivers::CanEndpoint ep = daq_endpoint();
@@ -1104,7 +1138,7 @@ struct BenchDaemon::Impl {
             if (opt.daq_sample_rate_hz) dopt.sample_rate_hz = *opt.daq_sample_rate_hz;
             dewe_publisher = std::make_unique<sim::DewePublisher>(io, *plant, clock, drivers::open_can_publisher(io, ep), dopt);
             dewe_publisher->start();
-            spdlog::info("simulated dewe {}", dewe_publisher->description());
+            spdlog::info("simulated dewe (hosted) sending to {}", dewe_publisher->description());
         }
     }
 
@@ -1114,6 +1148,11 @@ struct BenchDaemon::Impl {
                                                                        : drivers::CanEndpoint::Kind::can_dgram;
         ep.name = ep.kind == drivers::CanEndpoint::Kind::socketcan ? cfg.daq.interface
                                                                    : opt.daq_socket_path.value_or(cfg.daq.socket_path);
+        // A hosted simulated DAQ on a datagram socket: a path of this process (the configured one is for a
+        // publisher outside the daemon), so two daemons never take each other's socket.
+        if (ep.kind == drivers::CanEndpoint::Kind::can_dgram && cfg.daq.mode == DaqConfig::Mode::simulated &&
+            !opt.daq_socket_path)
+            ep.name = hosted_daq_path;
         return ep;
     }
 
@@ -1273,13 +1312,42 @@ struct BenchDaemon::Impl {
         store->flush();
     }
 
+    void schedule_pace() {
+        pace_timer->expires_after(kPacePeriod);
+        pace_timer->async_wait([this](const boost::system::error_code& ec) {
+            if (ec || stopping) return;
+            const auto now = SteadyClock::now();
+            clock->pace(now);
+            if (now >= pace_report_at) {
+                pace_report_at = now + std::chrono::seconds(10);
+                report_pace();
+            }
+            schedule_pace();
+        });
+    }
+    // The log says when the bench runs slower than asked (and when it is back), with the scale achieved.
+    void report_pace() {
+        const double achieved = clock->achieved_scale();
+        if (achieved < 0.9 * scale) {
+            spdlog::warn("bench time: x{:.1f} achieved of x{} asked over the last 10 s (the host is busy; the simulated "
+                         "bench slows down with the daemon, {:.1f} s of wall time not simulated so far)",
+                         achieved, scale, clock->lost_wall_s());
+            pace_slow_reported = true;
+        } else if (pace_slow_reported) {
+            spdlog::info("bench time: back at x{:.1f} of x{}", achieved, scale);
+            pace_slow_reported = false;
+        }
+    }
+
     void schedule_tick() {
         const auto period = std::chrono::milliseconds(std::clamp<std::int64_t>(
             static_cast<std::int64_t>(1000.0 / scale), 1, 200));
         tick_timer->expires_after(period);
         tick_timer->async_wait([this](const boost::system::error_code& ec) {
             if (ec || stopping) return;
-            if (auto c = active()) feed([this, c] { c->seq->tick(now_s()); });
+            // The tick's time is taken now, not when the feed thread gets to it: readings queued before it carry
+            // their arrival times, so a feed thread behind by a second never reads as instrument silence.
+            if (auto c = active()) feed([c, t = now_s()] { c->seq->tick(t); });
             schedule_tick();
         });
     }
@@ -1476,6 +1544,7 @@ struct BenchDaemon::Impl {
         if (auto c = current()) c->seq->wait_for_fits();
         if (diagnoses) diagnoses->stop();  // before the store closes: a job may be reading a run
         if (tick_timer) tick_timer->cancel();
+        if (pace_timer) pace_timer->cancel();
         if (neware) neware->stop();
         if (chamber) chamber->stop();
         if (dewe) dewe->stop();
@@ -1548,6 +1617,7 @@ std::uint16_t BenchDaemon::http_port() const { return impl_->bound_port; }
 std::filesystem::path BenchDaemon::database_path() const { return std::filesystem::absolute(impl_->db_path); }
 double BenchDaemon::bench_now_s() const { return impl_->now_s(); }
 double BenchDaemon::time_scale() const { return impl_->scale; }
+double BenchDaemon::achieved_time_scale() const { return impl_->clock->achieved_scale(); }
 RunStore& BenchDaemon::store() { return *impl_->store; }
 sim::BenchPlant* BenchDaemon::plant() { return impl_->plant ? &*impl_->plant : nullptr; }
 sim::NewareServer* BenchDaemon::neware_server() { return impl_->neware_server.get(); }
@@ -1576,7 +1646,9 @@ json BenchDaemon::status() {
     json j = {{"version", kVersion},
               {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - d.started_at).count()},
               {"bench_time_s", d.now_s()},
-              {"time_scale", d.scale}};
+              {"time_scale", d.scale},
+              {"time_scale_achieved", d.clock->achieved_scale()},
+              {"bench_time_paced", d.clock->paced()}};
     auto c = d.active();
     double t_rel = kNaN;
     {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <random>
 
@@ -204,6 +205,102 @@ PlantReading BenchPlant::read() const {
 double BenchPlant::now_s() const {
     std::lock_guard lock(impl_->mutex);
     return impl_->now_s;
+}
+
+// ---- BenchClock -------------------------------------------------------------------------------------------
+
+namespace {
+double seconds(BenchClock::WallClock::duration d) { return std::chrono::duration<double>(d).count(); }
+constexpr std::size_t kMaxJumps = 64;
+constexpr std::size_t kHistory = 11;  // about 10 s of (wall, bench) pairs at 1 s spacing
+}  // namespace
+
+BenchClock::BenchClock(double time_scale, double bench_start_s)
+    : time_scale_(time_scale > 0 && std::isfinite(time_scale) ? time_scale : 1.0),
+      bench_start_s_(bench_start_s),
+      wall_start_(WallClock::now()),
+      anchor_wall_(wall_start_),
+      anchor_bench_(bench_start_s),
+      last_read_(bench_start_s) {}
+
+BenchClock::BenchClock(double time_scale, double bench_start_s, Paced paced) : BenchClock(time_scale, bench_start_s) {
+    paced_ = true;
+    max_step_wall_s_ = paced.max_step_wall_s > 0 && std::isfinite(paced.max_step_wall_s) ? paced.max_step_wall_s : 0.1;
+    history_.emplace_back(anchor_wall_, anchor_bench_);
+}
+
+double BenchClock::max_step_s() const {
+    return paced_ ? max_step_wall_s_ * time_scale_ : std::numeric_limits<double>::infinity();
+}
+
+double BenchClock::read_locked(WallClock::time_point wall) const {
+    if (wall >= anchor_wall_)
+        return anchor_bench_ + std::min(seconds(wall - anchor_wall_) * time_scale_, max_step_wall_s_ * time_scale_);
+    // An instant before the last pace(): linear between the bounded steps, each step's gap squeezed.
+    for (auto it = jumps_.rbegin(); it != jumps_.rend(); ++it) {
+        if (wall >= it->wall) return it->bench + seconds(wall - it->wall) * time_scale_;
+        if (wall >= it->wall_before)
+            return it->bench_before + std::min(seconds(wall - it->wall_before) * time_scale_, it->bench - it->bench_before);
+    }
+    const auto ref_wall = jumps_.empty() ? anchor_wall_ : jumps_.front().wall_before;
+    const double ref_bench = jumps_.empty() ? anchor_bench_ : jumps_.front().bench_before;
+    return ref_bench - seconds(ref_wall - wall) * time_scale_;
+}
+
+double BenchClock::at(WallClock::time_point wall) const {
+    if (!paced_) return bench_start_s_ + time_scale_ * seconds(wall - wall_start_);
+    std::lock_guard lock(mutex_);
+    const double v = read_locked(wall);
+    if (wall >= anchor_wall_) {  // "now": never earlier than what a reader saw before
+        last_read_ = std::max(last_read_, v);
+        return last_read_;
+    }
+    return v;
+}
+
+BenchClock::WallClock::time_point BenchClock::wall_at(double bench_time_s) const {
+    if (!paced_)
+        return wall_start_ + std::chrono::duration_cast<WallClock::duration>(
+                                 std::chrono::duration<double>((bench_time_s - bench_start_s_) / time_scale_));
+    std::lock_guard lock(mutex_);
+    return anchor_wall_ + std::chrono::duration_cast<WallClock::duration>(
+                              std::chrono::duration<double>((bench_time_s - anchor_bench_) / time_scale_));
+}
+
+double BenchClock::pace(WallClock::time_point wall) {
+    if (!paced_) return at(wall);
+    std::lock_guard lock(mutex_);
+    if (wall <= anchor_wall_) return anchor_bench_;
+    const double dt = seconds(wall - anchor_wall_);
+    double next = anchor_bench_ + dt * time_scale_;
+    if (dt > max_step_wall_s_) {
+        next = anchor_bench_ + max_step_wall_s_ * time_scale_;
+        lost_wall_s_ += dt - max_step_wall_s_;
+        jumps_.push_back({anchor_wall_, wall, anchor_bench_, next});
+        if (jumps_.size() > kMaxJumps) jumps_.pop_front();
+    }
+    anchor_wall_ = wall;
+    anchor_bench_ = std::max(next, last_read_);
+    last_read_ = anchor_bench_;
+    if (seconds(wall - history_.back().first) >= 1.0) {
+        history_.emplace_back(wall, anchor_bench_);
+        while (history_.size() > kHistory) history_.pop_front();
+    }
+    return anchor_bench_;
+}
+
+double BenchClock::achieved_scale() const {
+    if (!paced_) return time_scale_;
+    std::lock_guard lock(mutex_);
+    const double span = seconds(anchor_wall_ - history_.front().first);
+    if (span < 1.0) return time_scale_;
+    return (anchor_bench_ - history_.front().second) / span;
+}
+
+double BenchClock::lost_wall_s() const {
+    if (!paced_) return 0.0;
+    std::lock_guard lock(mutex_);
+    return lost_wall_s_;
 }
 
 }  // namespace cellbench::sim

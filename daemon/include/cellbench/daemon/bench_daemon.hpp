@@ -64,7 +64,10 @@ public:
     [[nodiscard]] std::uint16_t http_port() const;          // bound port (after start)
     [[nodiscard]] std::filesystem::path database_path() const;
     [[nodiscard]] double bench_now_s() const;               // the daemon's clock
-    [[nodiscard]] double time_scale() const;
+    [[nodiscard]] double time_scale() const;                // asked for (bench s per wall s)
+    // Achieved over about the last 10 s: below time_scale() when the host starves a daemon that hosts the whole
+    // simulated bench (its bench time is paced, sim::BenchClock::Paced).
+    [[nodiscard]] double achieved_time_scale() const;
     [[nodiscard]] RunStore& store();
     // The simulated plant (nullptr when no instrument is simulated): tests inject faults through it.
     [[nodiscard]] sim::BenchPlant* plant();

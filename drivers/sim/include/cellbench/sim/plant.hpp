@@ -8,6 +8,8 @@
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <deque>
+#include <utility>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -88,33 +90,67 @@ private:
     std::shared_ptr<Impl> impl_;
 };
 
-// Bench time of the simulated instruments: bench = start + time_scale * (wall - wall at construction).
-// One clock is shared by all simulated instruments of a bench so they agree on "now" (each one calls
-// BenchPlant::advance_to(clock.now_s()) before reading). Immutable, hence thread-safe.
+// Bench time of the simulated instruments. One clock is shared by all simulated instruments of a bench so
+// they agree on "now" (each one calls BenchPlant::advance_to(clock.now_s()) before reading).
+//
+// Two modes:
+//  - free (the default): bench = start + time_scale * (wall - wall at construction). A pure function of wall
+//    time, so two processes (a daemon and `cellbench sim`) started with the same scale agree on durations.
+//  - paced (BenchClock::Paced): bench time advances only through pace(), called regularly by the process that
+//    hosts the simulation and consumes its readings (cellbenchd's io threads), by at most max_step_wall_s *
+//    time_scale bench seconds per call. A starved process (no CPU for seconds) does not jump hundreds of bench
+//    seconds: the simulated bench slows down with it and never outruns the daemon. Readers between two pace()
+//    calls see time move on smoothly, but never more than one bounded step past the last pace().
+// Thread-safe (a mutex; every call is a few arithmetic operations).
 class BenchClock {
 public:
     using WallClock = std::chrono::steady_clock;
+    struct Paced {
+        double max_step_wall_s = 0.1;  // wall time one pace() may turn into bench time (x time_scale)
+    };
 
-    explicit BenchClock(double time_scale = 1.0, double bench_start_s = 0.0)
-        : time_scale_(time_scale > 0 && std::isfinite(time_scale) ? time_scale : 1.0),
-          bench_start_s_(bench_start_s),
-          wall_start_(WallClock::now()) {}
+    explicit BenchClock(double time_scale = 1.0, double bench_start_s = 0.0);
+    BenchClock(double time_scale, double bench_start_s, Paced paced);
 
-    [[nodiscard]] double time_scale() const { return time_scale_; }  // bench seconds per wall second
+    [[nodiscard]] double time_scale() const { return time_scale_; }  // target bench seconds per wall second
+    [[nodiscard]] bool paced() const { return paced_; }
+    [[nodiscard]] double max_step_s() const;  // bench seconds one pace() may add (infinite when free)
+
     [[nodiscard]] double now_s() const { return at(WallClock::now()); }
-    [[nodiscard]] double at(WallClock::time_point wall) const {
-        return bench_start_s_ + time_scale_ * std::chrono::duration<double>(wall - wall_start_).count();
-    }
-    // Wall instant at which the bench reaches bench_time_s (for scheduling).
-    [[nodiscard]] WallClock::time_point wall_at(double bench_time_s) const {
-        return wall_start_ + std::chrono::duration_cast<WallClock::duration>(
-                                 std::chrono::duration<double>((bench_time_s - bench_start_s_) / time_scale_));
-    }
+    // Bench time at a wall instant: now, or in the recent past (a reading's arrival).
+    [[nodiscard]] double at(WallClock::time_point wall) const;
+    // Wall instant at which the bench reaches bench_time_s (for scheduling; an estimate when paced).
+    [[nodiscard]] WallClock::time_point wall_at(double bench_time_s) const;
+
+    // Paced mode: moves bench time to `wall` (by at most one bounded step) and returns it. No-op when free.
+    double pace(WallClock::time_point wall = WallClock::now());
+
+    // Bench seconds per wall second actually achieved over about the last 10 s of wall time (the target scale
+    // when free, or before 1 s has passed).
+    [[nodiscard]] double achieved_scale() const;
+    // Wall seconds the paced clock did not turn into bench time (the host was starved), since construction.
+    [[nodiscard]] double lost_wall_s() const;
 
 private:
+    struct Jump {  // a pace() that hit the bound: bench time from (wall_before, bench_before) to (wall, bench)
+        WallClock::time_point wall_before, wall;
+        double bench_before, bench;
+    };
+    double read_locked(WallClock::time_point wall) const;
+
     double time_scale_;
     double bench_start_s_;
     WallClock::time_point wall_start_;
+    bool paced_ = false;
+    double max_step_wall_s_ = 0.0;
+
+    mutable std::mutex mutex_;
+    WallClock::time_point anchor_wall_;  // last pace()
+    double anchor_bench_ = 0.0;
+    mutable double last_read_ = 0.0;     // readers never see time go back
+    std::deque<Jump> jumps_;             // the latest bounded steps (at() of an instant before them)
+    std::deque<std::pair<WallClock::time_point, double>> history_;  // (wall, bench) about once a second
+    double lost_wall_s_ = 0.0;
 };
 
 }  // namespace cellbench::sim

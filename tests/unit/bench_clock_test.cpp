@@ -1,0 +1,70 @@
+// The simulated bench's clock (sim::BenchClock): free (wall x scale) and paced (bounded steps, issue 14).
+#include <gtest/gtest.h>
+
+#include <chrono>
+
+#include "cellbench/sim/plant.hpp"
+
+namespace {
+
+using cellbench::sim::BenchClock;
+using namespace std::chrono_literals;
+
+TEST(BenchClock, FreeClockMapsWallTimeByTheTimeScale) {
+    const BenchClock clock(100.0, 5.0);
+    EXPECT_FALSE(clock.paced());
+    const auto wall = clock.wall_at(15.0);
+    EXPECT_NEAR(clock.at(wall), 15.0, 1e-6);
+    EXPECT_NEAR(clock.at(wall + 3s), 315.0, 1e-6);  // a free clock jumps with the wall
+}
+
+TEST(BenchClock, PacedClockKeepsTheScaleWhenPacedRegularly) {
+    BenchClock clock(400.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    const double b0 = clock.pace(w0);
+    for (int k = 1; k <= 300; ++k) clock.pace(w0 + k * 10ms);  // 3 s of wall time, paced every 10 ms
+    EXPECT_NEAR(clock.pace(w0 + 3s) - b0, 1200.0, 1e-6);
+    EXPECT_NEAR(clock.achieved_scale(), 400.0, 1e-3);
+    EXPECT_NEAR(clock.lost_wall_s(), 0.0, 0.2);  // at most the gap from construction to w0
+}
+
+// The defect of issue 14: a daemon without CPU for 3 s found 1200 bench seconds gone at x400 and aborted its
+// healthy run ("cycler silent for more than 1200 s"). Paced, the bench advances one bounded step.
+TEST(BenchClock, PacedClockAdvancesOneBoundedStepAfterAStarvedGap) {
+    BenchClock clock(400.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    const double b0 = clock.pace(w0);
+    const double b1 = clock.pace(w0 + 3s);
+    EXPECT_NEAR(b1 - b0, 40.0, 1e-6);  // 0.1 s x 400, not 1200
+    EXPECT_NEAR(clock.max_step_s(), 40.0, 1e-9);
+    EXPECT_GT(clock.lost_wall_s(), 2.8);
+    // Time goes on at the full rate afterwards.
+    for (int k = 1; k <= 100; ++k) clock.pace(w0 + 3s + k * 10ms);
+    EXPECT_NEAR(clock.pace(w0 + 4s) - b1, 400.0, 1e-6);
+    EXPECT_LT(clock.achieved_scale(), 0.5 * 400.0);  // the log and /status show the slow-down
+}
+
+TEST(BenchClock, ReadersNeverRunMoreThanOneStepAheadOfThePacer) {
+    BenchClock clock(100.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    const double b0 = clock.pace(w0);
+    EXPECT_NEAR(clock.at(w0 + 50ms), b0 + 5.0, 1e-6);  // between two paces: smooth
+    EXPECT_NEAR(clock.at(w0 + 10s), b0 + 10.0, 1e-6);  // pacer starved: one step at most
+    EXPECT_LE(clock.now_s(), b0 + 10.0 + 1e-9);
+}
+
+TEST(BenchClock, InstantsBeforeABoundedStepMapInOrder) {
+    BenchClock clock(100.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    clock.pace(w0);
+    clock.pace(w0 + 50ms);
+    clock.pace(w0 + 2050ms);  // a 2 s gap: bench +10 s
+    clock.pace(w0 + 2100ms);
+    const double before = clock.at(w0 + 40ms), in_gap = clock.at(w0 + 1s), after = clock.at(w0 + 2060ms);
+    EXPECT_LT(before, in_gap);
+    EXPECT_LE(in_gap, after);
+    EXPECT_NEAR(after - before, 0.01 * 100 + 10.0 + 0.01 * 100, 1e-6);  // 10 ms + one step + 10 ms
+    EXPECT_NEAR(clock.at(w0 + 2100ms) - clock.at(w0 + 2060ms), 4.0, 1e-6);
+}
+
+}  // namespace

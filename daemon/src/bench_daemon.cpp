@@ -98,11 +98,11 @@ sequencer::Program to_sequencer_program(const Program& p) {
             s.setpoint_c = sp->setpoint_c;
             s.name = "chamber set point";
         } else if (const auto* w = std::get_if<WaitEquilibriumSegment>(&seg)) {
-            // abort_on_timeout = false is not supported by the sequencer: a timeout always aborts (safe side).
             s.kind = sequencer::Segment::Kind::WaitEquilibrium;
             s.tolerance_c = w->tolerance_c;
             s.hold_s = w->hold_s;
             s.timeout_s = w->timeout_s;
+            s.abort_on_timeout = w->abort_on_timeout;
             s.name = "wait for thermal equilibrium";
         }
         out.segments.push_back(std::move(s));
@@ -166,16 +166,11 @@ struct RunContext final : sequencer::RunSink {
     int step_index = 0;
     std::string end_reason;  // why the run ended (terminal state), as the sequencer said
     std::optional<StepRecord> open_step;
-    struct StepStart {
-        double t_s;
-        std::string type;
-        double q_ah;  // Coulomb count at the step's start
-        bool used = false;
-    };
-    std::vector<StepStart> step_starts;
     int pulse_sets = 0;
-    double soc_q_ah = 0.0, last_cycler_t_s = kNaN;  // Coulomb count from the run start (full cell = 1)
+    double last_cycler_t_s = kNaN;  // run time of the latest stored cycler row
     double capacity_ah = 4.5;
+    // The open step's totals as the sequencer reported them at its end (on_step_end); else the live reading's.
+    std::optional<std::pair<double, double>> step_totals;
     double last_capacity_ah = kNaN, last_energy_wh = kNaN;
 
     RunContext(RunStore& s, RunId run, double start, std::string cell)
@@ -203,8 +198,18 @@ struct RunContext final : sequencer::RunSink {
         if (std::isfinite(last_capacity_ah)) open_step->capacity_ah = std::abs(last_capacity_ah);
         if (std::isfinite(last_energy_wh)) open_step->energy_wh = std::abs(last_energy_wh);
         open_step->end_reason = why;
+        if (step_totals) {
+            open_step->capacity_ah = step_totals->first;
+            open_step->energy_wh = step_totals->second;
+        }
         store.record_step(id, *open_step);
         open_step.reset();
+        step_totals.reset();
+    }
+
+    void on_step_end(double, double capacity_ah, double energy_wh) override {
+        std::lock_guard lock(m);
+        step_totals = std::make_pair(capacity_ah, energy_wh);
     }
 
     void on_step(double t_mono_s, int segment, int step_id, int cycle_id, const std::string& step_type) override {
@@ -221,7 +226,6 @@ struct RunContext final : sequencer::RunSink {
         r.started_unix_s = u;
         store.record_step(id, r);
         open_step = r;
-        step_starts.push_back({t, step_type, soc_q_ah});
     }
 
     void on_event(double t_mono_s, const std::string& severity, const std::string& kind,
@@ -241,38 +245,16 @@ struct RunContext final : sequencer::RunSink {
         if (e.level == EventLevel::error) spdlog::warn("run {}: {}: {}", id, kind, message);
     }
 
-    void on_pulse_fit(const estimator::PulseSetFit& fit) override {
-        // The fit carries row indices of the sequencer's window, not times: the pulse set starts with the
-        // first unused non-rest step whose duration matches the discharge pulse.
-        double t_s = kNaN, soc = fit.soc;
+    void on_pulse_fit(const estimator::PulseSetFit& fit, double t_mono_s) override {
+        // SOC and start time as the sequencer (SOC's one owner) gave them.
         int n = 0;
         {
             std::lock_guard lock(m);
             n = ++pulse_sets;
-            const double want = fit.pulse_set.discharge_duration_s;
-            double q_full = 0.0;  // no full charge seen yet: the run started full (as the sequencer assumes)
-            for (std::size_t k = 0; k + 1 < step_starts.size(); ++k) {
-                auto& s = step_starts[k];
-                const auto& next = step_starts[k + 1];
-                const double dur = next.t_s - s.t_s;
-                // A full charge: a step charging (mean current over 0.1 A) for longer than any pulse; its end
-                // is SOC 1. (The sequencer's own SOC restarts at the end of any CV phase, which the charge
-                // pulses at high SOC also have, so its SOC of later pulse sets is 0.1 too high.)
-                if (dur > 300.0 && (next.q_ah - s.q_ah) * 3600.0 / dur > 0.1) q_full = next.q_ah;
-                if (s.used || s.type == "rest" || !(std::abs(dur - want) <= std::max(2.0, 0.05 * want))) continue;
-                s.used = true;
-                t_s = s.t_s;
-                soc = std::clamp(1.0 + (s.q_ah - q_full) / capacity_ah, 0.0, 1.0);
-                break;
-            }
         }
-        estimator::PulseSetFit f = fit;
-        f.soc = soc;
-        auto rec = pulse_fit_record(id, n, t_s, kNaN, f);
-        if (rec.detail.is_object() || rec.detail.is_null()) rec.detail["sequencer_soc"] = fit.soc;
-        store.record_pulse_fit(rec);
+        store.record_pulse_fit(pulse_fit_record(id, n, rel(t_mono_s), kNaN, fit));
         const auto d = fit.chosen_discharge();
-        spdlog::info("run {}: pulse set {} fitted: SOC {:.3f}, R0 discharge {:.3f} mOhm", id, n, soc,
+        spdlog::info("run {}: pulse set {} fitted: SOC {:.3f}, R0 discharge {:.3f} mOhm", id, n, fit.soc,
                      d.r0_ohm * 1e3);
     }
 
@@ -291,20 +273,6 @@ struct RunContext final : sequencer::RunSink {
         e.detail = summary;
         store.record_event(e);
     }
-
-    // Coulomb count of the run (the API's live SOC).
-    double count_soc(double t_s, double current_a) {
-        std::lock_guard lock(m);
-        if (std::isfinite(last_cycler_t_s) && t_s > last_cycler_t_s && std::isfinite(current_a))
-            soc_q_ah += current_a * (t_s - last_cycler_t_s) / 3600.0;
-        last_cycler_t_s = t_s;
-        return soc_locked();
-    }
-    double soc() {
-        std::lock_guard lock(m);
-        return soc_locked();
-    }
-    double soc_locked() const { return std::clamp(1.0 + soc_q_ah / capacity_ah, 0.0, 1.0); }
 
     json step_json(double t_s) const {
         std::lock_guard lock(m);
@@ -747,7 +715,7 @@ struct BenchDaemon::Impl {
         auto c = active();
 
         // The store's row of a reading (t_s and soc are the run's; set when stored).
-        auto row_of = [](const sequencer::CyclerSample& cs) {
+        static constexpr auto row_of = [](const sequencer::CyclerSample& cs) {
             CyclerSample row;
             row.unix_s = cs.t_wall_s;
             row.voltage_v = cs.voltage_v;
@@ -760,14 +728,18 @@ struct BenchDaemon::Impl {
             row.status = cs.status;
             return row;
         };
-        auto store_row = [&](const sequencer::CyclerSample& cs) {
+        // Stored on the feed thread once the sequencer (SOC's one owner) has taken the row: it carries that SOC.
+        auto store_row = [this, c](const sequencer::CyclerSample& cs) {
             CyclerSample row = row_of(cs);
-            if (c) {
-                row.t_s = c->rel(cs.t_mono_s);
-                row.soc = c->count_soc(row.t_s, cs.current_a);
-                store->push(c->id, row);
+            row.t_s = c->rel(cs.t_mono_s);
+            row.soc = c->seq->soc();
+            {
+                std::lock_guard lock(c->m);
+                c->last_cycler_t_s = row.t_s;
             }
-            return row;
+            store->push(c->id, row);
+            std::lock_guard lock(live_m);
+            live_soc = row.soc;
         };
 
         // Recorded rows first (they precede the live reading), on the tester's own time base.
@@ -790,11 +762,13 @@ struct BenchDaemon::Impl {
                 cs.cycle_id = r.cycle_id;
                 cs.step_type = r.step_type;
                 cs.status = "working";
-                store_row(cs);
                 rows.push_back(std::move(cs));
             }
-            if (c) feed([c, rows = std::move(rows)] {
-                for (const auto& cs : rows) c->seq->on_cycler_record(cs);
+            if (c) feed([c, store_row, rows = std::move(rows)] {
+                for (const auto& cs : rows) {
+                    c->seq->on_cycler_record(cs);
+                    store_row(cs);
+                }
             });
         }
 
@@ -812,25 +786,22 @@ struct BenchDaemon::Impl {
         cs.covered_by_records = s.recording;
         // Without recorded rows (a tester that does not record, or before the first download) the live
         // readings are the samples stored.
-        CyclerSample row;
-        if (!s.recording) {
-            row = store_row(cs);
-        } else {
-            row = row_of(cs);
-            if (c) row.soc = c->soc();  // the Coulomb count of the recorded rows so far
-        }
+        CyclerSample row = row_of(cs);
         if (c) {
             {
                 std::lock_guard lock(c->m);
                 c->last_capacity_ah = g.capacity_ah;
                 c->last_energy_wh = g.energy_wh;
             }
-            feed([c, cs] { c->seq->on_cycler(cs); });
+            feed([c, cs, store_row, stored = !s.recording] {
+                c->seq->on_cycler(cs);
+                if (stored) store_row(cs);
+            });
         }
         std::lock_guard lock(live_m);
         row.t_s = t;  // live: bench time
+        row.soc = live_soc;
         live_cycler = row;
-        live_soc = c ? row.soc : live_soc;
     }
 
     void on_neware_event(const drivers::NewareEvent& e) {
@@ -1393,7 +1364,10 @@ struct BenchDaemon::Impl {
         so.capacity_ah = cell.nominal_capacity_ah;
         if (cell.params_path) {
             try {
-                so.capacity_ah = load_param_file(*cell.params_path).capacity_ah;  // the characterised capacity
+                auto params = std::make_shared<const estimator::ParameterSet>(load_param_file(*cell.params_path));
+                so.capacity_ah = params->capacity_ah;  // the characterised capacity
+                // The run's starting SOC from the rested cell's voltage (the sequencer owns SOC).
+                if (!params->ocv_v.empty()) so.soc_from_ocv = [params](double v) { return params->soc_from_ocv(v); };
             } catch (const std::exception& e) {
                 spdlog::warn("cell {}: {}; SOC uses the nominal capacity", cell.id, e.what());
             }
@@ -1423,6 +1397,10 @@ struct BenchDaemon::Impl {
         // The previous run's fits must have reported before its context goes.
         if (auto old = current()) old->seq->wait_for_fits();
         const double t0 = now_s();
+        {
+            std::lock_guard l(live_m);
+            live_soc = kNaN;  // the new run's SOC comes with its first row
+        }
         auto c = std::make_shared<RunContext>(*store, id, t0, cell.id);
         c->capacity_ah = so.capacity_ah;
         const auto sp = to_sequencer_program(program);

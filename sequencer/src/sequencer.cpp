@@ -1,5 +1,6 @@
 #include "cellbench/sequencer/sequencer.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "cellbench/estimator/segment.hpp"
@@ -29,40 +30,14 @@ std::string fmt(const char* f, double x) {
 }  // namespace
 
 Sequencer::Sequencer(Cycler& cycler, Chamber& chamber, RunSink& sink, SequencerOptions options)
-    : cycler_(cycler), chamber_(chamber), sink_(sink), opt_(std::move(options)) {}
+    : cycler_(cycler), chamber_(chamber), sink_(sink), opt_(std::move(options)),
+      pool_(std::make_unique<OrderedWorkerPool>(opt_.fit_threads)) {}
 
 Sequencer::~Sequencer() { wait_for_fits(); }
 
-void Sequencer::spawn(std::function<std::function<void()>()> compute) {
-    std::lock_guard<std::mutex> lock(workers_mutex_);
-    auto delivered = std::make_shared<std::promise<void>>();
-    std::shared_future<void> previous = last_delivery_;
-    last_delivery_ = delivered->get_future().share();
-    workers_.emplace_back([compute = std::move(compute), previous, delivered] {
-        std::function<void()> deliver;
-        try {
-            deliver = compute();  // in parallel with earlier fits
-        } catch (...) {
-            // compute() reports its own failures through the sink; nothing to deliver
-        }
-        if (previous.valid()) previous.wait();  // results reach the sink in the order the fits were started
-        try {
-            if (deliver) deliver();
-        } catch (...) {
-        }
-        delivered->set_value();
-    });
-}
+void Sequencer::spawn(std::function<std::function<void()>()> compute) { pool_->submit(std::move(compute)); }
 
-void Sequencer::wait_for_fits() {
-    std::vector<std::thread> w;
-    {
-        std::lock_guard<std::mutex> lock(workers_mutex_);
-        w.swap(workers_);
-    }
-    for (auto& t : w)
-        if (t.joinable()) t.join();
-}
+void Sequencer::wait_for_fits() { pool_->wait_idle(); }
 
 void Sequencer::start(const Program& program, double t) {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -92,6 +67,14 @@ void Sequencer::start(const Program& program, double t) {
     window_begin_ = 0;
     last_ocv_v_ = last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
     full_charge_row_ = 0;
+    rec_soc_.clear();
+    soc_anchor_ = kNaN;
+    q_anchor_ah_ = q_closed_ah_ = q_step_ah_ = 0.0;
+    soc_step_sign_ = 0;
+    soc_step_id_ = soc_cycle_id_ = -1;
+    soc_step_type_.clear();
+    soc_last_t_ = kNaN;
+    step_capacity_now_ah_ = step_energy_now_wh_ = kNaN;
     run_start_s_ = t;
     last_cycler_s_ = last_daq_s_ = last_chamber_s_ = -1;
     last_step_id_ = last_cycle_id_ = -1;
@@ -157,6 +140,7 @@ void Sequencer::advance_locked(double t) {
 void Sequencer::finish_locked(RunState end_state, const std::string& reason, double t) {
     if (terminal(state_)) return;
     state_ = end_state;
+    if (last_step_id_ > 0) sink_.on_step_end(t, step_capacity_now_ah_, step_energy_now_wh_);
     sink_.on_state(end_state, reason);
     if (end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10) {
         Recording rec = rec_;
@@ -229,7 +213,9 @@ bool Sequencer::violates_cycler_limits_locked(const CyclerSample& s) {
 void Sequencer::record_locked(const CyclerSample& s) {
     // The run's recording, on the cycler's time base with the latest thermal values.
     const double t_rel = s.t_mono_s - run_start_s_;
+    update_soc_locked(s);
     if (rec_.time_s.empty() || t_rel > rec_.time_s.back()) {
+        rec_soc_.push_back(soc_locked());
         rec_.time_s.push_back(t_rel);
         rec_.voltage_v.push_back(s.voltage_v);
         rec_.current_a.push_back(s.current_a);
@@ -245,10 +231,17 @@ void Sequencer::record_locked(const CyclerSample& s) {
     if (s.step_id > 0 && std::isfinite(s.capacity_ah)) step_capacity_ah_[s.step_id] = std::abs(s.capacity_ah);
     // Step 0 is the idle tester (a live reading before its first row or after its test): no step of the program.
     if (s.step_id > 0 && (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_)) {
+        if (last_step_id_ > 0) sink_.on_step_end(s.t_mono_s, step_capacity_now_ah_, step_energy_now_wh_);
+        step_capacity_now_ah_ = step_energy_now_wh_ = kNaN;
         sink_.on_step(s.t_mono_s, static_cast<int>(segment_), s.step_id, s.cycle_id, s.step_type);
         last_step_id_ = s.step_id;
         last_cycle_id_ = s.cycle_id;
         if (opt_.fit_online) check_pulse_sets_locked();
+    }
+    // The open step's totals: the tester's own counts of this step (its last row's).
+    if (s.step_id > 0 && s.step_id == last_step_id_ && s.cycle_id == last_cycle_id_) {
+        if (std::isfinite(s.capacity_ah)) step_capacity_now_ah_ = std::abs(s.capacity_ah);
+        if (std::isfinite(s.energy_wh)) step_energy_now_wh_ = std::abs(s.energy_wh);
     }
 }
 
@@ -279,6 +272,54 @@ void Sequencer::on_cycler(const CyclerSample& s) {
     }
 }
 
+// SOC, one owner (see the header): the tester's charge of each step (its capacity, signed by the step's
+// current; counted from the current when the tester gives no capacity), anchored at the first row (rested
+// OCV) and at the end of a full CC-CV charge.
+void Sequencer::update_soc_locked(const CyclerSample& s) {
+    if (!std::isfinite(soc_anchor_)) {
+        soc_anchor_ = 1.0;
+        if (opt_.soc_from_ocv && std::abs(s.current_a) < 0.02 && std::isfinite(s.voltage_v)) {
+            const double v = opt_.soc_from_ocv(s.voltage_v);
+            if (std::isfinite(v)) soc_anchor_ = std::clamp(v, 0.0, 1.0);
+        }
+        q_anchor_ah_ = q_closed_ah_ = q_step_ah_ = 0.0;
+    }
+    if (segment_ != soc_segment_ || s.step_id != soc_step_id_ || s.cycle_id != soc_cycle_id_) {
+        // The previous step closes: its charge joins the closed steps; a full charge re-anchors SOC at 1.
+        q_closed_ah_ += q_step_ah_;
+        if (soc_step_sign_ > 0 && soc_step_type_ == "cv" && soc_last_current_a_ <= opt_.full_charge_current_a &&
+            q_step_ah_ > 0.0) {
+            soc_anchor_ = 1.0;
+            q_anchor_ah_ = q_closed_ah_;
+        }
+        q_step_ah_ = 0.0;
+        soc_step_sign_ = 0;
+        soc_segment_ = segment_;
+        soc_step_id_ = s.step_id;
+        soc_cycle_id_ = s.cycle_id;
+    }
+    if (s.current_a > 0.01) soc_step_sign_ = 1;
+    else if (s.current_a < -0.01) soc_step_sign_ = -1;
+    if (std::isfinite(s.capacity_ah) && s.step_id > 0) {
+        q_step_ah_ = soc_step_sign_ * std::abs(s.capacity_ah);
+    } else if (std::isfinite(soc_last_t_) && s.t_mono_s > soc_last_t_ && std::isfinite(s.current_a)) {
+        q_step_ah_ += s.current_a * (s.t_mono_s - soc_last_t_) / 3600.0;
+    }
+    soc_step_type_ = s.step_type;
+    soc_last_current_a_ = s.current_a;
+    soc_last_t_ = s.t_mono_s;
+}
+
+double Sequencer::soc_locked() const {
+    if (!std::isfinite(soc_anchor_)) return kNaN;
+    return std::clamp(soc_anchor_ + (q_closed_ah_ + q_step_ah_ - q_anchor_ah_) / opt_.capacity_ah, 0.0, 1.0);
+}
+
+double Sequencer::soc() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return soc_locked();
+}
+
 void Sequencer::check_pulse_sets_locked() {
     if (rec_.size() < 100) return;
     const Recording window = rec_.slice(window_begin_, rec_.size());
@@ -287,16 +328,15 @@ void Sequencer::check_pulse_sets_locked() {
     const std::size_t begin = window_begin_;
     window_begin_ += ps->end;  // later windows start after this pulse set's relaxation
     ++fitted_pulse_sets_;
-    // SOC by Coulomb counting from the start of the run, which a characterization starts fully charged (or
-    // from the last CV phase of a charge, when the program charged first).
-    double q_full = 0, q = 0;
-    std::size_t full_row = 0;
-    for (std::size_t k = 1; k < begin + ps->pulse_begin && k < rec_.size(); ++k) {
+    // Charge count from the run start (for the OCV chord below) and the SOC of the pulse set's rested start
+    // (the row before its first pulse; the SOC owner's value of that row).
+    double q = 0;
+    for (std::size_t k = 1; k < begin + ps->pulse_begin && k < rec_.size(); ++k)
         q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;
-        if (rec_.step_type[k - 1] == "cv" && rec_.step_type[k] != "cv") q_full = q, full_row = k;
-    }
-    const double soc = 1.0 + (q - q_full) / opt_.capacity_ah;
-    (void)full_row;
+    const std::size_t rest_row = begin + ps->pulse_begin > 0 ? begin + ps->pulse_begin - 1 : 0;
+    const double soc = rest_row < rec_soc_.size() ? rec_soc_[rest_row] : soc_locked();
+    const std::size_t pulse_row = std::min(begin + ps->pulse_begin, rec_.size() - 1);
+    const double t_pulse = run_start_s_ + rec_.time_s[pulse_row];
     // OCV slope (V/Ah) for the fit: the chord from the previous pulse set's rested voltage to this one's, when
     // they are at least 2 % of the capacity apart. The first pulse set has none (the fit says so in a warning);
     // without it the pairs absorb the OCV's fall during the pulse (tau1 about doubles) and R0 reads ~0.5 % high.
@@ -308,11 +348,11 @@ void Sequencer::check_pulse_sets_locked() {
     }
     last_ocv_v_ = ocv_v;
     last_ocv_q_ah_ = q;
-    spawn([this, window, pset = *ps, soc, po, t = last_cycler_s_]() -> std::function<void()> {
+    spawn([this, window, pset = *ps, soc, po, t = last_cycler_s_, t_pulse]() -> std::function<void()> {
         try {
             auto fit = std::make_shared<estimator::PulseSetFit>(estimator::fit_pulse_set(window, pset, po));
             fit->soc = soc;
-            return [this, fit] { sink_.on_pulse_fit(*fit); };
+            return [this, fit, t_pulse] { sink_.on_pulse_fit(*fit, t_pulse); };
         } catch (const std::exception& e) {
             return [this, t, what = std::string(e.what())] {
                 sink_.on_event(t, "warning", "fit", "pulse set not fitted: " + what);
@@ -338,8 +378,15 @@ void Sequencer::on_daq(const DaqSample& s) {
     if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
         state_ == RunState::Running && last_chamber_ && std::isfinite(chamber_target_c_)) {
         const auto& seg = program_.segments[segment_];
-        const bool stable = std::abs(last_chamber_->air_c - chamber_target_c_) < seg.tolerance_c &&
-                            std::abs(s.surface_c - chamber_target_c_) < seg.tolerance_c;
+        // The chamber air and every cell thermocouple (surface Type-T, terminals T1 and T2) that reads a value.
+        bool stable = std::abs(last_chamber_->air_c - chamber_target_c_) < seg.tolerance_c;
+        int sensors = 0;
+        for (double temp : {s.surface_c, s.t1_c, s.t2_c}) {
+            if (!std::isfinite(temp)) continue;
+            ++sensors;
+            stable = stable && std::abs(temp - chamber_target_c_) < seg.tolerance_c;
+        }
+        stable = stable && sensors > 0;
         if (!stable) {
             equilibrium_since_s_ = -1;
         } else if (equilibrium_since_s_ < 0) {
@@ -396,8 +443,13 @@ void Sequencer::tick(double t) {
     if (const double g = grace_of(lim.chamber_loss_grace_s); silent(last_chamber_s_, g))
         return abort_locked("chamber silent for more than " + fmt("%.0f s", g), t);
     if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
-        state_ == RunState::Running && t - segment_start_s_ > program_.segments[segment_].timeout_s)
-        abort_locked("thermal equilibrium not reached within " + fmt("%.0f s", program_.segments[segment_].timeout_s), t);
+        state_ == RunState::Running && t - segment_start_s_ > program_.segments[segment_].timeout_s) {
+        const auto& seg = program_.segments[segment_];
+        const std::string what = "thermal equilibrium not reached within " + fmt("%.0f s", seg.timeout_s);
+        if (seg.abort_on_timeout) return abort_locked(what, t);
+        sink_.on_event(t, "alarm", "equilibrium", what + "; the program goes on (abort_on_timeout is false)");
+        advance_locked(t);
+    }
 }
 
 RunState Sequencer::state() const {
@@ -427,9 +479,7 @@ nlohmann::json Sequencer::status() const {
         j["chamber"] = {{"air_c", last_chamber_->air_c}, {"setpoint_c", last_chamber_->setpoint_c},
                         {"running", last_chamber_->running}, {"alarm_bits", last_chamber_->alarm_bits}};
     if (!rec_.empty()) {
-        double q = 0;
-        for (std::size_t k = 1; k < rec_.size(); ++k) q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;
-        j["soc_estimate"] = std::clamp(1.0 + q / opt_.capacity_ah, 0.0, 1.0);
+        j["soc_estimate"] = soc_locked();
         j["elapsed_s"] = rec_.time_s.back();
     }
     j["pulse_sets_fitted"] = fitted_pulse_sets_;

@@ -3,12 +3,18 @@
 // and that a safety violation stops the current and aborts the run within one sample.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <stdexcept>
+#include <thread>
 #include <fstream>
 #include <sstream>
 
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/sequencer/sequencer.hpp"
+#include "cellbench/sequencer/worker_pool.hpp"
 #include "cellbench/sim/neware_runner.hpp"
 
 using namespace cellbench;
@@ -70,6 +76,8 @@ struct Recorder : RunSink {
     std::mutex m;
     std::vector<std::pair<RunState, std::string>> states;
     std::vector<estimator::PulseSetFit> fits;
+    std::vector<double> fit_times;
+    std::vector<std::pair<double, double>> step_totals;  // (capacity_ah, energy_wh) of each ended step
     std::vector<std::string> events;
     int steps = 0;
     bool got_params = false;
@@ -82,9 +90,14 @@ struct Recorder : RunSink {
         std::lock_guard<std::mutex> l(m);
         events.push_back(sev + " " + kind + ": " + msg);
     }
-    void on_pulse_fit(const estimator::PulseSetFit& f) override {
+    void on_pulse_fit(const estimator::PulseSetFit& f, double t) override {
         std::lock_guard<std::mutex> l(m);
         fits.push_back(f);
+        fit_times.push_back(t);
+    }
+    void on_step_end(double, double capacity_ah, double energy_wh) override {
+        std::lock_guard<std::mutex> l(m);
+        step_totals.emplace_back(capacity_ah, energy_wh);
     }
     void on_parameter_set(const estimator::ParameterSet&, const nlohmann::json&) override { got_params = true; }
 };
@@ -119,6 +132,8 @@ void run_bench(Sequencer& seq, FakeCycler& cyc, ModelCell& cell, FakeChamber& ch
         s.step_id = cyc.runner ? cyc.runner->step_id() : 0;
         s.cycle_id = cyc.runner ? cyc.runner->cycle_id() : 0;
         s.step_type = cyc.runner ? std::string(cyc.runner->step_type_code()) : "rest";
+        s.capacity_ah = cyc.runner ? cyc.runner->step_capacity_ah() : 0.0;  // the tester's count of this step
+        s.energy_wh = cyc.runner ? cyc.runner->step_energy_wh() : 0.0;
         s.status = cyc.runner ? std::string(sim::to_string(cyc.runner->state())) : "stop";
         if (s.status == "finished") s.status = "finish";
         if (s.status == "stopped") s.status = "stop";
@@ -225,4 +240,156 @@ TEST(Sequencer, OperatorPauseResumeAndStop) {
     seq.stop("operator", 3.0);
     EXPECT_EQ(seq.state(), RunState::Stopped);
     EXPECT_EQ(cyc.stops, 1);
+}
+
+namespace {
+
+// A program: chamber to 30 degC, wait for equilibrium, then a 10 s rest on the tester.
+Program equilibrium_program(bool abort_on_timeout, double timeout_s) {
+    Segment wait{Segment::Kind::WaitEquilibrium, {}, 0, 0.5, 60.0, timeout_s, "wait"};
+    wait.abort_on_timeout = abort_on_timeout;
+    return Program{"eq",
+                   {{Segment::Kind::ChamberSetpoint, {}, 30.0, 0.5, 0, 0, "30 degC"},
+                    wait,
+                    {Segment::Kind::Cycler, protocol::StepProgram::from_json(nlohmann::json::parse(R"({
+                       "schema": "cellbench.program/1", "name": "rest",
+                       "steps": [{"type": "rest", "time_s": 10}, {"type": "end"}]})")),
+                     0, 0, 0, 0, "rest"}}};
+}
+
+// Air and cell at 30 degC except the negative terminal's thermocouple (T2), which reads t2_c.
+void feed_thermal(Sequencer& seq, double from_s, double to_s, double t2_c) {
+    for (double t = from_s; t <= to_s + 1e-9; t += 1.0) {
+        seq.on_chamber({t, 0.0, 30.0, 30.0, true, 0});
+        seq.on_daq({t, 0.0, 0.0, 30.0, 30.0, t2_c, 0.0});
+        CyclerSample c;
+        c.t_mono_s = t;
+        c.voltage_v = 3.9;
+        c.status = "stop";
+        seq.on_cycler(c);
+        seq.tick(t);
+    }
+}
+
+std::string segment_kind(const Sequencer& seq) {
+    const auto st = seq.status();
+    return st.contains("segment") ? st["segment"]["kind"].get<std::string>() : "";
+}
+
+}  // namespace
+
+// Issue 14: the equilibrium wait looked at the surface sensor only; a terminal 3 K off passed as equilibrium.
+TEST(Sequencer, EquilibriumWaitsForEveryThermocouple) {
+    FakeCycler cyc;
+    FakeChamber ch;
+    Recorder rec;
+    SequencerOptions opt;
+    opt.fit_online = opt.fit_at_end = false;
+    Sequencer seq(cyc, ch, rec, opt);
+    seq.start(equilibrium_program(true, 3600.0), 0.0);
+    feed_thermal(seq, 0.0, 600.0, 33.0);  // T2 3 K off for 10 min
+    EXPECT_EQ(seq.state(), RunState::Running);
+    EXPECT_EQ(segment_kind(seq), "wait_equilibrium");
+    EXPECT_FALSE(cyc.runner) << "the program went on with a terminal 3 K off";
+    feed_thermal(seq, 601.0, 700.0, 30.1);  // every sensor in tolerance for more than the 60 s hold
+    EXPECT_EQ(segment_kind(seq), "cycler");
+    EXPECT_TRUE(cyc.runner);
+}
+
+// Issue 14: abort_on_timeout = false was dropped on the way to the sequencer (a timeout always aborted).
+TEST(Sequencer, EquilibriumTimeoutGoesOnWhenAbortOnTimeoutIsFalse) {
+    FakeCycler cyc;
+    FakeChamber ch;
+    Recorder rec;
+    SequencerOptions opt;
+    opt.fit_online = opt.fit_at_end = false;
+    Sequencer seq(cyc, ch, rec, opt);
+    seq.start(equilibrium_program(false, 300.0), 0.0);
+    feed_thermal(seq, 0.0, 400.0, 33.0);
+    EXPECT_EQ(seq.state(), RunState::Running);
+    EXPECT_TRUE(cyc.runner) << "the cycler segment did not start after the timeout";
+    bool alarm = false;
+    for (const auto& e : rec.events)
+        if (e.rfind("alarm equilibrium:", 0) == 0 && e.find("goes on") != std::string::npos) alarm = true;
+    EXPECT_TRUE(alarm) << "no alarm event for the equilibrium timeout";
+}
+
+TEST(Sequencer, EquilibriumTimeoutAbortsByDefault) {
+    FakeCycler cyc;
+    FakeChamber ch;
+    Recorder rec;
+    SequencerOptions opt;
+    opt.fit_online = opt.fit_at_end = false;
+    Sequencer seq(cyc, ch, rec, opt);
+    seq.start(equilibrium_program(true, 300.0), 0.0);
+    feed_thermal(seq, 0.0, 400.0, 33.0);
+    EXPECT_EQ(seq.state(), RunState::Aborted);
+    EXPECT_FALSE(cyc.runner);
+}
+
+// Issue 14: the steps' capacity came from whatever live reading was latest when the next step began (0.0 Ah
+// for a 340 s discharge followed by a rest, 0.0034 Ah for a 30 s 4.5 A pulse); it is the tester's count of the
+// step itself. SOC has one owner: a run starting at 90 % (rested OCV) places its pulse sets at the cell's SOC.
+TEST(Sequencer, StepTotalsAndSocFollowTheTesterFromTheRestedOcv) {
+    ModelCell cell(cell_params());  // 90 % SOC, rested
+    FakeCycler cyc;
+    FakeChamber ch;
+    Recorder rec;
+    SequencerOptions opt;
+    opt.capacity_ah = cell.model.params().capacity_ah;
+    opt.fit_at_end = false;
+    const auto params = cell.model.params();
+    opt.soc_from_ocv = [params](double v) { return params.soc_from_ocv(v); };
+    Sequencer seq(cyc, ch, rec, opt);
+    Program p{"hppc_short", {{Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}};
+    seq.start(p, 0.0);
+    std::vector<std::pair<double, double>> truth;  // (t, SOC of the simulated cell)
+    run_bench(seq, cyc, cell, ch, 5 * 3600.0, [&](double t) { truth.emplace_back(t, cell.state.soc); });
+    seq.wait_for_fits();
+    ASSERT_EQ(seq.state(), RunState::Completed);
+    // Steps: rest, then per pulse set: 30 s 4.5 A discharge, rest, 10 s charge, rest, SOC step (0.38 Ah), rest.
+    ASSERT_GE(rec.step_totals.size(), 1u + 3u * 6u);
+    for (int set = 0; set < 3; ++set) {
+        const auto& pulse = rec.step_totals[1 + 6 * set];
+        EXPECT_NEAR(pulse.first, 4.5 * 30.0 / 3600.0, 0.002) << "pulse set " << set + 1;
+        EXPECT_GT(pulse.second, 0.1);  // Wh of a 0.0375 Ah pulse at about 3.8 V
+        EXPECT_NEAR(rec.step_totals[3 + 6 * set].first, 4.5 * 10.0 / 3600.0, 0.002) << "charge pulse " << set + 1;
+        EXPECT_NEAR(rec.step_totals[5 + 6 * set].first, 0.38, 0.005) << "SOC step " << set + 1;
+    }
+    // Fits at the cell's SOC (its truth when the pulse set started), within 1 %.
+    ASSERT_EQ(rec.fits.size(), 3u);
+    ASSERT_EQ(rec.fit_times.size(), 3u);
+    for (std::size_t k = 0; k < rec.fits.size(); ++k) {
+        const auto it = std::lower_bound(truth.begin(), truth.end(), std::make_pair(rec.fit_times[k] - 0.2, 0.0));
+        ASSERT_NE(it, truth.end());
+        EXPECT_NEAR(rec.fits[k].soc, it->second, 0.01) << "pulse set " << k + 1 << " at t " << rec.fit_times[k];
+    }
+    EXPECT_NEAR(seq.soc(), cell.state.soc, 0.01);  // the live SOC at the end
+}
+
+TEST(OrderedWorkerPool, RunsAtMostItsThreadsAtOnceAndDeliversInSubmissionOrder) {
+    std::atomic<int> running{0}, most{0};
+    std::mutex m;
+    std::vector<int> delivered;
+    {
+        OrderedWorkerPool pool(2);
+        for (int k = 0; k < 8; ++k)
+            pool.submit([&, k]() -> std::function<void()> {
+                const int now = ++running;
+                int seen = most.load();
+                while (now > seen && !most.compare_exchange_weak(seen, now)) {}
+                // Later jobs finish first (earlier ones compute longer).
+                std::this_thread::sleep_for(std::chrono::milliseconds(2 * (8 - k)));
+                --running;
+                if (k == 3) throw std::runtime_error("a fit that throws");
+                return [&, k] {
+                    std::lock_guard l(m);
+                    delivered.push_back(k);
+                };
+            });
+        pool.wait_idle();
+        EXPECT_EQ(delivered, (std::vector<int>{0, 1, 2, 4, 5, 6, 7}));
+    }
+    EXPECT_LE(most.load(), 2);
+    EXPECT_GE(most.load(), 1);
 }

@@ -3,7 +3,13 @@
 // instruments' interfaces, supervises the cell on every reading, and fits each HPPC pulse set as it ends.
 //
 // Threading: every on_* / tick / command call may come from any thread; they are serialised by one mutex.
-// Fits run on worker threads and report through the sink.
+// Fits run on a bounded worker pool (SequencerOptions::fit_threads) and report through the sink in the
+// order their pulse sets completed.
+//
+// SOC has one owner, this class: the tester's step capacities (signed by the step's current), anchored at the
+// run's first reading by the rested OCV (SequencerOptions::soc_from_ocv; 1.0 without it) and at the end of a
+// full CC-CV charge (a CV step that ended below full_charge_current_a) at 1.0. soc() is the live value, every
+// recorded row carries it, and each pulse-set fit gets the SOC of its rested start.
 //
 // Safety (checked on every reading, and on tick for silence): any temperature over the cell's maximum,
 // voltage outside the window, current over the limit, chamber air off its set point once settled, or an
@@ -27,6 +33,7 @@
 #include "cellbench/estimator/pulse_fit.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
 #include "cellbench/sequencer/instruments.hpp"
+#include "cellbench/sequencer/worker_pool.hpp"
 
 namespace cellbench::sequencer {
 
@@ -36,6 +43,9 @@ struct Segment {
     double setpoint_c = 0.0;        // ChamberSetpoint
     double tolerance_c = 0.5, hold_s = 600.0, timeout_s = 4 * 3600.0;  // WaitEquilibrium
     std::string name;
+    // WaitEquilibrium not reached within timeout_s: abort the run (true), or an alarm event and the program
+    // goes on with the next segment (false).
+    bool abort_on_timeout = true;
 };
 
 struct Program {
@@ -64,18 +74,26 @@ public:
     virtual ~RunSink() = default;
     virtual void on_state(RunState state, const std::string& reason) = 0;
     virtual void on_step(double t_mono_s, int segment, int step_id, int cycle_id, const std::string& step_type) = 0;
+    // The step last reported by on_step has ended (called before the next on_step, and before the run's end
+    // state): the tester's capacity and energy of that step (absolute values, from its last recorded row).
+    virtual void on_step_end(double /*t_mono_s*/, double /*capacity_ah*/, double /*energy_wh*/) {}
     virtual void on_event(double t_mono_s, const std::string& severity, const std::string& kind,
                           const std::string& message) = 0;
-    virtual void on_pulse_fit(const estimator::PulseSetFit& fit) = 0;
+    // fit.soc is the sequencer's SOC at the pulse set's rested start; t_mono_s the first pulse's start.
+    virtual void on_pulse_fit(const estimator::PulseSetFit& fit, double t_mono_s) = 0;
     virtual void on_parameter_set(const estimator::ParameterSet& params, const nlohmann::json& summary) = 0;
 };
 
 struct SequencerOptions {
     SafetyLimits limits;
-    double capacity_ah = 4.5;  // for the SOC of online fits (counted from the full charge before the pulses)
+    double capacity_ah = 4.5;  // SOC = anchor + tester charge since the anchor / capacity_ah
     double area_m2 = 5.311e-3;
     bool fit_online = true;
     bool fit_at_end = true;
+    // SOC of a rested cell from its voltage (the cell's OCV table); empty: the run starts at SOC 1.
+    std::function<double(double ocv_v)> soc_from_ocv;
+    double full_charge_current_a = 0.1;  // a CV charge step ending at or below this current leaves SOC 1
+    std::size_t fit_threads = 2;         // worker threads of the fits (bounded; results delivered in order)
 };
 
 class Sequencer {
@@ -105,9 +123,10 @@ public:
     void tick(double t_mono_s);  // timeouts: instrument silence, equilibrium wait
 
     [[nodiscard]] RunState state() const;
+    [[nodiscard]] double soc() const;  // live SOC (NaN before the first cycler row)
     [[nodiscard]] nlohmann::json status() const;  // segment, step, SOC, live values
     [[nodiscard]] Recording recording() const;    // the run so far (cycler time base, thermal values attached)
-    void wait_for_fits();                         // joins outstanding fit workers
+    void wait_for_fits();                         // every fit started so far computed and delivered
 
 private:
     bool violates_cycler_limits_locked(const CyclerSample& s);  // aborts and says true when a limit is crossed
@@ -118,8 +137,10 @@ private:
     void start_segment_locked(double t);
     void check_safety_locked(double t);
     void check_pulse_sets_locked();
-    // Runs compute() on a worker; the callable it returns (the delivery to the sink) runs only after every
-    // earlier job's delivery, so fits reach the sink in the order the pulse sets completed.
+    void update_soc_locked(const CyclerSample& s);
+    [[nodiscard]] double soc_locked() const;
+    // Runs compute() on the worker pool; the callable it returns (the delivery to the sink) runs only after
+    // every earlier job's delivery, so fits reach the sink in the order the pulse sets completed.
     void spawn(std::function<std::function<void()>()> compute);
 
     Cycler& cycler_;
@@ -148,9 +169,18 @@ private:
     // pulse set's they give the OCV slope the fit needs (a chord over one SOC step).
     double last_ocv_v_ = std::numeric_limits<double>::quiet_NaN();
     double last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
-    std::mutex workers_mutex_;
-    std::vector<std::thread> workers_;
-    std::shared_future<void> last_delivery_;
+    // The open step's tester totals (on_step_end).
+    double step_capacity_now_ah_ = kNaN, step_energy_now_wh_ = kNaN;
+    // SOC (one owner): anchor SOC at tester charge q_anchor_ah_; q of closed steps plus the open one's.
+    std::vector<double> rec_soc_;  // SOC of each row of rec_
+    double soc_anchor_ = kNaN, q_anchor_ah_ = 0.0, q_closed_ah_ = 0.0, q_step_ah_ = 0.0;
+    int soc_step_sign_ = 0;
+    std::size_t soc_segment_ = 0;
+    int soc_step_id_ = -1, soc_cycle_id_ = -1;
+    std::string soc_step_type_;
+    double soc_last_current_a_ = 0.0, soc_last_t_ = kNaN;
+    // Last: destroyed (joined) first, while everything a delivery uses is still there.
+    std::unique_ptr<OrderedWorkerPool> pool_;
 };
 
 }  // namespace cellbench::sequencer

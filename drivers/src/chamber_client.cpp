@@ -11,6 +11,7 @@
 #include <boost/asio/executor_work_guard.hpp>
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
+#include <boost/asio/strand.hpp>
 #include <spdlog/fmt/fmt.h>
 #include <spdlog/spdlog.h>
 
@@ -62,12 +63,14 @@ const char* exception_name(int code) {
 
 struct ChamberClient::Impl : std::enable_shared_from_this<Impl> {
     Impl(asio::io_context& io, ChamberClientOptions o)
-        : user(io.get_executor()), options(std::move(o)), poll_timer(worker) {
+        : user(asio::make_strand(io)), options(std::move(o)), poll_timer(worker) {
         options.map.validate();
     }
     ~Impl() { shutdown(); }
 
-    asio::io_context::executor_type user;
+    // Callbacks (status, faults, command completions) run on a strand of the user's io_context: one at a
+    // time and in the order the worker produced them, however many threads run that io_context.
+    asio::strand<asio::io_context::executor_type> user;
     ChamberClientOptions options;
     asio::io_context worker;
     asio::executor_work_guard<asio::io_context::executor_type> work{worker.get_executor()};

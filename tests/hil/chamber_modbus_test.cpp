@@ -9,6 +9,8 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <fstream>
 #include <future>
@@ -336,6 +338,56 @@ TEST(ChamberModbus, UnreachableChamberIsAFault) {
     ASSERT_TRUE(fault);
     EXPECT_EQ(fault->kind, ChamberFaultKind::unreachable);
     client.stop();
+}
+
+}  // namespace
+
+namespace {
+
+// Issue 14: the chamber's callbacks ran on whichever io thread was free, so two status callbacks could run at
+// once (and out of order) in a daemon running its io_context on several threads. They run on a strand now.
+TEST(ChamberModbus, CallbacksRunOneAtATimeAndInOrderOnAMultiThreadedIoContext) {
+    sim::PlantOptions o;
+    o.cell = thesis_params();
+    sim::BenchPlant plant(o);
+    auto clock = std::make_shared<sim::BenchClock>(300.0);
+    sim::ChamberServer server(plant, clock);
+    server.start();
+    asio::io_context io;
+    auto work = asio::make_work_guard(io);
+    drivers::ChamberClientOptions options;
+    options.port = server.port();
+    options.poll_interval = 1ms;  // statuses arrive faster than the callback below handles them
+    drivers::ChamberClient client(io, options);
+    std::atomic<int> inside{0}, most{0}, count{0};
+    std::mutex m;
+    std::vector<std::chrono::steady_clock::time_point> times;
+    client.on_status([&](const ChamberStatus& s) {
+        const int now = ++inside;
+        int seen = most.load();
+        while (now > seen && !most.compare_exchange_weak(seen, now)) {}
+        std::this_thread::sleep_for(3ms);
+        {
+            std::lock_guard l(m);
+            times.push_back(s.time);
+        }
+        --inside;
+        ++count;
+    });
+    std::vector<std::thread> threads;
+    for (int k = 0; k < 4; ++k) threads.emplace_back([&] { io.run(); });
+    client.start();
+    const auto end = std::chrono::steady_clock::now() + 20s;  // bounds a broken test only
+    while (count < 100 && std::chrono::steady_clock::now() < end) std::this_thread::sleep_for(5ms);
+    client.stop();
+    work.reset();
+    io.stop();
+    for (auto& t : threads) t.join();
+    server.stop();
+    EXPECT_GE(count.load(), 100);
+    EXPECT_EQ(most.load(), 1) << "status callbacks ran concurrently";
+    std::lock_guard l(m);
+    EXPECT_TRUE(std::is_sorted(times.begin(), times.end())) << "status callbacks ran out of order";
 }
 
 }  // namespace

@@ -1548,21 +1548,33 @@ struct BenchDaemon::Impl {
         spdlog::info("cellbenchd stopped");
     }
 
-    // Waits (bounded) until a stop request and a set point write have been answered.
+    // Waits until the stop request and the safe set point write sent just before have been answered: a probe
+    // queued behind them on each instrument (the clients answer in order). Bounded by what the configured
+    // timeouts allow: on the chamber a poll in progress, the write and the probe, each up to (retries + 1)
+    // attempts of response_timeout_ms; on the cycler the stop and the probe. The probes' callbacks hold the
+    // shared state, never this frame: one answering after the deadline finds nobody waiting, harmlessly.
     void wait_commands() {
-        std::mutex m;
-        std::condition_variable cv;
-        int pending = 2;
-        auto done = [&] {
-            std::lock_guard l(m);
-            --pending;
-            cv.notify_all();
+        struct Pending {
+            std::mutex m;
+            std::condition_variable cv;
+            int left = 2;
         };
+        auto p = std::make_shared<Pending>();
+        auto done = [p] {
+            std::lock_guard l(p->m);
+            --p->left;
+            p->cv.notify_all();
+        };
+        const auto& ch = cfg.faults.chamber;
+        const double chamber_s = 3.0 * (ch.retries + 1) * ch.response_timeout_ms / 1e3;
+        const double cycler_s = 2.0 * cfg.cycler.response_timeout_ms / 1e3;
+        const auto limit = std::chrono::duration<double>(std::max(chamber_s, cycler_s) + 1.0);
         neware->request(protocol::neware::ChannelListRequest{protocol::neware::Command::getchlstatus, cfg.cycler.channels},
-                        [&](const auto&, const std::string&) { done(); });
-        chamber->read_status([&](const auto&, const auto&) { done(); });
-        std::unique_lock l(m);
-        cv.wait_for(l, std::chrono::seconds(3), [&] { return pending <= 0; });
+                        [done](const auto&, const std::string&) { done(); });
+        chamber->read_status([done](const auto&, const auto&) { done(); });
+        std::unique_lock l(p->m);
+        if (!p->cv.wait_for(l, limit, [&] { return p->left <= 0; }))
+            spdlog::warn("shutdown: the instruments did not answer within {:.1f} s; closing the connections", limit.count());
     }
 };
 

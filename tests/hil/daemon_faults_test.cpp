@@ -474,3 +474,32 @@ TEST(DaemonFaults, DeweGarbageFramesAreIgnoredAndCounted) {
     }, 10s));
     b.stop();
 }
+
+namespace {
+
+// Issue 14: at shutdown the daemon waited a fixed 3 s for the stop and the safe set point, although the
+// chamber's config allows (retries + 1) x response_timeout_ms per command: behind a poll answered on its third
+// 2 s attempt, the safe set point was still queued when the connections closed, and never written. The wait
+// now follows the configured timeouts.
+TEST(DaemonFaults, ShutdownWaitsForTheSafeSetPointAsLongAsTheChamberTimeoutsAllow) {
+    FaultBench b("shutdown-wait", [](daemon::BenchConfig& c) {
+        c.faults.chamber.response_timeout_ms = 2000;
+        c.faults.chamber.retries = 2;
+    });
+    ASSERT_TRUE(b.start_discharging());
+    ASSERT_NEAR(b.d().plant()->read().chamber_setpoint_c, 30.0, 1e-9);
+    // A poll is under way when the daemon shuts down: its first two attempts (0 s, 2 s) go unanswered, the
+    // third (4 s) is answered; the safe set point write waits behind it on the chamber's worker.
+    b.chamber().set_unresponsive(true);
+    std::thread back([&] {
+        std::this_thread::sleep_for(3s);
+        b.chamber().set_unresponsive(false);
+    });
+    std::this_thread::sleep_for(500ms);
+    b.d().shutdown();
+    back.join();
+    EXPECT_NEAR(b.d().plant()->read().chamber_setpoint_c, 25.0, 1e-9) << "the safe set point never reached the chamber";
+    EXPECT_LT(std::abs(b.plant_current_a()), 0.05);
+}
+
+}  // namespace

@@ -160,6 +160,34 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     for (std::size_t k = 1; k < fits.size(); ++k)
         EXPECT_NEAR(fits[k - 1]["soc"].get<double>() - fits[k]["soc"].get<double>(), 0.1, 0.02) << "pulse set " << k + 1;
 
+    // Issue 14: each step's capacity is the tester's count of that step (it was the latest live reading's
+    // when the next step began: 0.0 Ah for the SOC steps, 0.0034 Ah for a 30 s 1C pulse).
+    std::vector<const daemon::StepRecord*> pulse_steps;
+    for (const auto& st : steps) {
+        if (st.step_id == 8) pulse_steps.push_back(&st);
+        if (st.step_id == 12) {
+            ASSERT_TRUE(st.capacity_ah.has_value()) << "SOC step " << st.index;
+            EXPECT_GT(*st.capacity_ah, 0.3) << "SOC step " << st.index;
+        }
+    }
+    ASSERT_EQ(pulse_steps.size(), kPulseSets);
+    for (const auto* st : pulse_steps) {
+        ASSERT_TRUE(st->capacity_ah.has_value()) << "pulse step " << st->index;
+        EXPECT_NEAR(*st->capacity_ah, 4.5 * 30.0 / 3600.0, 0.002) << "pulse step " << st->index;
+    }
+    // One owner of SOC: the rows' SOC (what the live value and the dashboard show) just before each pulse set
+    // is the SOC its fit was placed at.
+    for (std::size_t k = 0; k < pulse_steps.size(); ++k) {
+        daemon::SampleQuery q;
+        q.from_s = pulse_steps[k]->started_t_s - 3.0;
+        q.to_s = pulse_steps[k]->started_t_s - 0.5;
+        const json w = d.samples(id, q);
+        ASSERT_FALSE(w["series"]["soc"].empty()) << "pulse set " << k + 1;
+        const json& last = w["series"]["soc"].back();
+        ASSERT_TRUE(last.is_number()) << w.dump();
+        EXPECT_NEAR(last.get<double>(), fits[k]["soc"].get<double>(), 0.01) << "pulse set " << k + 1;
+    }
+
     // The export streams the stored run as BDF CSV.
     auto cursor = d.export_bdf_csv(id);
     const auto head = cursor->next();

@@ -75,6 +75,7 @@ void Sequencer::start(const Program& program, double t) {
     soc_step_type_.clear();
     soc_last_t_ = kNaN;
     step_capacity_now_ah_ = step_energy_now_wh_ = kNaN;
+    step_open_ = false;
     run_start_s_ = t;
     last_cycler_s_ = last_daq_s_ = last_chamber_s_ = -1;
     last_step_id_ = last_cycle_id_ = -1;
@@ -140,7 +141,7 @@ void Sequencer::advance_locked(double t) {
 void Sequencer::finish_locked(RunState end_state, const std::string& reason, double t) {
     if (terminal(state_)) return;
     state_ = end_state;
-    if (last_step_id_ > 0) sink_.on_step_end(t, step_capacity_now_ah_, step_energy_now_wh_);
+    end_step_locked(t);
     sink_.on_state(end_state, reason);
     if (end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10) {
         Recording rec = rec_;
@@ -231,15 +232,16 @@ void Sequencer::record_locked(const CyclerSample& s) {
     if (s.step_id > 0 && std::isfinite(s.capacity_ah)) step_capacity_ah_[s.step_id] = std::abs(s.capacity_ah);
     // Step 0 is the idle tester (a live reading before its first row or after its test): no step of the program.
     if (s.step_id > 0 && (s.step_id != last_step_id_ || s.cycle_id != last_cycle_id_)) {
-        if (last_step_id_ > 0) sink_.on_step_end(s.t_mono_s, step_capacity_now_ah_, step_energy_now_wh_);
+        end_step_locked(s.t_mono_s);
         step_capacity_now_ah_ = step_energy_now_wh_ = kNaN;
         sink_.on_step(s.t_mono_s, static_cast<int>(segment_), s.step_id, s.cycle_id, s.step_type);
+        step_open_ = true;
         last_step_id_ = s.step_id;
         last_cycle_id_ = s.cycle_id;
         if (opt_.fit_online) check_pulse_sets_locked();
     }
     // The open step's totals: the tester's own counts of this step (its last row's).
-    if (s.step_id > 0 && s.step_id == last_step_id_ && s.cycle_id == last_cycle_id_) {
+    if (step_open_ && s.step_id == last_step_id_ && s.cycle_id == last_cycle_id_) {
         if (std::isfinite(s.capacity_ah)) step_capacity_now_ah_ = std::abs(s.capacity_ah);
         if (std::isfinite(s.energy_wh)) step_energy_now_wh_ = std::abs(s.energy_wh);
     }
@@ -267,6 +269,7 @@ void Sequencer::on_cycler(const CyclerSample& s) {
     if (s.status == "working") cycler_seen_working_ = true;
     if (cycler_seen_working_ && state_ == RunState::Running && (s.status == "finish" || s.status == "stop")) {
         if (opt_.fit_online) check_pulse_sets_locked();
+        end_step_locked(s.t_mono_s);  // the program's last step: its totals before the next segment
         sink_.on_event(s.t_mono_s, "info", "cycler", "step program finished (" + s.status + ")");
         advance_locked(s.t_mono_s);
     }
@@ -308,6 +311,13 @@ void Sequencer::update_soc_locked(const CyclerSample& s) {
     soc_step_type_ = s.step_type;
     soc_last_current_a_ = s.current_a;
     soc_last_t_ = s.t_mono_s;
+}
+
+// The step last reported by on_step ended: its tester totals, once.
+void Sequencer::end_step_locked(double t) {
+    if (!step_open_) return;
+    step_open_ = false;
+    sink_.on_step_end(t, step_capacity_now_ah_, step_energy_now_wh_);
 }
 
 double Sequencer::soc_locked() const {

@@ -138,6 +138,7 @@ private:
     void check_safety_locked(double t);
     void check_pulse_sets_locked();
     void update_soc_locked(const CyclerSample& s);
+    void end_step_locked(double t);
     [[nodiscard]] double soc_locked() const;
     // Runs compute() on the worker pool; the callable it returns (the delivery to the sink) runs only after
     // every earlier job's delivery, so fits reach the sink in the order the pulse sets completed.
@@ -171,6 +172,7 @@ private:
     double last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
     // The open step's tester totals (on_step_end).
     double step_capacity_now_ah_ = kNaN, step_energy_now_wh_ = kNaN;
+    bool step_open_ = false;  // on_step sent, on_step_end not yet
     // SOC (one owner): anchor SOC at tester charge q_anchor_ah_; q of closed steps plus the open one's.
     std::vector<double> rec_soc_;  // SOC of each row of rec_
     double soc_anchor_ = kNaN, q_anchor_ah_ = 0.0, q_closed_ah_ = 0.0, q_step_ah_ = 0.0;

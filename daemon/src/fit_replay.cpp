@@ -224,6 +224,8 @@ ReplayedRun replay_run_fits(const RunStore& store, RunId run) {
                 const double te = equilibrium_t[ei++];
                 if (!std::isfinite(target_c)) continue;
                 seq.on_chamber({te, 0.0, target_c, target_c, true, 0});
+                // (The first reading starts the hold, the second ends it: hold_s is 0 in the replay.)
+                seq.on_daq({te, 0.0, 0.0, target_c, target_c, target_c, 0.0});
                 seq.on_daq({te, 0.0, 0.0, target_c, target_c, target_c, 0.0});
             } else {
                 // The live reading that said the tester's program finished (not stored when the tester records).

@@ -230,6 +230,7 @@ struct HttpServer::State : std::enable_shared_from_this<HttpServer::State> {
     };
     std::mutex clients_mutex;
     std::unordered_map<std::string, ClientUse> clients;
+    std::size_t record_reads_total = 0;  // over all clients (under clients_mutex)
     // A new connection of `client`; false when it is over max_connections_per_client (it is counted anyway:
     // release_connection() balances it).
     bool add_connection(const std::string& client) {
@@ -244,18 +245,23 @@ struct HttpServer::State : std::enable_shared_from_this<HttpServer::State> {
         if (it->second.connections > 0) --it->second.connections;
         if (it->second.connections == 0 && it->second.record_reads == 0) clients.erase(it);
     }
+    // A record read of `client` may start unless it already has max_record_reads_per_client in flight while
+    // another client's reads are in flight or queued too (alone, a client may use the whole pool).
     bool begin_record_read(const std::string& client) {
         std::lock_guard lock(clients_mutex);
         auto& u = clients[client];
-        if (opt.max_record_reads_per_client != 0 && u.record_reads >= opt.max_record_reads_per_client) return false;
+        if (opt.max_record_reads_per_client != 0 && u.record_reads >= opt.max_record_reads_per_client &&
+            record_reads_total > u.record_reads)
+            return false;
         ++u.record_reads;
+        ++record_reads_total;
         return true;
     }
     void end_record_read(const std::string& client) {
         std::lock_guard lock(clients_mutex);
         const auto it = clients.find(client);
         if (it == clients.end()) return;
-        if (it->second.record_reads > 0) --it->second.record_reads;
+        if (it->second.record_reads > 0) --it->second.record_reads, --record_reads_total;
         if (it->second.connections == 0 && it->second.record_reads == 0) clients.erase(it);
     }
     // Reads of the run records (SQLite) are routed here, off the io threads, so the cheap requests (health,
@@ -990,7 +996,8 @@ private:
             if (!st_->begin_record_read(client_)) {
                 st_->client_limited.fetch_add(1, std::memory_order_relaxed);
                 return send_reply(too_many(std::to_string(st_->opt.max_record_reads_per_client) +
-                                           " record reads from " + client_ + " are in progress (the per-client limit)"));
+                                           " record reads from " + client_ +
+                                           " are in progress while other clients wait (the per-client limit)"));
             }
             net::post(*st_->read_pool, [self = shared_from_this()] {
                 struct Done {

@@ -15,7 +15,7 @@ DEBS := cmake g++ make pkg-config ccache \
         libsqlite3-dev libmodbus-dev libcli11-dev libgtest-dev libgmock-dev libbenchmark-dev \
         python3 python3-numpy python3-scipy nodejs npm chromium chromium-driver poppler-utils clang libclang-rt-dev
 
-.PHONY: all deps configure build run test test-loaded test-unit test-data bench prove clean install fuzz fuzz-configure soak mutate
+.PHONY: all deps configure build run test test-loaded test-unit test-data bench prove clean install fuzz fuzz-long fuzz-configure soak mutate
 
 all: build
 
@@ -116,6 +116,12 @@ test-loaded: build
 	  ( cd $(BUILD) && ctest --output-on-failure -j$(JOBS) --timeout 600 -L hil ) || { echo "hil failed under load in run $$run"; exit 1; }; \
 	done; \
 	echo "hil passed $(LOADED_RUNS) times in a row under load"
+
+# Issue 16's acceptance run: every target 10 minutes from its corpus, optimised for speed (-O1; a full rebuild of
+# $(FUZZ_BUILD) the first time). About 6 targets x 10 min / $(JOBS) jobs of wall time. `make fuzz` stays short.
+FUZZ_LONG_SECONDS ?= 600
+fuzz-long:
+	$(MAKE) fuzz FUZZ_SECONDS=$(FUZZ_LONG_SECONDS) FUZZ_OPT=-O1
 
 test-unit: build
 	cd $(BUILD) && ctest --output-on-failure -j$(JOBS) -L unit

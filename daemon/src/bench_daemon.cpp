@@ -1350,7 +1350,7 @@ struct BenchDaemon::Impl {
         Program program;
         try {
             cell = load_cell_config(cell_file(cfg.config_dir, req.cell));
-            program = load_program(program_file(cfg.config_dir, req.program), cell, {}, &cfg);
+            program = load_program(program_file(cfg.config_dir, req.program), cell, req.parameters, &cfg);
         } catch (const InputError& e) {
             throw BadRequest(std::string(e.what()) + " (programs and cells are looked up in " +
                              (cfg.config_dir / "programs").string() + " and " + (cfg.config_dir / "cells").string() + ")");

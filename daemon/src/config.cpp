@@ -855,6 +855,19 @@ std::string capacity_text(const Linear& v) {
 
 }  // namespace
 
+std::pair<std::string, json> parse_override_argument(std::string_view text) {
+    const auto eq = text.find('=');
+    if (eq == std::string_view::npos || eq == 0)
+        throw InputError("expected NAME=VALUE (e.g. c_rate=2), got \"" + std::string(text) + "\"");
+    std::string name(text.substr(0, eq));
+    const std::string_view value = text.substr(eq + 1);
+    if (value == "true" || value == "false") return {name, json(value == "true")};
+    double x = 0.0;
+    const auto [p, ec] = std::from_chars(value.data(), value.data() + value.size(), x);
+    if (!value.empty() && ec == std::errc() && p == value.data() + value.size()) return {name, json(x)};
+    return {name, json(std::string(value))};
+}
+
 double evaluate_expression(std::string_view text, const std::map<std::string, double>& names) {
     return ExpressionParser(text, names, false).parse().constant;
 }
@@ -883,7 +896,21 @@ json Program::to_json() const {
     j["name"] = name;
     if (!description.empty()) j["description"] = description;
     j["parameters"] = json::object();
-    for (const auto& [k, v] : parameters) j["parameters"][k] = v;
+    for (const auto& [k, v] : parameters) {
+        const auto spec = parameter_specs.find(k);
+        if (spec == parameter_specs.end() || spec->second.plain()) {
+            j["parameters"][k] = v;
+            continue;
+        }
+        // The declaration form, with the value used as its default: parse_program reads it back unchanged.
+        json d = {{"default", v}};
+        if (spec->second.min) d["min"] = *spec->second.min;
+        if (spec->second.max) d["max"] = *spec->second.max;
+        if (spec->second.integer) d["integer"] = true;
+        if (!spec->second.unit.empty()) d["unit"] = spec->second.unit;
+        if (!spec->second.description.empty()) d["description"] = spec->second.description;
+        j["parameters"][k] = std::move(d);
+    }
     json segs = json::array();
     for (const auto& s : segments) {
         json o;
@@ -1093,6 +1120,31 @@ void check_limits(Ctx& ctx, const std::vector<ExpandedSegment>& segments, const 
     }
 }
 
+// {"default": 1.0, "min": .., "max": .., "integer": bool, "unit": "..", "description": ".."}: the default and the
+// declaration, or nullopt (problems recorded). The default must satisfy the declaration itself.
+std::optional<std::pair<double, ProgramParameter>> parse_parameter_declaration(Ctx& ctx, const json& v, const std::string& path) {
+    Obj o(ctx, &v, path);
+    const std::size_t before = ctx.count();
+    ProgramParameter spec;
+    const auto def = o.number("default", true, Range::any());
+    spec.min = o.number("min", false, Range::any());
+    spec.max = o.number("max", false, Range::any());
+    spec.integer = o.boolean("integer", false).value_or(false);
+    spec.unit = o.string("unit", false, false).value_or("");
+    spec.description = o.string("description", false, false).value_or("");
+    o.finish();
+    if (spec.min && spec.max && *spec.min > *spec.max)
+        ctx.add(path, "min " + format_number(*spec.min) + " is above max " + format_number(*spec.max));
+    if (def) {
+        if ((spec.min && *def < *spec.min) || (spec.max && *def > *spec.max))
+            ctx.add(o.child("default"), "default " + format_number(*def) + " is outside min..max");
+        if (spec.integer && std::floor(*def) != *def)
+            ctx.add(o.child("default"), "expected a whole number (\"integer\": true), got " + format_number(*def));
+    }
+    if (!def || ctx.count() != before) return std::nullopt;
+    return std::make_pair(*def, std::move(spec));
+}
+
 Program parse_program_impl(Ctx& ctx, const json& j, const CellConfig& cell, const ProgramOverrides& overrides,
                            const BenchConfig* bench) {
     Program prog;
@@ -1132,27 +1184,58 @@ Program parse_program_impl(Ctx& ctx, const json& j, const CellConfig& cell, cons
     const auto constants = cell.constants();
     if (const json* pj = root.get("parameters")) {
         if (!pj->is_object()) {
-            ctx.add("$.parameters", "expected an object of name: number, " + got(*pj));
+            ctx.add("$.parameters", "expected an object of name: number (or name: {\"default\": number, ...}), " + got(*pj));
         } else {
             for (const auto& [k, v] : pj->items()) {
                 const std::string p = "$.parameters." + k;
-                if (!valid_parameter_name(k)) ctx.add(p, "expected a name of lower-case letters, digits and _");
-                else if (constants.count(k)) ctx.add(p, "\"" + k + "\" is a cell constant and cannot be a parameter");
-                else if (!v.is_number() || !std::isfinite(v.get<double>())) ctx.add(p, "expected a number, " + got(v));
-                else prog.parameters[k] = v.get<double>();
+                if (!valid_parameter_name(k)) {
+                    ctx.add(p, "expected a name of lower-case letters, digits and _");
+                } else if (constants.count(k)) {
+                    ctx.add(p, "\"" + k + "\" is a cell constant and cannot be a parameter");
+                } else if (v.is_object()) {
+                    if (auto d = parse_parameter_declaration(ctx, v, p)) {
+                        prog.parameters[k] = d->first;
+                        prog.parameter_specs[k] = std::move(d->second);
+                    }
+                } else if (!v.is_number() || !std::isfinite(v.get<double>())) {
+                    ctx.add(p, "expected a number or an object {\"default\": number, \"min\", \"max\", \"unit\"}, " + got(v));
+                } else {
+                    prog.parameters[k] = v.get<double>();
+                    prog.parameter_specs[k] = ProgramParameter{};
+                }
             }
         }
     }
+    // Overrides: every problem at once (unknown name, wrong type, not a whole number, out of the declared range).
+    // A refused override leaves the default in place, so the limit checks below still see the rest.
+    ProgramOverrides accepted;
     for (const auto& [k, v] : overrides) {
+        const std::string p = "$.parameters." + k;
         if (!prog.parameters.count(k)) {
             std::string declared;
             for (const auto& [n, x] : prog.parameters) declared += (declared.empty() ? "" : ", ") + n;
             ctx.add("$.parameters", "override \"" + k + "\" is not a parameter of this program (declared: " +
                                         (declared.empty() ? "none" : declared) + ")");
-        } else if (!std::isfinite(v)) {
-            ctx.add("$.parameters." + k, "override: expected a finite number");
+            continue;
+        }
+        const auto& spec = prog.parameter_specs[k];
+        if (!v.is_number()) {
+            ctx.add(p, "override: expected a number" + (spec.unit.empty() ? "" : " (" + spec.unit + ")") + ", " + got(v));
+            continue;
+        }
+        const double x = v.get<double>();
+        if (!std::isfinite(x)) {
+            ctx.add(p, "override: expected a finite number, " + got(v));
+        } else if (spec.integer && std::floor(x) != x) {
+            ctx.add(p, "override: expected a whole number, got " + format_number(x));
+        } else if ((spec.min && x < *spec.min) || (spec.max && x > *spec.max)) {
+            const std::string unit = spec.unit.empty() ? "" : " " + spec.unit;
+            ctx.add(p, "override: " + format_number(x) + unit + " is out of the declared range " +
+                           (spec.min ? format_number(*spec.min) : std::string("-inf")) + ".." +
+                           (spec.max ? format_number(*spec.max) : std::string("inf")) + unit);
         } else {
-            prog.parameters[k] = v;
+            prog.parameters[k] = x;
+            accepted[k] = x;
         }
     }
 
@@ -1177,7 +1260,7 @@ Program parse_program_impl(Ctx& ctx, const json& j, const CellConfig& cell, cons
             }
         }
         r.finish();
-        if (!repeat_name.empty() && overrides.count(repeat_name)) repeat_values = {overrides.at(repeat_name)};
+        if (!repeat_name.empty() && accepted.count(repeat_name)) repeat_values = {accepted.at(repeat_name).get<double>()};
     }
     if (repeat_name.empty()) repeat_values = {kInf};  // one pass, no binding
 

@@ -221,6 +221,49 @@ struct HttpServer::State : std::enable_shared_from_this<HttpServer::State> {
     std::atomic<std::uint64_t> refused_connections{0};
     std::atomic<std::uint64_t> evicted_connections{0};  // slow header-pending sessions closed for a new one
     std::atomic<std::size_t> sample_reads{0};           // GET samples being served now
+    std::atomic<std::uint64_t> client_limited{0};       // requests answered 429: a client over its cap
+
+    // Per client (remote address): open connections and record reads in flight (see HttpServerOptions).
+    struct ClientUse {
+        std::size_t connections = 0;
+        std::size_t record_reads = 0;
+    };
+    std::mutex clients_mutex;
+    std::unordered_map<std::string, ClientUse> clients;
+    std::size_t record_reads_total = 0;  // over all clients (under clients_mutex)
+    // A new connection of `client`; false when it is over max_connections_per_client (it is counted anyway:
+    // release_connection() balances it).
+    bool add_connection(const std::string& client) {
+        std::lock_guard lock(clients_mutex);
+        const std::size_t n = ++clients[client].connections;
+        return opt.max_connections_per_client == 0 || n <= opt.max_connections_per_client;
+    }
+    void release_connection(const std::string& client) {
+        std::lock_guard lock(clients_mutex);
+        const auto it = clients.find(client);
+        if (it == clients.end()) return;
+        if (it->second.connections > 0) --it->second.connections;
+        if (it->second.connections == 0 && it->second.record_reads == 0) clients.erase(it);
+    }
+    // A record read of `client` may start unless it already has max_record_reads_per_client in flight while
+    // another client's reads are in flight or queued too (alone, a client may use the whole pool).
+    bool begin_record_read(const std::string& client) {
+        std::lock_guard lock(clients_mutex);
+        auto& u = clients[client];
+        if (opt.max_record_reads_per_client != 0 && u.record_reads >= opt.max_record_reads_per_client &&
+            record_reads_total > u.record_reads)
+            return false;
+        ++u.record_reads;
+        ++record_reads_total;
+        return true;
+    }
+    void end_record_read(const std::string& client) {
+        std::lock_guard lock(clients_mutex);
+        const auto it = clients.find(client);
+        if (it == clients.end()) return;
+        if (it->second.record_reads > 0) --it->second.record_reads, --record_reads_total;
+        if (it->second.connections == 0 && it->second.record_reads == 0) clients.erase(it);
+    }
     // Reads of the run records (SQLite) are routed here, off the io threads, so the cheap requests (health,
     // status) never queue behind them.
     // Created by HttpServer::start(), stopped and joined by stop() (never from one of its own threads).
@@ -576,6 +619,13 @@ private:
                              std::string("\"") + key + "\": \"" + *out +
                                  "\" is not a plain name (letters, digits, '.', '_', '-'; no paths)");
         }
+        if (const auto it = body.find("parameters"); it != body.end() && !it->is_null()) {
+            if (!it->is_object())
+                return error(http::status::bad_request,
+                             "\"parameters\": expected an object of overrides of the program's declared parameters, "
+                             "like {\"c_rate\": 2}");
+            for (const auto& [k, v] : it->items()) sr.parameters[k] = v;
+        }
         sr.body = std::move(body);
         return call([&] {
             auto run = st_.backend.start_run(sr);
@@ -668,6 +718,11 @@ private:
                     "# TYPE cellbench_http_connections_refused_total counter\n"
                     "cellbench_http_connections_refused_total " +
                     std::to_string(st_.refused_connections.load()) + "\n";
+            text += "# HELP cellbench_http_client_limited_total Requests answered 429 (a client over its per-client "
+                    "connection or record-read limit).\n"
+                    "# TYPE cellbench_http_client_limited_total counter\n"
+                    "cellbench_http_client_limited_total " +
+                    std::to_string(st_.client_limited.load()) + "\n";
             Reply r;
             r.res.result(http::status::ok);
             r.res.set(http::field::content_type, "text/plain; version=0.0.4; charset=utf-8");
@@ -807,8 +862,14 @@ public:
     Session(tcp::socket&& socket, std::shared_ptr<HttpServer::State> st)
         : stream_(std::move(socket)), st_(std::move(st)) {
         st_->open_connections.fetch_add(1);
+        beast::error_code ec;
+        auto addr = stream_.socket().remote_endpoint(ec).address();
+        if (addr.is_v6() && addr.to_v6().is_v4_mapped()) addr = net::ip::make_address_v4(net::ip::v4_mapped, addr.to_v6());
+        client_ = ec ? std::string("?") : addr.to_string();
+        over_cap_ = !st_->add_connection(client_);
     }
     ~Session() {
+        st_->release_connection(client_);
         st_->open_connections.fetch_sub(1);
         st_->remove(this);
     }
@@ -849,6 +910,13 @@ private:
     void on_header(beast::error_code ec, std::size_t) {
         header_pending_since_.store(0);
         if (ec) return on_read_error(ec);
+        if (over_cap_) {
+            // This client already holds max_connections_per_client connections: answer, close, serve others.
+            st_->client_limited.fetch_add(1, std::memory_order_relaxed);
+            started_ = std::chrono::steady_clock::now();
+            return reply_and_close(too_many(std::to_string(st_->opt.max_connections_per_client) +
+                                            " connections from " + client_ + " are open (the per-client limit)"));
+        }
         started_ = std::chrono::steady_clock::now();
         stream_.expires_after(st_->opt.request_timeout);
         {
@@ -925,13 +993,30 @@ private:
         request_ = parser_->release();
         if (st_->stopping) return send_reply(Router::error(http::status::service_unavailable, "cellbenchd is shutting down"));
         if (st_->read_pool && reads_records(request_)) {
+            if (!st_->begin_record_read(client_)) {
+                st_->client_limited.fetch_add(1, std::memory_order_relaxed);
+                return send_reply(too_many(std::to_string(st_->opt.max_record_reads_per_client) +
+                                           " record reads from " + client_ +
+                                           " are in progress while other clients wait (the per-client limit)"));
+            }
             net::post(*st_->read_pool, [self = shared_from_this()] {
+                struct Done {
+                    Session& s;
+                    ~Done() { s.st_->end_record_read(s.client_); }
+                } done{*self};
                 auto r = std::make_shared<Reply>(route_guarded(*self->st_, self->request_));
                 net::post(self->stream_.get_executor(), [self, r] { self->send_reply(std::move(*r)); });
             });
             return;
         }
         send_reply(route_guarded(*st_, request_));
+    }
+
+    // 429 for a client over one of its caps; Retry-After says when to come back.
+    static Reply too_many(const std::string& why) {
+        Reply r = Router::error(http::status::too_many_requests, "too many requests: " + why + "; retry in a second");
+        r.res.set(http::field::retry_after, "1");
+        return r;
     }
 
     void send_reply(Reply&& reply) {
@@ -1101,6 +1186,8 @@ private:
     std::size_t drained_ = 0;
     std::size_t body_limit_ = 0;  // of the request being read
     std::atomic<std::int64_t> header_pending_since_{0};
+    std::string client_;     // remote address: the unit of the per-client caps
+    bool over_cap_ = false;  // opened beyond max_connections_per_client: answered 429 and closed
 };
 
 // ---------------------------------------------------------------------------------------------------------

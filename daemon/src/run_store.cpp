@@ -1828,6 +1828,79 @@ SampleWindow RunStore::samples(RunId run, std::optional<double> from_s, std::opt
     });
 }
 
+std::vector<CyclerSample> RunStore::cycler_rows(RunId run) const {
+    auto lease = impl_->acquire();
+    return guarded_read(impl_->path, [&] {
+        Stmt s(lease.db(),
+               "SELECT t_s, unix_s, voltage_v, current_a, capacity_ah, energy_wh, soc, step_id, cycle, step_type, status "
+               "FROM cycler_samples WHERE run_id = ?1 ORDER BY rowid");
+        s.integer(1, run);
+        std::vector<CyclerSample> out;
+        while (s.step()) {
+            CyclerSample r;
+            r.t_s = s.col_real(0);
+            r.unix_s = s.col_real(1);
+            r.voltage_v = s.col_real(2);
+            r.current_a = s.col_real(3);
+            r.capacity_ah = s.col_real(4);
+            r.energy_wh = s.col_real(5);
+            r.soc = s.col_real(6);
+            r.step_id = s.is_null(7) ? 0 : static_cast<int>(s.col_int(7));
+            r.cycle = s.is_null(8) ? 0 : static_cast<int>(s.col_int(8));
+            r.step_type = s.col_text(9);
+            r.status = s.col_text(10);
+            out.push_back(std::move(r));
+        }
+        return out;
+    });
+}
+
+std::vector<DaqSample> RunStore::daq_rows(RunId run) const {
+    auto lease = impl_->acquire();
+    return guarded_read(impl_->path, [&] {
+        Stmt s(lease.db(),
+               "SELECT t_s, unix_s, thermopile_v, surface_c, t1_c, t2_c, heat_flux_w_per_m2, sequence "
+               "FROM daq_samples WHERE run_id = ?1 ORDER BY rowid");
+        s.integer(1, run);
+        std::vector<DaqSample> out;
+        while (s.step()) {
+            DaqSample r;
+            r.t_s = s.col_real(0);
+            r.unix_s = s.col_real(1);
+            r.thermopile_v = s.col_real(2);
+            r.surface_c = s.col_real(3);
+            r.t1_c = s.col_real(4);
+            r.t2_c = s.col_real(5);
+            r.heat_flux_w_per_m2 = s.col_real(6);
+            r.sequence = s.is_null(7) ? -1 : s.col_int(7);
+            out.push_back(r);
+        }
+        return out;
+    });
+}
+
+std::vector<ChamberSample> RunStore::chamber_rows(RunId run) const {
+    auto lease = impl_->acquire();
+    return guarded_read(impl_->path, [&] {
+        Stmt s(lease.db(),
+               "SELECT t_s, unix_s, ambient_c, setpoint_c, running, alarm_bits FROM chamber_samples "
+               "WHERE run_id = ?1 ORDER BY rowid");
+        s.integer(1, run);
+        std::vector<ChamberSample> out;
+        while (s.step()) {
+            ChamberSample r;
+            r.t_s = s.col_real(0);
+            r.unix_s = s.col_real(1);
+            r.ambient_c = s.col_real(2);
+            r.setpoint_c = s.col_real(3);
+            if (!s.is_null(4)) r.running = s.col_int(4) != 0;
+            r.alarm_bits = s.is_null(5) ? 0u : static_cast<std::uint32_t>(s.col_int(5));
+            out.push_back(r);
+        }
+        return out;
+    });
+}
+
 Recording RunStore::export_recording(RunId run, std::optional<double> from_s, std::optional<double> to_s,
                                      double max_gap_s) const {
     auto lease = impl_->acquire();

@@ -289,9 +289,20 @@ inline std::string make_request(http::verb method, const std::string& target, co
 // A blocking HTTP/1.1 connection on a plain socket; every receive times out after 10 s.
 class Connection {
 public:
-    explicit Connection(std::uint16_t port) {
+    // `from`: the local (source) address, e.g. "127.0.0.2" to be another client on loopback; null = any.
+    explicit Connection(std::uint16_t port, const char* from = nullptr) {
         fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
         if (fd_ < 0) throw std::runtime_error("socket failed");
+        if (from) {
+            sockaddr_in src{};
+            src.sin_family = AF_INET;
+            src.sin_port = 0;
+            if (::inet_pton(AF_INET, from, &src.sin_addr) != 1 ||
+                ::bind(fd_, reinterpret_cast<sockaddr*>(&src), sizeof src) != 0) {
+                ::close(fd_);
+                throw std::runtime_error(std::string("cannot bind the client to ") + from);
+            }
+        }
         timeval tv{10, 0};
         ::setsockopt(fd_, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
         int one = 1;

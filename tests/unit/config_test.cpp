@@ -267,6 +267,65 @@ TEST(Config, OverridesMustBeDeclaredParameters) {
     EXPECT_NE(issues[0].message.find("c_rate"), std::string::npos) << dump(issues);
 }
 
+TEST(Config, OverridesAreValidatedLikeTheProgramEveryProblemAtOnce) {
+    const auto cell = p45b();
+    const auto bench = sim_bench();
+    // Wrong type, not a whole number, outside the declared range, unknown name, and a value that passes its
+    // declaration but takes a step beyond the cell (c_rate 10 = 45 A charge pulse > 13.5 A): all in one error.
+    const auto issues = issues_of([&] {
+        load_program(program_file(kConfigDir, "hppc_short"), cell,
+                     {{"temperature_c", "warm"}, {"pulse_sets", 2.5}, {"soc_step", 0.9}, {"crate", 2}, {"c_rate", 10}},
+                     &bench);
+    });
+    EXPECT_TRUE(has_issue(issues, "$.parameters.temperature_c", "expected a number (degC), got \"warm\"")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters.pulse_sets", "expected a whole number, got 2.5")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters.soc_step", "0.9 is out of the declared range 0.01..0.5")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters", "\"crate\" is not a parameter")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.segments[2].steps[5].current_a", "max_charge_current_a")) << dump(issues);
+    EXPECT_EQ(issues.size(), 5u) << dump(issues);
+}
+
+TEST(Config, OverridesInTheDeclaredRangeAreUsed) {
+    const auto bench = sim_bench();
+    const auto p = load_program(program_file(kConfigDir, "hppc_short"), p45b(),
+                                {{"c_rate", 2}, {"pulse_sets", 2}, {"temperature_c", 25.5}}, &bench);
+    EXPECT_DOUBLE_EQ(p.parameters.at("c_rate"), 2.0);
+    EXPECT_DOUBLE_EQ(*cycler_of(p, 2).steps[3].current_a, 9.0);  // the discharge pulse at 2C
+    EXPECT_EQ(cycler_of(p, 2).steps[9].count, 2);                  // the loop runs the pulse sets asked for
+    EXPECT_DOUBLE_EQ(std::get<ChamberSetpointSegment>(p.segments[0]).setpoint_c, 25.5);
+    // The declaration travels with the expanded program (the run record) and reads back unchanged.
+    const auto& spec = p.parameter_specs.at("c_rate");
+    EXPECT_EQ(spec.unit, "C");
+    ASSERT_TRUE(spec.max.has_value());
+    EXPECT_DOUBLE_EQ(*spec.max, 10.0);
+    EXPECT_EQ(parse_program(p.to_json(), "expanded.json", p45b()), p);
+}
+
+TEST(Config, ParameterDeclarationsAreCheckedInTheFile) {
+    json j = read_json(kConfigDir / "programs" / "cc.json");
+    j["parameters"]["c_rate"] = {{"default", 20}, {"min", 0.1}, {"max", 10}};
+    j["parameters"]["temperature_c"] = {{"default", 25}, {"min", 30}, {"max", 20}, {"maximum", 1}};
+    j["parameters"]["n"] = {{"default", 1.5}, {"integer", true}};
+    j["parameters"]["m"] = {{"min", 1}};
+    const auto issues = issues_of([&] { parse_program(j, "cc.json", p45b()); });
+    EXPECT_TRUE(has_issue(issues, "$.parameters.c_rate.default", "outside min..max")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters.temperature_c", "min 30 is above max 20")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters.temperature_c.maximum", "unknown field")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters.n.default", "whole number")) << dump(issues);
+    EXPECT_TRUE(has_issue(issues, "$.parameters.m.default", "missing")) << dump(issues);
+}
+
+TEST(Config, CommandLineOverridesAreTyped) {
+    EXPECT_EQ(parse_override_argument("c_rate=2"), (std::pair<std::string, json>{"c_rate", 2.0}));
+    EXPECT_EQ(parse_override_argument("soc_step=5e-2").second, json(0.05));
+    EXPECT_EQ(parse_override_argument("flag=true").second, json(true));
+    EXPECT_EQ(parse_override_argument("c_rate=fast").second, json("fast"));  // the loader names the wrong type
+    EXPECT_EQ(parse_override_argument("c_rate=1e999").second, json("1e999"));
+    EXPECT_EQ(parse_override_argument("c_rate=").second, json(""));
+    EXPECT_THROW(parse_override_argument("c_rate"), InputError);
+    EXPECT_THROW(parse_override_argument("=2"), InputError);
+}
+
 // ---------------------------------------------------------------------------------------------------------
 // Expansion
 

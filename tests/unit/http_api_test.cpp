@@ -3,6 +3,12 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <functional>
+#include <memory>
+#include <mutex>
 #include <filesystem>
 #include <fstream>
 #include <thread>
@@ -213,6 +219,126 @@ TEST(HttpApi, BadStartBodiesAre400AndBackendErrorsMapToStatuses) {
     r = request(port, verb::get, "/api/v1/status");
     EXPECT_TRUE(is_json_error(r, 500));
     EXPECT_EQ(r.body().find("secret internal detail"), std::string::npos) << "internals stay in the log";
+}
+
+TEST(HttpApi, StartParametersReachTheBackendAndAMalformedObjectIs400) {
+    FakeBackend be;
+    TestServer srv(be, with_token());
+    const auto port = srv.port();
+    for (const char* body : {R"({"program": "hppc", "cell": "p45b", "parameters": [1]})",
+                             R"({"program": "hppc", "cell": "p45b", "parameters": "c_rate=2"})",
+                             R"({"program": "hppc", "cell": "p45b", "parameters": 2})"}) {
+        const auto r = request(port, verb::post, "/api/v1/runs", body, kAuth);
+        EXPECT_TRUE(is_json_error(r, 400)) << body;
+        EXPECT_NE(error_of(r).find("\"parameters\""), std::string::npos) << error_of(r);
+    }
+    EXPECT_EQ(be.start_calls, 0);
+    // Values go to the backend as sent (the program loader is the one validator of names, types and ranges).
+    const auto r = request(port, verb::post, "/api/v1/runs",
+                           R"({"program": "hppc", "cell": "p45b", "parameters": {"c_rate": 2, "soc_step": "x"}})", kAuth);
+    ASSERT_EQ(r.result_int(), 201) << r.body();
+    ASSERT_TRUE(be.last_start);
+    ASSERT_EQ(be.last_start->parameters.size(), 2u);
+    EXPECT_EQ(be.last_start->parameters.at("c_rate"), json(2));
+    EXPECT_EQ(be.last_start->parameters.at("soc_step"), json("x"));
+}
+
+namespace {
+// Polls f for up to 20 s (no timing assertion: only that it happens).
+bool poll_until(const std::function<bool()>& f) {
+    for (int i = 0; i < 2000; ++i) {
+        if (f()) return true;
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    return false;
+}
+// Record reads block until released: the read pool fills up.
+struct GatedBackend : FakeBackend {
+    std::mutex gate_m;
+    std::condition_variable gate_cv;
+    bool open = false;
+    std::atomic<int> waiting{0};
+    json get_run(RunId id) override {
+        ++waiting;
+        std::unique_lock lock(gate_m);
+        gate_cv.wait(lock, [&] { return open; });
+        return FakeBackend::get_run(id);
+    }
+    void release() {
+        std::lock_guard lock(gate_m);
+        open = true;
+        gate_cv.notify_all();
+    }
+};
+}  // namespace
+
+TEST(HttpApi, AClientOverItsConnectionCapGets429WhileOthersAreServed) {
+    FakeBackend be;
+    HttpServerOptions opt;
+    opt.max_connections_per_client = 3;
+    TestServer srv(be, opt);
+    const auto port = srv.port();
+    // Client A (127.0.0.1) holds 3 idle connections: its 4th is answered 429 with Retry-After and closed.
+    std::vector<std::unique_ptr<Connection>> idle;
+    for (int i = 0; i < 3; ++i) idle.push_back(std::make_unique<Connection>(port, "127.0.0.1"));
+    {
+        Connection over(port, "127.0.0.1");
+        const auto r = over.request(verb::get, "/api/v1/health");
+        EXPECT_TRUE(is_json_error(r, 429)) << r.body();
+        EXPECT_EQ(r[http::field::retry_after], "1");
+        EXPECT_NE(error_of(r).find("127.0.0.1"), std::string::npos) << error_of(r);
+        EXPECT_TRUE(over.closed_by_peer());
+    }
+    // Client B (127.0.0.2, another host as far as the server can tell) is served as usual.
+    {
+        Connection other(port, "127.0.0.2");
+        EXPECT_EQ(other.request(verb::get, "/api/v1/health").result_int(), 200);
+    }
+    // A closes one: its next connection is served again (the server sees the close asynchronously).
+    idle.pop_back();
+    EXPECT_TRUE(poll_until([&] {
+        Connection again(port, "127.0.0.1");
+        return again.request(verb::get, "/api/v1/health").result_int() == 200;
+    }));
+    const auto m = request(port, verb::get, "/metrics").body();
+    EXPECT_NE(m.find("cellbench_http_client_limited_total 1\n"), std::string::npos) << m;
+}
+
+
+TEST(HttpApi, AClientOverItsRecordReadCapGets429WhileOthersWaitAndKeepsItsConnection) {
+    GatedBackend be;
+    HttpServerOptions opt;
+    opt.max_record_reads_per_client = 1;
+    TestServer srv(be, opt);
+    const auto port = srv.port();
+    // A client alone may use the whole read pool: two reads of A at once are both taken.
+    std::atomic<int> served{0};
+    std::vector<std::thread> readers;
+    auto read_from = [&](const char* from) {
+        readers.emplace_back([&, from] {
+            Connection c(port, from);
+            if (c.request(verb::get, "/api/v1/runs/1").result_int() == 200) ++served;
+        });
+    };
+    read_from("127.0.0.1");
+    ASSERT_TRUE(poll_until([&] { return be.waiting.load() == 1; }));
+    read_from("127.0.0.2");  // B's read: in the backend too (the pool has two threads)
+    ASSERT_TRUE(poll_until([&] { return be.waiting.load() == 2; }));
+    // Now A (one read in flight, the cap) and B compete: A's next record read is refused at once, with
+    // Retry-After, and its connection stays usable.
+    Connection a(port, "127.0.0.1");
+    const auto r = a.request(verb::get, "/api/v1/runs/1/events");
+    EXPECT_TRUE(is_json_error(r, 429)) << r.body();
+    EXPECT_EQ(r[http::field::retry_after], "1");
+    EXPECT_NE(error_of(r).find("127.0.0.1"), std::string::npos) << error_of(r);
+    EXPECT_EQ(a.request(verb::get, "/api/v1/health").result_int(), 200);
+    // A third client is not refused: its read queues and is answered once the pool frees up.
+    read_from("127.0.0.3");
+    be.release();
+    for (auto& t : readers) t.join();
+    EXPECT_EQ(served.load(), 3);
+    // The slots are returned: A may read again.
+    EXPECT_EQ(a.request(verb::get, "/api/v1/runs/1").result_int(), 200);
 }
 
 TEST(HttpApi, OversizedBodiesAre413AndTheServerCarriesOn) {

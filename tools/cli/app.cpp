@@ -114,6 +114,16 @@ int run_cli(int argc, char** argv) {
     steps_cmd->add_option("--config", steps.config, "Bench configuration")->capture_default_str()->check(CLI::ExistingFile);
     steps_cmd->add_option("-o,--output", steps.output, "Step file to write (.xml)")->required();
 
+    CheckOptions check;
+    auto* check_cmd = app.add_subcommand(
+        "check", "Validate a program for a cell and a bench without starting anything; print the compiled plan");
+    check_cmd->add_option("--program", check.program, "Program name (config/programs/NAME.json)")->required();
+    check_cmd->add_option("--cell", check.cell, "Cell name (config/cells/NAME.json)")->required();
+    check_cmd->add_option("--config", check.config, "Bench configuration (its folder holds cells/ and programs/)")
+        ->capture_default_str();
+    check_cmd->add_option("--param", check.params, "Override a declared program parameter, K=V (repeatable)");
+    check_cmd->add_flag("--json", check.json_output, "Print {\"ok\", \"program\" | \"problems\"} as JSON");
+
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
@@ -138,6 +148,7 @@ int run_cli(int argc, char** argv) {
         if (*exp_cmd) return run_export_params(exp);
         if (*simb_cmd) return run_sim(simb);
         if (*steps_cmd) return run_steps(steps);
+        if (*check_cmd) return run_check(check);
     } catch (const InputError& e) {
         spdlog::error("{}", e.what());
         return 1;

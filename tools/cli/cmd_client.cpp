@@ -15,6 +15,7 @@
 #include <optional>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 #include <boost/asio/connect.hpp>
@@ -27,6 +28,7 @@
 #include <spdlog/spdlog.h>
 
 #include "cellbench/core/recording.hpp"
+#include "cellbench/daemon/config.hpp"
 #include "cli/commands.hpp"
 #include "cli/files.hpp"
 
@@ -45,6 +47,7 @@ struct ClientCommands {
     bool json_output = false;
     // start
     std::string program, cell;
+    std::vector<std::string> params;  // --param K=V (repeatable)
     bool follow = false;
     double interval_s = 1.0;
     // stop / pause / resume / export
@@ -472,9 +475,33 @@ int follow_run(Client& c, long long id, const ClientCommands& o) {
     return str(final_run, "state", "") == "completed" ? 0 : 1;
 }
 
+}  // namespace
+
+// `--param K=V`... as the "parameters" object of POST /runs (values typed by parse_override_argument; the
+// daemon's program loader validates them). Every malformed argument at once.
+json overrides_json(const std::vector<std::string>& params) {
+    json out = json::object();
+    std::string problems;
+    for (const auto& p : params) {
+        try {
+            auto [k, v] = daemon::parse_override_argument(p);
+            if (out.contains(k)) problems += "\n  --param " + k + ": given more than once";
+            out[k] = std::move(v);
+        } catch (const InputError& e) {
+            problems += "\n  --param: " + std::string(e.what());
+        }
+    }
+    if (!problems.empty()) throw InputError("bad --param arguments:" + problems);
+    return out;
+}
+
+namespace {
+
 int cmd_start(const ClientCommands& o) {
+    json body = {{"program", o.program}, {"cell", o.cell}};
+    if (!o.params.empty()) body["parameters"] = overrides_json(o.params);
     Client c(o);
-    const json run = c.post(std::string(kApi) + "/runs", {{"program", o.program}, {"cell", o.cell}});
+    const json run = c.post(std::string(kApi) + "/runs", body);
     if (!run.is_object() || !run.contains("id") || !run["id"].is_number_integer())
         throw InputError("cellbenchd at " + c.display() + ": POST /api/v1/runs: the answer has no run \"id\"");
     const long long id = run["id"].get<long long>();
@@ -552,6 +579,9 @@ std::shared_ptr<ClientCommands> add_client_commands(CLI::App& app) {
     o->start = common(app.add_subcommand("start", "Start a run on cellbenchd (needs the API token)"), true);
     o->start->add_option("--program", o->program, "Step program name (a file under config/), e.g. hppc")->required();
     o->start->add_option("--cell", o->cell, "Cell name (a file under config/), e.g. p45b")->required();
+    o->start->add_option("--param", o->params,
+                         "Override a declared program parameter, K=V (repeatable), e.g. --param c_rate=2; validated "
+                         "by the daemon like the program (unknown, wrong type or out of range: nothing starts)");
     o->start->add_flag("--follow", o->follow,
                        "Stay until the run ends, with a live progress line on a terminal; exit 0 only if it "
                        "completed (Ctrl-C stops following, not the run)");

@@ -1,8 +1,11 @@
 #include <cmath>
 #include <cstdio>
+#include <utility>
 
 #include <spdlog/spdlog.h>
 
+#include "cellbench/daemon/fit_replay.hpp"
+#include "cellbench/daemon/run_store.hpp"
 #include "cellbench/estimator/fit.hpp"
 #include "cli/commands.hpp"
 #include "cli/files.hpp"
@@ -74,10 +77,80 @@ void print_parameter_table(const estimator::Characterization& c) {
 
 }  // namespace
 
+// fit --db BENCH.sqlite --run ID: the run replayed through the daemon's online fitter (daemon/fit_replay.hpp),
+// read-only. Prints the pulse-set table and how it compares with what the daemon stored.
+int run_fit_db(const FitOptions& o) {
+    if (o.run_id <= 0) throw InputError("fit --db: give the run to replay with --run ID (cellbench runs lists them)");
+    OutputFiles outputs({o.output, o.summary_json});
+    const auto store = daemon::RunStore::open_readonly(o.db);
+    ProgressLine progress("fit --db");
+    const auto r = daemon::replay_run_fits(*store, o.run_id);
+    progress.finish();
+    spdlog::info("{} run {}: {} on {}, {}; replayed {} cycler, {} DAQ, {} chamber samples", o.db, o.run_id,
+                 r.run.program, r.run.cell, daemon::to_string(r.run.state), r.cycler_rows, r.daq_rows, r.chamber_rows);
+    for (const auto& w : r.warnings) spdlog::warn("{}", w);
+
+    // The daemon's own fits, for the comparison (largest relative difference of any fitted value).
+    const auto stored = store->pulse_fits(o.run_id);
+    std::printf("%3s %6s %8s %9s %9s %9s %9s %9s %9s\n", "set", "SOC", "OCV V", "R0d mOhm", "R1d mOhm", "C1d F",
+                "R2d mOhm", "C2d F", "R0c mOhm");
+    for (const auto& f : r.fits)
+        std::printf("%3d %6.3f %8.4f %9.3f %9.3f %9.0f %9.3f %9.0f %9.3f\n", f.pulse_set, f.soc, f.ocv_v,
+                    f.discharge.r0_ohm * 1e3, f.discharge.r1_ohm * 1e3, f.discharge.c1_f, f.discharge.r2_ohm * 1e3,
+                    f.discharge.c2_f, f.charge.r0_ohm * 1e3);
+    nlohmann::json comparison = nullptr;
+    if (!stored.empty()) {
+        double worst = 0.0;
+        const std::size_t n = std::min(stored.size(), r.fits.size());
+        auto rel = [](double a, double b) {
+            if (!std::isfinite(a) && !std::isfinite(b)) return 0.0;
+            return std::abs(a - b) / std::max(std::abs(b), 1e-12);
+        };
+        for (std::size_t k = 0; k < n; ++k) {
+            const auto& a = r.fits[k];
+            const auto& b = stored[k];
+            for (const auto& [x, y] : std::initializer_list<std::pair<double, double>>{{a.ocv_v, b.ocv_v}, {a.discharge.r0_ohm, b.discharge.r0_ohm},
+                                       {a.discharge.r1_ohm, b.discharge.r1_ohm}, {a.discharge.c1_f, b.discharge.c1_f},
+                                       {a.discharge.r2_ohm, b.discharge.r2_ohm}, {a.discharge.c2_f, b.discharge.c2_f},
+                                       {a.charge.r0_ohm, b.charge.r0_ohm}, {a.charge.r1_ohm, b.charge.r1_ohm},
+                                       {a.charge.c1_f, b.charge.c1_f}, {a.charge.r2_ohm, b.charge.r2_ohm},
+                                       {a.charge.c2_f, b.charge.c2_f}})
+                worst = std::max(worst, rel(x, y));
+        }
+        const bool same = stored.size() == r.fits.size() && worst < 1e-9;
+        comparison = {{"daemon_pulse_sets", stored.size()}, {"replayed_pulse_sets", r.fits.size()},
+                      {"max_relative_difference", worst}, {"same", same}};
+        if (same)
+            std::printf("same as the daemon's %zu stored pulse-set fits (largest relative difference %.1e)\n",
+                        stored.size(), worst);
+        else
+            spdlog::warn("the daemon stored {} pulse-set fits, the replay gives {} (largest relative difference of "
+                         "the common ones {:.3g})", stored.size(), r.fits.size(), worst);
+    } else {
+        std::printf("the database holds no pulse-set fits of this run (the daemon died before they landed?): "
+                    "the replay's are the run's\n");
+    }
+    if (!r.params) throw InputError(o.db + " run " + std::to_string(o.run_id) + ": no parameter set: " + r.params_error);
+    if (const auto daemon_params = store->latest_parameter_set(o.run_id))
+        std::printf("the daemon's parameter set of this run: stored (id %lld)\n", static_cast<long long>(daemon_params->id));
+    nlohmann::json params = r.params->to_json();
+    outputs.write_json(o.output, params);
+    if (!o.summary_json.empty()) {
+        nlohmann::json summary = r.summary.is_object() ? r.summary : nlohmann::json::object();
+        nlohmann::json fits = nlohmann::json::array();
+        for (const auto& f : r.fits) fits.push_back(daemon::to_json(f));
+        summary["replay"] = {{"database", o.db}, {"run_id", o.run_id}, {"program", r.run.program}, {"cell", r.run.cell},
+                             {"state", daemon::to_string(r.run.state)}, {"fits", std::move(fits)},
+                             {"comparison", comparison}, {"warnings", r.warnings}};
+        outputs.write_json(o.summary_json, summary);
+    }
+    outputs.commit();
+    spdlog::info("wrote {}", o.output);
+    return 0;
+}
+
 int run_fit(const FitOptions& o) {
-    if (!o.db.empty())
-        throw InputError(o.db + ": replaying a daemon run (--db/--run) needs cellbenchd's database support, "
-                                "which this build does not have yet");
+    if (!o.db.empty()) return run_fit_db(o);
     OutputFiles outputs({o.output, o.summary_json});  // folders checked before the fit, all written or none
     std::vector<Recording> recs;
     for (const auto& path : o.recordings) {

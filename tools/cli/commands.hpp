@@ -68,6 +68,15 @@ struct StepsOptions {
     std::string program, cell, config = "config/bench.sim.json", output;
 };
 int run_steps(const StepsOptions& o);  // cmd_steps.cpp
+
+// check --program NAME --cell CELL [--config BENCH] [--param K=V]... (cmd_check.cpp): the daemon's loaders on
+// the bench, the cell and the program with its overrides; every problem at once (1) or the compiled plan (0).
+struct CheckOptions {
+    std::string program, cell, config = "config/bench.sim.json";
+    std::vector<std::string> params;
+    bool json_output = false;
+};
+int run_check(const CheckOptions& o);
 // export-params --format pybamm PARAMS.json -o FILE (cmd_export_params.cpp): a Python module for PyBaMM's
 // Thevenin model (get_parameter_values() with PyBaMM's ECM names and units).
 struct ExportParamsOptions {
@@ -86,6 +95,10 @@ nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m);
 struct ClientCommands;
 std::shared_ptr<ClientCommands> add_client_commands(CLI::App& app);
 std::optional<int> run_client_command(const ClientCommands& commands);
+
+// `--param K=V` arguments as a JSON object of overrides (POST /runs "parameters"): V typed as a number where it
+// reads as one. Throws InputError naming every malformed argument (no '=', a name given twice).
+nlohmann::json overrides_json(const std::vector<std::string>& params);
 
 // Entry point used by main(): parses argv (usage errors -> 2), runs the command.
 int run_cli(int argc, char** argv);

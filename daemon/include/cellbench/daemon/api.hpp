@@ -38,6 +38,7 @@
 #include <algorithm>
 #include <cstddef>
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <optional>
 #include <stdexcept>
@@ -85,12 +86,15 @@ struct SampleQuery {
 inline constexpr std::size_t kDefaultSamplePoints = 2000;
 inline constexpr std::size_t kMaxSamplePoints = 100000;
 
-// POST /runs body: {"program": "hppc", "cell": "p45b"} (names of files under config/). The server checks
-// that both are non-empty strings; `body` is the whole request object, for options added later.
+// POST /runs body: {"program": "hppc", "cell": "p45b", "parameters": {"c_rate": 2}} (names of files under
+// config/). The server checks that both names are non-empty strings and that "parameters", when present, is an
+// object; the values go to the program loader unchanged (it reports unknown names, wrong types and values out
+// of the declared range all at once: a 400, nothing started). `body` is the whole request object.
 struct StartRequest {
     std::string program;
     std::string cell;
     nlohmann::json body;
+    std::map<std::string, nlohmann::json> parameters;  // = daemon::ProgramOverrides (last: {program, cell, body} still reads)
 };
 
 // POST /runs/{id}/diagnose body {"params": NAME, "effects": [...]} and POST /diagnose?params=NAME&effects=a,b.

@@ -243,10 +243,27 @@ struct WaitEquilibriumSegment {
 using Segment = std::variant<CyclerSegment, ChamberSetpointSegment, WaitEquilibriumSegment>;
 std::string_view segment_type(const Segment& segment);  // "cycler", "chamber_setpoint", "wait_equilibrium"
 
+// A program's declared parameter beyond its default value. A declaration is either a number (the default,
+// any finite override allowed) or an object:
+//   "c_rate": {"default": 1.0, "min": 0.05, "max": 5, "unit": "C", "description": "pulse current / 1C"}
+// with optional "integer": true (an override must be a whole number). Overrides outside [min, max] are refused
+// by the loader, as are overrides the program does not declare; the expanded program is then checked against
+// the cell's and the bench's limits as always.
+struct ProgramParameter {
+    std::optional<double> min, max;  // inclusive
+    bool integer = false;
+    std::string unit;
+    std::string description;
+
+    [[nodiscard]] bool plain() const { return !min && !max && !integer && unit.empty() && description.empty(); }
+    bool operator==(const ProgramParameter&) const = default;
+};
+
 struct Program {
     std::string name;
     std::string description;
     std::map<std::string, double> parameters;  // values used (defaults with overrides applied)
+    std::map<std::string, ProgramParameter> parameter_specs;  // declarations (every declared name has one)
     std::vector<Segment> segments;             // expanded: no expressions, repetitions unrolled
 
     bool operator==(const Program&) const = default;
@@ -255,7 +272,14 @@ struct Program {
     [[nodiscard]] nlohmann::json to_json() const;
 };
 
-using ProgramOverrides = std::map<std::string, double>;
+// Overrides of declared parameters, by name, as a client sent them (POST /runs "parameters", `--param K=V`).
+// Values are JSON so that the loader, the one validator, reports a wrong type ("c_rate": "fast") with the rest.
+using ProgramOverrides = std::map<std::string, nlohmann::json>;
+
+// `K=V` as given on a command line: V is a JSON number when it reads as one ("2", "0.5", "1e-3"), true/false
+// as booleans, else a string (which the loader then refuses as the wrong type, naming it). Throws InputError
+// for text without '=' or with an empty name.
+std::pair<std::string, nlohmann::json> parse_override_argument(std::string_view text);
 
 // ---------------------------------------------------------------------------------------------------------
 // Loaders. All throw ConfigError listing every problem (InputError for an unreadable file or invalid JSON,

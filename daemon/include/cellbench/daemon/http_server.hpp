@@ -40,6 +40,15 @@ struct HttpServerOptions {
     // for its request header (a slow or idle client); only when none is waiting is the new one closed. So
     // slow clients cannot lock out a client that sends its request at once (GET /health keeps answering).
     std::size_t max_connections = 512;
+    // Per client (remote address): beyond this many open connections, a new one from the same address is
+    // answered 429 with Retry-After and closed, while other clients are served as usual. 0 = no limit. A
+    // browser opens at most 6 per host; this stops one host from holding the whole max_connections.
+    std::size_t max_connections_per_client = 64;
+    // Per client: requests that read run records (queued on the small read pool: /runs/..., /diagnoses) in
+    // flight at once while other clients' record reads are in flight or queued too; one more is answered 429
+    // with Retry-After (the connection stays open). A client alone may use the whole pool (behind a reverse
+    // proxy every client is one address). 0 = no limit.
+    std::size_t max_record_reads_per_client = 8;
     // The request header must arrive within this time after the connection opens or the previous response
     // (the keep-alive idle limit too): a few seconds, so slow-header ("slowloris") clients are dropped early.
     std::chrono::milliseconds header_timeout{5'000};

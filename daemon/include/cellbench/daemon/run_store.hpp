@@ -310,6 +310,12 @@ public:
     // max_gap_s of the row (instrument lost) or outside its span. Optional test-time window for paging.
     [[nodiscard]] Recording export_recording(RunId run, std::optional<double> from_s = std::nullopt,
                                              std::optional<double> to_s = std::nullopt, double max_gap_s = 5.0) const;
+    // Every stored sample of a run, source by source, in the order they were stored (rowid: the order the
+    // daemon received them), in one read transaction each. For replays (`cellbench fit --db`): a long run's
+    // DAQ is millions of rows, so these are for offline tools, never for the API.
+    [[nodiscard]] std::vector<CyclerSample> cycler_rows(RunId run) const;
+    [[nodiscard]] std::vector<DaqSample> daq_rows(RunId run) const;
+    [[nodiscard]] std::vector<ChamberSample> chamber_rows(RunId run) const;
     // "ok", or SQLite's list of problems.
     [[nodiscard]] std::string integrity_check() const;
 

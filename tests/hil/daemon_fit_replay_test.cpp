@@ -1,0 +1,134 @@
+// Issue 14's promises at the API edge, on the simulated bench:
+//  - run parameters: POST /runs "parameters" override a program's declared parameters, validated like the
+//    program (every problem named in one 400, nothing started); valid ones shape the run (2 pulse sets, 2C);
+//  - `cellbench fit --db BENCH.sqlite --run ID` replays the stored run through the online fitter and gives the
+//    parameters the daemon gave (GET /runs/{id}/fits): every fitted value equal, SOC within a count's batch.
+#include <gtest/gtest.h>
+
+#include <sys/wait.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "cellbench/daemon/api.hpp"
+#include "cellbench/daemon/bench_daemon.hpp"
+#include "hil/hil_support.hpp"
+
+using namespace cellbench;
+using namespace std::chrono_literals;
+using nlohmann::json;
+namespace fs = std::filesystem;
+using cellbench::test::eventually;
+
+namespace {
+
+const fs::path kSource = CELLBENCH_SOURCE_DIR;
+const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
+
+struct CliRun {
+    int status;
+    std::string output;
+};
+
+CliRun run_cli(const std::string& command) {
+    FILE* p = popen(("timeout 600 " + command + " 2>&1").c_str(), "r");
+    CliRun r{-1, {}};
+    if (!p) return r;
+    char buf[4096];
+    while (fgets(buf, sizeof buf, p)) r.output += buf;
+    const int st = pclose(p);
+    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+    return r;
+}
+
+bool terminal(const std::string& s) { return s != "starting" && s != "running" && s != "paused" && s != "waiting_equilibrium" && s != "stopping"; }
+
+double num(const json& j, const char* key) { return j.contains(key) && j[key].is_number() ? j[key].get<double>() : NAN; }
+
+// Equal to the last bit, or both absent.
+void expect_same(const json& replay, const json& daemon, const std::string& what) {
+    if (daemon.is_null()) {
+        EXPECT_TRUE(replay.is_null()) << what;
+        return;
+    }
+    ASSERT_TRUE(replay.is_object()) << what;
+    for (const char* k : {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"}) {
+        const double a = num(replay, k), b = num(daemon, k);
+        if (std::isnan(b)) EXPECT_TRUE(std::isnan(a)) << what << " " << k;
+        else EXPECT_DOUBLE_EQ(a, b) << what << " " << k;
+    }
+}
+
+}  // namespace
+
+TEST(DaemonFitReplay, RunParametersAreValidatedAndFitDbGivesTheDaemonsParameters) {
+    test::TempDir tmp("fit-replay");
+    daemon::BenchDaemon d(test::sim_bench_config(kSource / "config/bench.sim.json"), test::daemon_options_in(tmp, 100.0));
+    d.start();
+    ASSERT_TRUE(eventually([&] { return test::instruments_connected(d); }, 30s)) << d.status().dump(2);
+
+    // Every problem of the overrides in one refusal; no run is recorded.
+    daemon::StartRequest bad{"hppc_short", "p45b", {}, {}};
+    bad.parameters = {{"c_rate", "fast"}, {"pulse_sets", 2.5}, {"soc_step", 0.9}, {"crate", 1}};
+    try {
+        d.start_run(bad);
+        ADD_FAILURE() << "bad parameters started a run";
+    } catch (const daemon::BadRequest& e) {
+        const std::string m = e.what();
+        for (const char* words : {"$.parameters.c_rate: override: expected a number", "$.parameters.pulse_sets: override: expected a whole number",
+                                  "$.parameters.soc_step: override: 0.9 is out of the declared range",
+                                  "override \"crate\" is not a parameter"})
+            EXPECT_NE(m.find(words), std::string::npos) << words << "\n" << m;
+    }
+    EXPECT_TRUE(d.store().list_runs().empty());
+
+    // A valid override shapes the run: 2 pulse sets instead of 3.
+    daemon::StartRequest good{"hppc_short", "p45b", {}, {}};
+    good.parameters = {{"pulse_sets", 2}};
+    const auto id = d.start_run(good)["id"].get<daemon::RunId>();
+    std::string state;
+    ASSERT_TRUE(eventually([&] {
+        state = d.get_run(id)["state"].get<std::string>();
+        return terminal(state);
+    }, 900s, 200ms));
+    ASSERT_EQ(state, "completed") << d.events(id).dump(1);
+    // The fits and the final parameter set land after the end.
+    ASSERT_TRUE(eventually([&] { return d.store().latest_parameter_set(id).has_value(); }, 300s, 200ms));
+    d.store().flush();
+    const json daemon_fits = d.fits(id)["fits"];
+    ASSERT_EQ(daemon_fits.size(), 2u) << daemon_fits.dump(1);
+    const auto run = d.store().get_run(id);
+    ASSERT_TRUE(run);
+    EXPECT_EQ(run->config["program"]["parameters"]["pulse_sets"]["default"], 2);
+
+    // The replay, read-only, while the daemon still has the database open.
+    const fs::path params = tmp.path / "replay.params.json", summary = tmp.path / "replay.summary.json";
+    const auto r = run_cli(kBin.string() + " fit --db " + d.store().path().string() + " --run " + std::to_string(id) +
+                           " -o " + params.string() + " --json " + summary.string());
+    ASSERT_EQ(r.status, 0) << r.output;
+    EXPECT_NE(r.output.find("same as the daemon's 2 stored pulse-set fits"), std::string::npos) << r.output;
+    const json s = json::parse(std::ifstream(summary));
+    const json& replay = s["replay"]["fits"];
+    ASSERT_EQ(replay.size(), daemon_fits.size()) << s["replay"].dump(1);
+    for (std::size_t k = 0; k < replay.size(); ++k) {
+        const std::string what = "pulse set " + std::to_string(k + 1);
+        EXPECT_EQ(replay[k]["pulse_set"], daemon_fits[k]["pulse_set"]) << what;
+        EXPECT_DOUBLE_EQ(num(replay[k], "ocv_v"), num(daemon_fits[k], "ocv_v")) << what;
+        EXPECT_DOUBLE_EQ(num(replay[k], "rms_v"), num(daemon_fits[k], "rms_v")) << what;
+        EXPECT_EQ(replay[k]["method"], daemon_fits[k]["method"]) << what;
+        expect_same(replay[k]["discharge"], daemon_fits[k]["discharge"], what + " discharge");
+        expect_same(replay[k]["charge"], daemon_fits[k]["charge"], what + " charge");
+        // SOC: the same rule on the same rows, but the daemon's charge count runs a batch of rows ahead.
+        EXPECT_NEAR(num(replay[k], "soc"), num(daemon_fits[k], "soc"), 0.01) << what;
+    }
+    EXPECT_EQ(s["replay"]["comparison"]["same"], true) << s["replay"]["comparison"].dump();
+    const json p = json::parse(std::ifstream(params));
+    EXPECT_EQ(p["schema"], "cellbench.params/1");
+    std::printf("fit --db: %s\n", s["replay"]["comparison"].dump().c_str());
+    d.shutdown();
+}

@@ -1,0 +1,111 @@
+// `cellbench check --program P --cell C [--config BENCH] [--param K=V]...`: a dry run with the daemon's own
+// loaders. A good program prints its compiled plan (exit 0); every problem of the bench, the cell, the program
+// and the overrides is reported at once (exit 1); nothing is started (no daemon is involved at all).
+#include <gtest/gtest.h>
+
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+namespace fs = std::filesystem;
+
+namespace {
+
+const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
+const fs::path kConfig = fs::path(CELLBENCH_SOURCE_DIR) / "config";
+
+struct CliRun {
+    int status;
+    std::string output;  // stdout and stderr
+};
+
+CliRun run(const std::string& command) {
+    FILE* p = popen(("timeout 60 " + command + " 2>&1").c_str(), "r");
+    CliRun r{-1, {}};
+    if (!p) return r;
+    char buf[4096];
+    while (fgets(buf, sizeof buf, p)) r.output += buf;
+    const int st = pclose(p);
+    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+    return r;
+}
+
+std::string check(const std::string& args) {
+    return kBin.string() + " check --config " + (kConfig / "bench.sim.json").string() + " " + args;
+}
+
+bool has(const std::string& text, const std::string& words) { return text.find(words) != std::string::npos; }
+
+// A copy of the shipped config folder (bench, cells, programs) to break on purpose.
+fs::path config_copy(const std::string& tag) {
+    const fs::path dir = fs::temp_directory_path() / ("cellbench-check-" + tag + "-" + std::to_string(::getpid()));
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    fs::copy(kConfig, dir, fs::copy_options::recursive);
+    return dir;
+}
+
+}  // namespace
+
+TEST(CheckCli, AGoodProgramPrintsItsCompiledPlan) {
+    const auto r = run(check("--program hppc_short --cell p45b --param c_rate=2 --param pulse_sets=2"));
+    ASSERT_EQ(r.status, 0) << r.output;
+    EXPECT_TRUE(has(r.output, "ok: program hppc_short for cell p45b")) << r.output;
+    EXPECT_TRUE(has(r.output, "c_rate         2 C")) << r.output;     // the override, with its unit
+    EXPECT_TRUE(has(r.output, "chamber set point 30 degC")) << r.output;
+    EXPECT_TRUE(has(r.output, "cccv_discharge  9 A")) << r.output;   // 2C of the 4.5 Ah cell, evaluated
+    EXPECT_TRUE(has(r.output, "back to step 4, 2 times")) << r.output;
+    EXPECT_TRUE(has(r.output, "largest current 9 A")) << r.output;
+
+    // --json: the expanded program, as the run record stores it.
+    const auto j = run(check("--program hppc_short --cell p45b --param c_rate=2 --json"));
+    ASSERT_EQ(j.status, 0) << j.output;
+    const auto doc = nlohmann::json::parse(j.output);
+    EXPECT_EQ(doc["ok"], true);
+    EXPECT_EQ(doc["program"]["parameters"]["c_rate"]["default"], 2.0);
+}
+
+TEST(CheckCli, EveryProblemOfTheOverridesIsReportedAtOnce) {
+    const auto r = run(check("--program hppc_short --cell p45b --param c_rate=fast --param soc_step=0.9 "
+                             "--param crate=2 --param pulse_sets=1.5 --param bogus"));
+    EXPECT_EQ(r.status, 1) << r.output;
+    EXPECT_TRUE(has(r.output, "nothing was started")) << r.output;
+    EXPECT_TRUE(has(r.output, "--param: expected NAME=VALUE")) << r.output;  // "bogus"
+    EXPECT_TRUE(has(r.output, "$.parameters.c_rate: override: expected a number (C), got \"fast\"")) << r.output;
+    EXPECT_TRUE(has(r.output, "$.parameters.soc_step: override: 0.9 is out of the declared range 0.01..0.5")) << r.output;
+    EXPECT_TRUE(has(r.output, "override \"crate\" is not a parameter of this program")) << r.output;
+    EXPECT_TRUE(has(r.output, "$.parameters.pulse_sets: override: expected a whole number, got 1.5")) << r.output;
+    EXPECT_TRUE(has(r.output, "5 problems")) << r.output;
+}
+
+TEST(CheckCli, ProblemsOfTheBenchTheCellAndTheProgramComeTogether) {
+    const fs::path dir = config_copy("files");
+    // The bench: a bad port. The cell: fine. The program: a step beyond the cell's charge limit and a bad type.
+    {
+        auto bench = nlohmann::json::parse(std::ifstream(dir / "bench.sim.json"));
+        bench["listen"] = "127.0.0.1:99999";
+        std::ofstream(dir / "bench.sim.json") << bench.dump(2);
+        auto prog = nlohmann::json::parse(std::ifstream(dir / "programs" / "cc.json"));
+        prog["segments"][2]["steps"][1]["current_a"] = 30;   // 30 A charge > 13.5 A
+        prog["segments"][1]["hold_s"] = "long";
+        std::ofstream(dir / "programs" / "cc.json") << prog.dump(2);
+    }
+    const auto r = run(kBin.string() + " check --config " + (dir / "bench.sim.json").string() + " --program cc --cell p45b");
+    EXPECT_EQ(r.status, 1) << r.output;
+    EXPECT_TRUE(has(r.output, "bench.sim.json: $.listen")) << r.output;
+    EXPECT_TRUE(has(r.output, "cc.json: $.segments[2].steps[1].current_a")) << r.output;
+    EXPECT_TRUE(has(r.output, "cc.json: $.segments[1].hold_s")) << r.output;
+
+    // An unknown cell: said, and the program is not silently passed.
+    const auto r2 = run(check("--program cc --cell nosuchcell"));
+    EXPECT_EQ(r2.status, 1) << r2.output;
+    EXPECT_TRUE(has(r2.output, "nosuchcell")) << r2.output;
+    EXPECT_TRUE(has(r2.output, "not checked (the cell did not load)")) << r2.output;
+    fs::remove_all(dir);
+}

@@ -33,48 +33,23 @@ public:
     void set_running(bool) override {}
 };
 
-// Collects what the sequencer reports and turns pulse fits into the records the daemon stores, with the
-// daemon's placement rule (bench_daemon.cpp, RunContext::on_pulse_fit): the pulse set starts at the first
-// unused non-rest step whose duration matches the discharge pulse; SOC = 1 + (charge at that step's start -
-// charge at the end of the last long charge) / capacity.
+// Collects what the sequencer reports and turns pulse fits into the records the daemon stores: SOC and the
+// pulse set's time as the sequencer (SOC's one owner) gives them, as bench_daemon.cpp's RunContext does.
 class ReplaySink : public sequencer::RunSink {
 public:
-    ReplaySink(RunId id, double capacity_ah) : id_(id), capacity_ah_(capacity_ah) {}
-
-    double q_ah = 0.0;  // Coulomb count of the rows fed so far (set by the feeder, read under on_step)
+    explicit ReplaySink(RunId id) : id_(id) {}
 
     void on_state(sequencer::RunState, const std::string&) override {}
-    void on_step(double t_s, int, int, int, const std::string& step_type) override {
-        std::lock_guard lock(m_);
-        steps_.push_back({t_s, step_type, q_ah});
-    }
+    void on_step(double, int, int, int, const std::string&) override {}
     void on_event(double, const std::string& severity, const std::string& kind, const std::string& message) override {
         if (severity != "warning" || kind != "fit") return;
         std::lock_guard lock(m_);
         warnings_.push_back(message);
     }
-    void on_pulse_fit(const estimator::PulseSetFit& fit) override {
+    void on_pulse_fit(const estimator::PulseSetFit& fit, double t_s) override {
         std::lock_guard lock(m_);
-        double t_s = kNaN, soc = fit.soc;
         const int n = static_cast<int>(fits_.size()) + 1;
-        const double want = fit.pulse_set.discharge_duration_s;
-        double q_full = 0.0;
-        for (std::size_t k = 0; k + 1 < steps_.size(); ++k) {
-            auto& s = steps_[k];
-            const auto& next = steps_[k + 1];
-            const double dur = next.t_s - s.t_s;
-            if (dur > 300.0 && (next.q_ah - s.q_ah) * 3600.0 / dur > 0.1) q_full = next.q_ah;
-            if (s.used || s.type == "rest" || !(std::abs(dur - want) <= std::max(2.0, 0.05 * want))) continue;
-            s.used = true;
-            t_s = s.t_s;
-            soc = std::clamp(1.0 + (s.q_ah - q_full) / capacity_ah_, 0.0, 1.0);
-            break;
-        }
-        estimator::PulseSetFit f = fit;
-        f.soc = soc;
-        auto rec = pulse_fit_record(id_, n, t_s, kNaN, f);
-        if (rec.detail.is_object() || rec.detail.is_null()) rec.detail["sequencer_soc"] = fit.soc;
-        fits_.push_back(std::move(rec));
+        fits_.push_back(pulse_fit_record(id_, n, t_s, kNaN, fit));
     }
     void on_parameter_set(const estimator::ParameterSet& params, const nlohmann::json& summary) override {
         std::lock_guard lock(m_);
@@ -91,16 +66,8 @@ public:
     }
 
 private:
-    struct StepStart {
-        double t_s;
-        std::string type;
-        double q_ah;
-        bool used = false;
-    };
     RunId id_;
-    double capacity_ah_;
     std::mutex m_;
-    std::vector<StepStart> steps_;
     std::vector<PulseFitRecord> fits_;
     std::optional<estimator::ParameterSet> params_;
     nlohmann::json summary_;
@@ -191,7 +158,7 @@ ReplayedRun replay_run_fits(const RunStore& store, RunId run) {
     if (cell.surface_area_m2 > 0) so.area_m2 = cell.surface_area_m2;
     NullCycler null_cycler;
     NullChamber null_chamber;
-    ReplaySink sink(run, capacity_ah);
+    ReplaySink sink(run);
     sequencer::Sequencer seq(null_cycler, null_chamber, sink, so);
     seq.start(replay_program(program), 0.0);
 
@@ -242,9 +209,6 @@ ReplayedRun replay_run_fits(const RunStore& store, RunId run) {
 
     for (const auto& r : cycler) {
         flush_until(r.t_s);
-        // The Coulomb count the daemon keeps beside (its placement rule for pulse sets uses it).
-        if (std::isfinite(last_t) && r.t_s > last_t && std::isfinite(r.current_a))
-            sink.q_ah += r.current_a * (r.t_s - last_t) / 3600.0;
         if (!std::isfinite(last_t) || r.t_s > last_t) last_t = r.t_s;
         if (std::isfinite(r.voltage_v)) last_v = r.voltage_v;
         sequencer::CyclerSample cs;

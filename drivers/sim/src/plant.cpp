@@ -234,8 +234,10 @@ double BenchClock::max_step_s() const {
 }
 
 double BenchClock::read_locked(WallClock::time_point wall) const {
-    if (wall >= anchor_wall_)
+    if (wall >= anchor_wall_) {
+        if (held_) return anchor_bench_;  // held: no reader runs ahead until the next pace()
         return anchor_bench_ + std::min(seconds(wall - anchor_wall_) * time_scale_, max_step_wall_s_ * time_scale_);
+    }
     // An instant before the last pace(): linear between the bounded steps, each step's gap squeezed.
     for (auto it = jumps_.rbegin(); it != jumps_.rend(); ++it) {
         if (wall >= it->wall) return it->bench + seconds(wall - it->wall) * time_scale_;
@@ -280,7 +282,10 @@ double BenchClock::hold(WallClock::time_point wall) {
 }
 
 double BenchClock::advance_locked(WallClock::time_point wall, bool hold) {
-    if (wall <= anchor_wall_) return anchor_bench_;
+    if (wall <= anchor_wall_) {
+        held_ = held_ || hold;
+        return anchor_bench_;
+    }
     const double dt = seconds(wall - anchor_wall_);
     const double step = hold ? 0.0 : std::min(dt, max_step_wall_s_);
     const double next = std::max(anchor_bench_ + step * time_scale_, last_read_);
@@ -292,6 +297,7 @@ double BenchClock::advance_locked(WallClock::time_point wall, bool hold) {
     anchor_wall_ = wall;
     anchor_bench_ = next;
     last_read_ = anchor_bench_;
+    held_ = hold;
     if (seconds(wall - history_.back().first) >= 1.0) {
         history_.emplace_back(wall, anchor_bench_);
         while (history_.size() > kHistory) history_.pop_front();

@@ -155,6 +155,7 @@ private:
     std::deque<Jump> jumps_;             // the latest bounded steps (at() of an instant before them)
     std::deque<std::pair<WallClock::time_point, double>> history_;  // (wall, bench) about once a second
     double lost_wall_s_ = 0.0;
+    bool held_ = false;  // the last call was hold(): readers see no time pass
 };
 
 }  // namespace cellbench::sim

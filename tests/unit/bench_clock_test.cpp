@@ -67,4 +67,20 @@ TEST(BenchClock, InstantsBeforeABoundedStepMapInOrder) {
     EXPECT_NEAR(clock.at(w0 + 2100ms) - clock.at(w0 + 2060ms), 4.0, 1e-6);
 }
 
+// The daemon holds bench time while its queue of readings is late (a slow consumer, not a silent instrument).
+TEST(BenchClock, HeldClockLetsWallTimePassWithoutBenchTime) {
+    BenchClock clock(400.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    const double b0 = clock.pace(w0);
+    for (int k = 1; k <= 100; ++k) {
+        clock.hold(w0 + k * 10ms);  // 1 s held
+        EXPECT_DOUBLE_EQ(clock.at(w0 + k * 10ms + 5ms), b0) << "a reader ran ahead of a held clock";
+    }
+    const double b1 = clock.pace(w0 + 1010ms);
+    EXPECT_NEAR(b1 - b0, 0.01 * 400.0, 1e-6);  // only the 10 ms after the hold
+    EXPECT_GT(clock.lost_wall_s(), 0.95);
+    EXPECT_LE(clock.at(w0 + 500ms), b1);  // an instant inside the hold maps between its ends
+    EXPECT_GE(clock.at(w0 + 500ms), b0);
+}
+
 }  // namespace

@@ -234,8 +234,10 @@ double BenchClock::max_step_s() const {
 }
 
 double BenchClock::read_locked(WallClock::time_point wall) const {
-    if (wall >= anchor_wall_)
+    if (wall >= anchor_wall_) {
+        if (held_) return anchor_bench_;  // held: no reader runs ahead until the next pace()
         return anchor_bench_ + std::min(seconds(wall - anchor_wall_) * time_scale_, max_step_wall_s_ * time_scale_);
+    }
     // An instant before the last pace(): linear between the bounded steps, each step's gap squeezed.
     for (auto it = jumps_.rbegin(); it != jumps_.rend(); ++it) {
         if (wall >= it->wall) return it->bench + seconds(wall - it->wall) * time_scale_;
@@ -270,18 +272,32 @@ BenchClock::WallClock::time_point BenchClock::wall_at(double bench_time_s) const
 double BenchClock::pace(WallClock::time_point wall) {
     if (!paced_) return at(wall);
     std::lock_guard lock(mutex_);
-    if (wall <= anchor_wall_) return anchor_bench_;
+    return advance_locked(wall, false);
+}
+
+double BenchClock::hold(WallClock::time_point wall) {
+    if (!paced_) return at(wall);
+    std::lock_guard lock(mutex_);
+    return advance_locked(wall, true);
+}
+
+double BenchClock::advance_locked(WallClock::time_point wall, bool hold) {
+    if (wall <= anchor_wall_) {
+        held_ = held_ || hold;
+        return anchor_bench_;
+    }
     const double dt = seconds(wall - anchor_wall_);
-    double next = anchor_bench_ + dt * time_scale_;
-    if (dt > max_step_wall_s_) {
-        next = anchor_bench_ + max_step_wall_s_ * time_scale_;
-        lost_wall_s_ += dt - max_step_wall_s_;
+    const double step = hold ? 0.0 : std::min(dt, max_step_wall_s_);
+    const double next = std::max(anchor_bench_ + step * time_scale_, last_read_);
+    if (step < dt) {
+        lost_wall_s_ += dt - step;
         jumps_.push_back({anchor_wall_, wall, anchor_bench_, next});
         if (jumps_.size() > kMaxJumps) jumps_.pop_front();
     }
     anchor_wall_ = wall;
-    anchor_bench_ = std::max(next, last_read_);
+    anchor_bench_ = next;
     last_read_ = anchor_bench_;
+    held_ = hold;
     if (seconds(wall - history_.back().first) >= 1.0) {
         history_.emplace_back(wall, anchor_bench_);
         while (history_.size() > kHistory) history_.pop_front();

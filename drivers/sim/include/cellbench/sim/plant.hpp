@@ -124,6 +124,9 @@ public:
 
     // Paced mode: moves bench time to `wall` (by at most one bounded step) and returns it. No-op when free.
     double pace(WallClock::time_point wall = WallClock::now());
+    // Paced mode: the consumer is behind (its queue of readings is late): wall time up to `wall` passes without
+    // bench time (readers still never see it go back). No-op when free.
+    double hold(WallClock::time_point wall = WallClock::now());
 
     // Bench seconds per wall second actually achieved over about the last 10 s of wall time (the target scale
     // when free, or before 1 s has passed).
@@ -137,6 +140,7 @@ private:
         double bench_before, bench;
     };
     double read_locked(WallClock::time_point wall) const;
+    double advance_locked(WallClock::time_point wall, bool hold);
 
     double time_scale_;
     double bench_start_s_;
@@ -151,6 +155,7 @@ private:
     std::deque<Jump> jumps_;             // the latest bounded steps (at() of an instant before them)
     std::deque<std::pair<WallClock::time_point, double>> history_;  // (wall, bench) about once a second
     double lost_wall_s_ = 0.0;
+    bool held_ = false;  // the last call was hold(): readers see no time pass
 };
 
 }  // namespace cellbench::sim

@@ -173,6 +173,7 @@ struct RunContext final : sequencer::RunSink {
     // The open step's totals as the sequencer reported them at its end (on_step_end); else the live reading's.
     std::optional<std::pair<double, double>> step_totals;
     double last_capacity_ah = kNaN, last_energy_wh = kNaN;
+    double expected_s = kNaN;  // the program's expected duration (estimate_duration), for progress by time
 
     RunContext(RunStore& s, RunId run, double start, std::string cell)
         : store(s), id(run), start_bench_s(start), cell_name(std::move(cell)) {}
@@ -1424,6 +1425,7 @@ struct BenchDaemon::Impl {
         }
         auto c = std::make_shared<RunContext>(*store, id, t0, cell.id);
         c->capacity_ah = so.capacity_ah;
+        c->expected_s = estimate_duration(program, cell).total_s;
         const auto sp = to_sequencer_program(program);
         for (const auto& s : sp.segments) {  // the sequencer's segments: a cycler program may run as two step files
             if (s.kind != sequencer::Segment::Kind::Cycler) {
@@ -1673,6 +1675,12 @@ json BenchDaemon::status() {
             {{"name", "dewe"}, {"kind", "daq"}, {"state", d.daq_state}, {"address", d.daq_address},
              {"detail", d.daq_detail}, {"mode", mode(d.dewe_publisher != nullptr)}},
         });
+        // Data age: wall seconds since the instrument's newest reading (null before the first).
+        const double now_unix = unix_now_s();
+        auto age = [&](const auto& row) { return row ? json(std::max(0.0, now_unix - row->unix_s)) : json(nullptr); };
+        j["instruments"][0]["data_age_s"] = age(d.live_cycler);
+        j["instruments"][1]["data_age_s"] = age(d.live_chamber);
+        j["instruments"][2]["data_age_s"] = age(d.live_daq);
         json live = {{"time_unix_s", unix_now_s()}, {"test_time_s", nullptr}, {"voltage_v", nullptr},
                      {"current_a", nullptr}, {"soc", nullptr}, {"surface_c", nullptr}, {"ambient_c", nullptr},
                      {"t1_c", nullptr}, {"t2_c", nullptr}, {"heat_flux_w_per_m2", nullptr}};
@@ -1699,6 +1707,14 @@ json BenchDaemon::status() {
         j["live"] = std::move(live);
     }
     j["run"] = c ? d.run_json(c->id) : json(nullptr);
+    // Progress by expected time: test time over the program's expected duration (an estimate: the fraction
+    // stays below 1 until the run ends).
+    if (c && std::isfinite(c->expected_s) && c->expected_s > 0 && std::isfinite(t_rel))
+        j["progress"] = {{"elapsed_s", t_rel},
+                         {"expected_duration_s", c->expected_s},
+                         {"fraction", std::clamp(t_rel / c->expected_s, 0.0, 0.99)}};
+    else
+        j["progress"] = nullptr;
     if (c) j["sequencer"] = c->seq->status();
     return j;
 }

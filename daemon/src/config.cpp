@@ -1311,6 +1311,66 @@ Program parse_program_text(std::string_view text, const std::string& source, con
 }
 
 // ---------------------------------------------------------------------------------------------------------
+// Expected duration
+
+ProgramEstimate estimate_duration(const Program& program, const CellConfig& cell) {
+    using protocol::StepType;
+    ProgramEstimate out;
+    const double q_ah = cell.nominal_capacity_ah > 0 ? cell.nominal_capacity_ah : 1.0;
+    double soc = ProgramEstimate::kStartSoc;
+    for (const auto& seg : program.segments) {
+        double t = 0.0;
+        if (const auto* w = std::get_if<WaitEquilibriumSegment>(&seg)) {
+            t = w->hold_s;
+        } else if (const auto* c = std::get_if<CyclerSegment>(&seg)) {
+            protocol::StepProgram sp = c->program;
+            sp.settings.nominal_capacity_ah = q_ah;
+            try {
+                sp = protocol::resolve_capacity_limits(sp);
+            } catch (const std::exception&) {
+                // a limit that cannot be resolved without a measurement: estimated without it
+            }
+            std::map<std::size_t, int> passes_left;  // per cycle step: jumps back still to do
+            std::size_t k = 0, guard = 0;
+            while (k < sp.steps.size() && ++guard < 1000000) {
+                const auto& st = sp.steps[k];
+                if (st.type == StepType::end) break;
+                if (st.type == StepType::cycle) {
+                    auto it = passes_left.try_emplace(k, std::max(0, st.count - 1)).first;
+                    if (it->second > 0 && st.start_step >= 1 && static_cast<std::size_t>(st.start_step) <= k) {
+                        --it->second;
+                        k = static_cast<std::size_t>(st.start_step - 1);
+                    } else {
+                        passes_left.erase(k);
+                        ++k;
+                    }
+                    continue;
+                }
+                const int dir = protocol::step_direction(st.type);
+                double dt = st.time_s.value_or(kInf);
+                if (dir != 0 && st.current_a && *st.current_a > 0) {
+                    const double i = *st.current_a;
+                    // Constant current until the cell is full/empty (a voltage limit), then the CV tail.
+                    double cc_s = 3600.0 * q_ah * (dir > 0 ? 1.0 - soc : soc) / i;
+                    if (st.cutoff_capacity_ah && st.cutoff_capacity_ah->is_constant())
+                        cc_s = std::min(cc_s, 3600.0 * std::max(0.0, st.cutoff_capacity_ah->constant_ah) / i);
+                    double step_s = cc_s + (protocol::step_has_cv_phase(st.type) ? ProgramEstimate::kCvTailS : 0.0);
+                    dt = std::min(dt, step_s);
+                    const double moved = std::min(dt, cc_s) * i / 3600.0 / q_ah;
+                    soc = std::clamp(soc + dir * moved, 0.0, 1.0);
+                    if (protocol::step_has_cv_phase(st.type) && dt >= cc_s) soc = dir > 0 ? 1.0 : 0.0;
+                }
+                if (std::isfinite(dt)) t += dt;
+                ++k;
+            }
+        }
+        out.segment_s.push_back(t);
+        out.total_s += t;
+    }
+    return out;
+}
+
+// ---------------------------------------------------------------------------------------------------------
 // Files by name
 
 namespace {

@@ -1,6 +1,7 @@
 // Issue 14's promises at the API edge, on the simulated bench:
 //  - run parameters: POST /runs "parameters" override a program's declared parameters, validated like the
 //    program (every problem named in one 400, nothing started); valid ones shape the run (2 pulse sets, 2C);
+//  - /status gives each instrument's data age;
 //  - `cellbench fit --db BENCH.sqlite --run ID` replays the stored run through the online fitter and gives the
 //    parameters the daemon gave (GET /runs/{id}/fits): every fitted value equal, SOC within a count's batch.
 #include <gtest/gtest.h>
@@ -71,6 +72,13 @@ TEST(DaemonFitReplay, RunParametersAreValidatedAndFitDbGivesTheDaemonsParameters
     daemon::BenchDaemon d(test::sim_bench_config(kSource / "config/bench.sim.json"), test::daemon_options_in(tmp, 100.0));
     d.start();
     ASSERT_TRUE(eventually([&] { return test::instruments_connected(d); }, 30s)) << d.status().dump(2);
+    // /status: each instrument says how old its newest reading is (issue 15: data age per instrument).
+    ASSERT_TRUE(eventually([&] {
+        const json st = d.status();
+        for (const auto& i : st["instruments"])
+            if (!i.contains("data_age_s") || !i["data_age_s"].is_number() || i["data_age_s"].get<double>() < 0) return false;
+        return true;
+    }, 30s)) << d.status()["instruments"].dump(2);
 
     // Every problem of the overrides in one refusal; no run is recorded.
     daemon::StartRequest bad{"hppc_short", "p45b", {}, {}};
@@ -92,10 +100,25 @@ TEST(DaemonFitReplay, RunParametersAreValidatedAndFitDbGivesTheDaemonsParameters
     good.parameters = {{"pulse_sets", 2}};
     const auto id = d.start_run(good)["id"].get<daemon::RunId>();
     std::string state;
+    json progress;  // GET /status "progress" seen during the run: by expected time
+    double last_fraction = -1.0;
+    bool progress_monotonic = true;
     ASSERT_TRUE(eventually([&] {
+        const json st = d.status();
+        if (st.contains("progress") && st["progress"].is_object()) {
+            progress = st["progress"];
+            const double f = progress["fraction"].get<double>();
+            progress_monotonic = progress_monotonic && f >= last_fraction;
+            last_fraction = f;
+        }
         state = d.get_run(id)["state"].get<std::string>();
         return terminal(state);
     }, 900s, 200ms));
+    ASSERT_TRUE(progress.is_object()) << "no progress in /status during the run";
+    EXPECT_GT(progress["expected_duration_s"].get<double>(), 3000.0);  // 2 pulse sets of hppc_short: about 1 h
+    EXPECT_GT(last_fraction, 0.3) << progress.dump();  // the estimate assumes a half-charged start; the sim starts full
+    EXPECT_LE(last_fraction, 0.99) << progress.dump();
+    EXPECT_TRUE(progress_monotonic);
     ASSERT_EQ(state, "completed") << d.events(id).dump(1);
     // The fits and the final parameter set land after the end.
     ASSERT_TRUE(eventually([&] { return d.store().latest_parameter_set(id).has_value(); }, 300s, 200ms));

@@ -62,6 +62,7 @@ TEST(CheckCli, AGoodProgramPrintsItsCompiledPlan) {
     EXPECT_TRUE(has(r.output, "cccv_discharge  9 A")) << r.output;   // 2C of the 4.5 Ah cell, evaluated
     EXPECT_TRUE(has(r.output, "back to step 4, 2 times")) << r.output;
     EXPECT_TRUE(has(r.output, "largest current 9 A")) << r.output;
+    EXPECT_TRUE(has(r.output, "expected duration about")) << r.output;
 
     // --json: the expanded program, as the run record stores it.
     const auto j = run(check("--program hppc_short --cell p45b --param c_rate=2 --json"));

@@ -137,6 +137,26 @@ TEST_F(CliClient, StartNeedsTheTokenFromOptionOrEnvironment) {
     EXPECT_TRUE(contains(r.out, "run 2: hppc on p45b, running")) << r.out;
 }
 
+TEST_F(CliClient, StartParamsGoToTheDaemonTypedAndMalformedOnesStopBeforeIt) {
+    serve();
+    // Malformed arguments: every one named, nothing sent.
+    auto r = run("start --program hppc --cell p45b --param c_rate --param x=1 --param x=2 --token " + kToken +
+                 " " + server_args());
+    EXPECT_EQ(r.status, 1);
+    EXPECT_TRUE(contains(r.err, "got \"c_rate\"")) << r.err;
+    EXPECT_TRUE(contains(r.err, "--param x: given more than once")) << r.err;
+    EXPECT_EQ(backend_.start_calls, 0);
+    // Numbers as numbers, anything else as text (the daemon's program loader names the wrong type).
+    r = run("start --program hppc --cell p45b --param c_rate=2 --param soc_step=5e-2 --param pulse_sets=many --token " +
+            kToken + " " + server_args());
+    ASSERT_EQ(r.status, 0) << r.err;
+    ASSERT_TRUE(backend_.last_start);
+    EXPECT_EQ(backend_.last_start->parameters.at("c_rate"), json(2.0));
+    EXPECT_EQ(backend_.last_start->parameters.at("soc_step"), json(0.05));
+    EXPECT_EQ(backend_.last_start->parameters.at("pulse_sets"), json("many"));
+    EXPECT_EQ(backend_.last_start->body["parameters"].size(), 3u);
+}
+
 TEST_F(CliClient, StartFollowWaitsForTheEndAndIsQuietWhenPiped) {
     backend_.polls_until_done = 4;
     serve();

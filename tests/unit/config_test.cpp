@@ -301,6 +301,22 @@ TEST(Config, OverridesInTheDeclaredRangeAreUsed) {
     EXPECT_EQ(parse_program(p.to_json(), "expanded.json", p45b()), p);
 }
 
+TEST(Config, ExpectedDurationFollowsTheProgramsSteps) {
+    const auto cell = p45b();
+    const auto two = estimate_duration(load_program(program_file(kConfigDir, "hppc_short"), cell, {{"pulse_sets", 2}}), cell);
+    const auto three = estimate_duration(load_program(program_file(kConfigDir, "hppc_short"), cell, {{"pulse_sets", 3}}), cell);
+    // One more pass of the loop body: 30 s pulse, 40 s rest, 10 s pulse, 40 s rest, the SOC step
+    // (0.1 * 4.5 Ah - C4 + C6 = 0.425 Ah at 4.5 A = 340 s) and its 600 s rest.
+    EXPECT_NEAR(three.total_s - two.total_s, 30 + 40 + 10 + 40 + 340 + 600, 1e-6);
+    ASSERT_EQ(three.segment_s.size(), 3u);
+    EXPECT_DOUBLE_EQ(three.segment_s[0], 0.0);   // a set point
+    EXPECT_DOUBLE_EQ(three.segment_s[1], 60.0);  // the wait's hold
+    // cc: full charge from 50 % at 1C (1800 s + the CV tail), 600 s rest, the discharge to empty at c_rate.
+    const auto one_c = estimate_duration(load_program(program_file(kConfigDir, "cc"), cell), cell);
+    const auto two_c = estimate_duration(load_program(program_file(kConfigDir, "cc"), cell, {{"c_rate", 2}}), cell);
+    EXPECT_NEAR(one_c.total_s - two_c.total_s, 1800.0, 1e-6);
+}
+
 TEST(Config, ParameterDeclarationsAreCheckedInTheFile) {
     json j = read_json(kConfigDir / "programs" / "cc.json");
     j["parameters"]["c_rate"] = {{"default", 20}, {"min", 0.1}, {"max", 10}};

@@ -224,6 +224,45 @@ TEST_F(RunStoreTest, EveryRecordRoundTripsAndSurvivesReopening) {
     EXPECT_EQ(j.at("samples"), 1110);
 }
 
+TEST_F(RunStoreTest, RawRowsReadBackInTheOrderTheyWereStored) {
+    // What `cellbench fit --db` replays: every row of one run, in arrival order (not time order), all fields.
+    auto store = RunStore::open(db_);
+    const RunId id = store->create_run(new_run("hppc"));
+    const RunId other = store->create_run(new_run("cc"));
+    for (double t : {1.0, 2.0, 0.5, 3.0}) EXPECT_TRUE(store->push(id, cycler(t)));
+    EXPECT_TRUE(store->push(other, cycler(9.0)));
+    auto live = cycler(3.5, 3.65, 0.0);
+    live.step_id = 0;
+    live.step_type = "rest";
+    live.status = "finish";
+    EXPECT_TRUE(store->push(id, live));
+    for (int k = 0; k < 5; ++k) EXPECT_TRUE(store->push(id, daq(k * 0.1, 30.0 + k)));
+    EXPECT_TRUE(store->push(id, chamber(1.0)));
+    ASSERT_TRUE(store->flush());
+
+    const auto c = store->cycler_rows(id);
+    ASSERT_EQ(c.size(), 5u);
+    EXPECT_EQ((std::vector<double>{c[0].t_s, c[1].t_s, c[2].t_s, c[3].t_s, c[4].t_s}),
+              (std::vector<double>{1.0, 2.0, 0.5, 3.0, 3.5}));
+    EXPECT_DOUBLE_EQ(c[1].voltage_v, 3.7);
+    EXPECT_DOUBLE_EQ(c[1].current_a, -4.5);
+    EXPECT_DOUBLE_EQ(c[1].capacity_ah, 0.002);
+    EXPECT_EQ(c[1].step_id, 4);
+    EXPECT_EQ(c[1].cycle, 1);
+    EXPECT_EQ(c[1].step_type, "dc");
+    EXPECT_EQ(c[4].status, "finish");
+    EXPECT_EQ(c[4].step_id, 0);
+    const auto d = store->daq_rows(id);
+    ASSERT_EQ(d.size(), 5u);
+    EXPECT_DOUBLE_EQ(d[4].t_s, 0.4);
+    EXPECT_DOUBLE_EQ(d[4].surface_c, 34.0);
+    const auto ch = store->chamber_rows(id);
+    ASSERT_EQ(ch.size(), 1u);
+    EXPECT_DOUBLE_EQ(ch[0].t_s, 1.0);
+    EXPECT_EQ(store->cycler_rows(other).size(), 1u);
+    EXPECT_TRUE(store->cycler_rows(999).empty());
+}
+
 TEST_F(RunStoreTest, TheFirstTerminalStateWins) {
     auto store = RunStore::open(db_);
     const RunId id = store->create_run(new_run());

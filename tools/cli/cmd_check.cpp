@@ -93,6 +93,9 @@ void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const 
                 std::printf("     %3zu  %s\n", k + 1, step_text(cy->program.steps[k]).c_str());
         }
     }
+    const auto est = daemon::estimate_duration(p, cell);
+    std::printf("expected duration about %.2f h of bench time (estimate: starting at %.0f %% SOC, nominal capacity)\n",
+                est.total_s / 3600.0, daemon::ProgramEstimate::kStartSoc * 100.0);
     std::printf("largest current %s A (cell: charge %s A, discharge %s A; bench group %s A)\n",
                 num(p.max_current_a()).c_str(), num(cell.max_charge_current_a).c_str(),
                 num(cell.max_discharge_current_a).c_str(), num(bench.cycler.group_max_current_a()).c_str());
@@ -155,7 +158,11 @@ int run_check(const CheckOptions& o) {
         return 1;
     }
     if (o.json_output)
-        std::printf("%s\n", json{{"ok", true}, {"program", program->to_json()}}.dump(2).c_str());
+        std::printf("%s\n", json{{"ok", true},
+                                  {"program", program->to_json()},
+                                  {"expected_duration_s", daemon::estimate_duration(*program, *cell).total_s}}
+                                 .dump(2)
+                                 .c_str());
     else
         print_plan(*program, *cell, *bench);
     return 0;

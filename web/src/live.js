@@ -44,7 +44,7 @@ export function liveView(app, setConn) {
     },
   });
 
-  function renderRun(run, live) {
+  function renderRun(run, live, progress) {
     runCard.replaceChildren();
     if (!run) {
       runCard.append(h("h2", null, "No run"), h("div.muted", null, "The bench is idle and no run has been recorded yet. Start one under Run control below, or with ",
@@ -56,7 +56,7 @@ export function liveView(app, setConn) {
       h("div.runhead", null, h("h1", null, `Run ${run.id}`), pill(run.state), runActive ? null : h("span.muted.small", null, "(newest run; none active)")),
       h("div.meta.muted", { style: "margin-top:4px" }, `${run.program} · cell ${run.cell} · ${run.samples ?? 0} samples`,
         d != null ? ` · ${hms(d)} wall` : "", live?.test_time_s != null && runActive ? ` · test time ${hms(live.test_time_s)}` : ""),
-      stepBlock(runActive ? run : null),
+      stepBlock(runActive ? run : null, runActive ? progress : null),
       run.error ? h("div.note.warn", { style: "margin:10px 0 0" }, run.error) : null].filter(Boolean));
   }
 
@@ -83,7 +83,7 @@ export function liveView(app, setConn) {
     runId = run?.id ?? null;
     lastRunObj = run;
     liveStats.runId = runId;
-    renderRun(run, status.live);
+    renderRun(run, status.live, status.progress);
     runLink.replaceChildren(runId ? h("a", { href: `#/runs/${runId}` }, `run ${runId}: steps, events, fits, export →`) : "");
     runLink.href = runId ? `#/runs/${runId}` : "#/runs";
     tiles.replaceChildren(liveTiles(status.live));

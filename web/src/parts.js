@@ -64,7 +64,7 @@ export function instrumentList(instruments, live = {}, metrics = "") {
       return h("tr", { "data-instrument": i.name },
         h("td", null, h("b", null, i.name), h("div.small.muted", null, `${i.kind} · ${i.mode || ""} · ${i.address || ""}`)),
         h("td", null, pill(i.state)),
-        h("td.num", null, i.kind === "cycler" && age != null ? `${fmt(age, 1)} s` : "–"),
+        h("td.num", null, i.data_age_s != null ? `${fmt(i.data_age_s, 1)} s` : i.kind === "cycler" && age != null ? `${fmt(age, 1)} s` : "–"),
         h("td.num", null, rate != null ? fmt(rate, 1) : "–"),
         h("td.num", { "data-metric": "faults" }, num(m("cellbench_instrument_faults_total"))),
         h("td.num", null, num(m("cellbench_instrument_reconnects_total"))),
@@ -86,8 +86,9 @@ export function liveTiles(live) {
   }));
 }
 
-// Program position: step index/count, kind, time in step; a bar for how far through the program.
-export function stepBlock(run) {
+// Program position: step index/count, kind, time in step; a bar for how far through the program: by expected
+// time (GET /status "progress": test time over the program's estimated duration) when given, else by steps.
+export function stepBlock(run, progress = null) {
   const st = run?.step;
   if (!st) return h("div.muted.small", { style: "margin-top:10px" }, run ? "no step running" : "");
   return h("div", null,
@@ -95,5 +96,8 @@ export function stepBlock(run) {
       h("dt", null, "step"), h("dd", { id: "step-index" }, `${st.index} of ${st.count}`),
       h("dt", null, "kind"), h("dd", { id: "step-kind" }, stepWords(st.type)),
       h("dt", null, "in step"), h("dd", null, hms(st.elapsed_s))),
-    h("div.progress", { title: "program position (steps)" }, h("div", { style: `width:${Math.min(100, (100 * st.index) / Math.max(1, st.count)).toFixed(1)}%` })));
+    progress?.fraction != null
+      ? h("div.progress", { id: "run-progress", title: `about ${Math.round(100 * progress.fraction)} % of the expected ${hms(progress.expected_duration_s)} (estimate)` },
+        h("div", { style: `width:${(100 * progress.fraction).toFixed(1)}%` }))
+      : h("div.progress", { title: "program position (steps)" }, h("div", { style: `width:${Math.min(100, (100 * st.index) / Math.max(1, st.count)).toFixed(1)}%` })));
 }

@@ -276,6 +276,19 @@ struct Program {
 // Values are JSON so that the loader, the one validator, reports a wrong type ("c_rate": "fast") with the rest.
 using ProgramOverrides = std::map<std::string, nlohmann::json>;
 
+// How long a program is expected to run on a cell, in bench seconds (progress by expected time, `check`).
+// An estimate: time limits as written; a constant-current phase that runs to a voltage limit moves the SOC to
+// 0 or 1 at its current with the nominal capacity; a capacity limit is taken at its value (step capacities at
+// their nominal values, as `cellbench steps` writes them); the CV phase of a CCCV step adds kCvTailS; a loop
+// runs its body `count` times in all; a wait for equilibrium its hold_s. The SOC starts at kStartSoc.
+struct ProgramEstimate {
+    static constexpr double kStartSoc = 0.5;
+    static constexpr double kCvTailS = 900.0;
+    double total_s = 0.0;
+    std::vector<double> segment_s;  // per segment of the program
+};
+ProgramEstimate estimate_duration(const Program& program, const CellConfig& cell);
+
 // `K=V` as given on a command line: V is a JSON number when it reads as one ("2", "0.5", "1e-3"), true/false
 // as booleans, else a string (which the loader then refuses as the wrong type, naming it). Throws InputError
 // for text without '=' or with an empty name.

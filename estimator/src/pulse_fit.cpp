@@ -1087,7 +1087,10 @@ double estimate_ocv_slope(const Recording& rec, const PulseSet& ps, std::size_t 
         }
     }
     const double slope = f1 <= f2 ? x1 : x2;
-    return std::isfinite(std::min(f1, f2)) ? slope : 0.0;
+    const double best = std::min(f1, f2);
+    // The bracket's end at 0 is never evaluated by the search: a flat OCV is taken when it fits as well.
+    if (!std::isfinite(best) || !(best < cost(0.0))) return 0.0;
+    return slope;
 }
 
 }  // namespace
@@ -1137,7 +1140,7 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     if (o.docv_dah_v_per_ah == 0.0 && o.estimate_unknown_ocv_slope && o.joint_method && !extended_requested) {
         o.docv_dah_v_per_ah = estimate_ocv_slope(rec, ps, first, end, out.ocv_v, out.r0.discharge_ohm, o);
         if (o.docv_dah_v_per_ah > 0.0)
-            out.warnings.push_back(fmt("OCV slope not given: estimated from the pulse set's rests (%.4f V/Ah)",
+            out.warnings.push_back(fmt("OCV slope unknown (docv_dah_v_per_ah = 0): estimated from the pulse set itself, %.4f V/Ah",
                                        o.docv_dah_v_per_ah));
     }
     const Window w = make_window(rec, first, end, out.ocv_v, o.docv_dah_v_per_ah);

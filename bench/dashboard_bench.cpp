@@ -115,9 +115,9 @@ struct Fixture {
 Fixture* fx = nullptr;
 
 void over_http(benchmark::State& state, std::size_t max_points) {
-    testing::Connection conn(fx->d->http_port());
-    const std::string req = testing::make_request(
-        testing::http::verb::get, "/api/v1/runs/" + std::to_string(fx->run) + "/samples?from=" + std::to_string(kRunS - kWindowS) +
+    cellbench::testing::Connection conn(fx->d->http_port());
+    const std::string req = cellbench::testing::make_request(
+        cellbench::testing::http::verb::get, "/api/v1/runs/" + std::to_string(fx->run) + "/samples?from=" + std::to_string(kRunS - kWindowS) +
                              "&max_points=" + std::to_string(max_points));
     std::size_t bytes = 0, points = 0;
     bool decimated = true;
@@ -130,7 +130,7 @@ void over_http(benchmark::State& state, std::size_t max_points) {
         }
         bytes = r->body().size();
         state.PauseTiming();
-        const auto j = testing::json::parse(r->body());
+        const auto j = cellbench::testing::json::parse(r->body());
         points = j["time_s"].size();
         decimated = j["decimated"].get<bool>();
         state.ResumeTiming();

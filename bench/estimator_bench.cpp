@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "cellbench/estimator/fit.hpp"
+#include "cellbench/estimator/generate.hpp"
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/estimator/simulate.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
@@ -37,6 +38,8 @@ void BM_ParseBdfCsv(benchmark::State& state) {
     const auto& text = hppc_text();
     for (auto _ : state) benchmark::DoNotOptimize(protocol::parse_bdf_csv(text, "hppc"));
     state.SetBytesProcessed(static_cast<int64_t>(state.iterations() * text.size()));
+    state.counters["MB_per_s"] = benchmark::Counter(static_cast<double>(state.iterations() * text.size()) / 1e6,
+                                                    benchmark::Counter::kIsRate);
     state.counters["rows"] = static_cast<double>(hppc().size());
 }
 BENCHMARK(BM_ParseBdfCsv)->Unit(benchmark::kMillisecond);
@@ -78,16 +81,64 @@ void BM_FitOnePulseSet(benchmark::State& state) {
 }
 BENCHMARK(BM_FitOnePulseSet)->Arg(4)->Arg(8)->Unit(benchmark::kMillisecond);
 
-void BM_SimulateHppc(benchmark::State& state) {
-    std::ifstream in(std::filesystem::path(CELLBENCH_SOURCE_DIR) / "config/cells/p45b-thesis.json");
-    std::stringstream ss;
-    ss << in.rdbuf();
-    const estimator::CellModel model(estimator::ParameterSet::from_json(nlohmann::json::parse(ss.str())));
-    const auto& rec = hppc();
-    for (auto _ : state) benchmark::DoNotOptimize(estimator::simulate(model, rec).voltage_v.back());
-    state.SetItemsProcessed(static_cast<int64_t>(state.iterations() * rec.size()));
+const estimator::CellModel& thesis_model() {
+    static const estimator::CellModel model = [] {
+        std::ifstream in(std::filesystem::path(CELLBENCH_SOURCE_DIR) / "config/cells/p45b-thesis.json");
+        std::stringstream ss;
+        ss << in.rdbuf();
+        return estimator::CellModel(estimator::ParameterSet::from_json(nlohmann::json::parse(ss.str())));
+    }();
+    return model;
 }
+
+// A drive profile under current on every row (the case diagnose simulates over and over): the generator's
+// one-hour randomized validation profile of the thesis cell, with sensor noise.
+const Recording& drive_cycle() {
+    static const Recording rec = [] {
+        estimator::GeneratorOptions g;
+        g.seed = 1;
+        return estimator::generate_case(thesis_model().params(), g).validation;
+    }();
+    return rec;
+}
+
+// The loop simulate() ran before its fast path: CellModel::step row by row (the reference the fast path is
+// pinned to in tests/unit/model_fast_test.cpp). For the speed-up ratio only.
+double simulate_reference(const estimator::CellModel& model, const Recording& rec) {
+    estimator::CellState s;
+    s.soc = 0.9;
+    s.temperature_c = 30.0;
+    std::vector<double> v(rec.size()), t(rec.size());
+    for (std::size_t k = 0; k < rec.size(); ++k) {
+        const double dt = k == 0 ? 0.0 : rec.time_s[k] - rec.time_s[k - 1];
+        v[k] = model.step(s, rec.current_a[k], 30.0, dt).voltage_v;
+        t[k] = s.temperature_c;
+    }
+    return v.back() + t.back();
+}
+
+// Simulation throughput on one core (issue 11's goal: >= 10 M samples/s), the whole simulate() call: trace
+// allocation, every output column.
+void simulate_bench(benchmark::State& state, const Recording& rec, bool reference) {
+    const auto& model = thesis_model();
+    for (auto _ : state) {
+        if (reference)
+            benchmark::DoNotOptimize(simulate_reference(model, rec));
+        else
+            benchmark::DoNotOptimize(estimator::simulate(model, rec).voltage_v.back());
+    }
+    state.counters["samples_per_s"] = benchmark::Counter(static_cast<double>(state.iterations() * rec.size()),
+                                                         benchmark::Counter::kIsRate);
+    state.counters["rows"] = static_cast<double>(rec.size());
+}
+void BM_SimulateHppc(benchmark::State& state) { simulate_bench(state, hppc(), false); }
+void BM_SimulateHppcReferenceStep(benchmark::State& state) { simulate_bench(state, hppc(), true); }
+void BM_SimulateDriveCycle(benchmark::State& state) { simulate_bench(state, drive_cycle(), false); }
+void BM_SimulateDriveCycleReferenceStep(benchmark::State& state) { simulate_bench(state, drive_cycle(), true); }
 BENCHMARK(BM_SimulateHppc)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_SimulateHppcReferenceStep)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_SimulateDriveCycle)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_SimulateDriveCycleReferenceStep)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 

@@ -1,5 +1,6 @@
 #include "cellbench/estimator/model.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "cellbench/core/recording.hpp"
@@ -162,6 +163,235 @@ CellOutputs CellModel::step(CellState& s, double current_a, double ambient_c, do
         out.heat_reversible_w = i * ehc * (t_inner + kZeroCelsiusK);
     }
     out.ocv_v = params_.ocv_at(s.soc);
+    out.voltage_v = out.ocv_v + ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v;
+    out.heat_flow_out_w = (s.temperature_c - ambient_c) / th.r_th_k_per_w;
+    out.sensor_heat_flow_w = out.heat_flow_out_w * (ext.heat_flux_sensor_gain ? ext.heat_flux_sensor_gain->gain : 1.0);
+    return out;
+}
+
+}  // namespace cellbench::estimator
+
+namespace cellbench::estimator {
+
+namespace {
+
+// Index i with x[i] <= q < x[i+1], clamped to [0, n-2] (params.cpp's segment_index), starting from a guess.
+std::size_t bracket_from(const std::vector<double>& x, std::size_t guess, double q) {
+    const std::size_t last = x.size() - 2;
+    if (guess <= last) {
+        if ((guess == 0 || x[guess] <= q) && (guess == last || q < x[guess + 1])) return guess;
+        if (guess < last && x[guess + 1] <= q && (guess + 1 == last || q < x[guess + 2])) return guess + 1;
+        if (guess > 0 && x[guess - 1] <= q && q < x[guess]) return guess - 1;
+    }
+    auto it = std::upper_bound(x.begin(), x.end(), q);
+    std::size_t i = it == x.begin() ? 0 : static_cast<std::size_t>(it - x.begin()) - 1;
+    return std::min(i, last);
+}
+
+// interp_hold / interp_extrap of params.cpp with a located segment (same arithmetic, so the same result).
+struct Located {
+    std::size_t i = 0;
+    double w = 0.0;
+    int hold = 0;  // -1: value at the front, +1: at the back, 0: y[i] + w (y[i+1] - y[i])
+    double of(const std::vector<double>& y) const {
+        if (hold < 0) return y.front();
+        if (hold > 0) return y.back();
+        return y[i] + w * (y[i + 1] - y[i]);
+    }
+};
+
+Located locate_hold(const std::vector<double>& x, std::size_t& cached, double q) {
+    Located l;
+    if (x.size() == 1 || q <= x.front()) {
+        l.hold = -1;
+    } else if (q >= x.back()) {
+        l.hold = +1;
+    } else {
+        cached = bracket_from(x, cached, q);
+        l.i = cached;
+        l.w = (q - x[l.i]) / (x[l.i + 1] - x[l.i]);
+    }
+    return l;
+}
+
+Located locate_extrap(const std::vector<double>& x, std::size_t& cached, double q) {
+    Located l;
+    if (x.size() == 1) {
+        l.hold = -1;
+        return l;
+    }
+    cached = bracket_from(x, cached, q);
+    l.i = cached;
+    l.w = (q - x[l.i]) / (x[l.i + 1] - x[l.i]);
+    return l;
+}
+
+}  // namespace
+
+namespace {
+
+// CellStepper::DecayCache::eval, inlined into the step (five calls per step: the four pairs and the thermal decay).
+[[gnu::always_inline]] inline void decay_eval(CellStepper::DecayCache& c, double x, double& e, double& m) {
+    const double d = x - c.x0;
+    if (d == 0.0) {  // the same rate and interval as last time (a rest at a constant sampling interval)
+        e = c.e0;
+        m = c.m0;
+        return;
+    }
+    const double ad = std::abs(d);
+    if (ad <= 1e-2 && ad <= 0.5 * std::abs(c.x0)) {  // false for NaN
+        // expm1(-d) by its Taylor series, then exp(-x) = exp(-x0) exp(-d). Truncation: d^5/5! < 1e-22 below
+        // 1e-4 (the usual change from one sample to the next under current), d^8/8! < 2.5e-21 up to 1e-2.
+        const double q = ad < 1e-4 ? -d * (1.0 - d * (1.0 / 2 - d * (1.0 / 6 - d * (1.0 / 24))))
+                                   : -d * (1.0 - d * (1.0 / 2 - d * (1.0 / 6 - d * (1.0 / 24 - d * (1.0 / 120 -
+                                                                     d * (1.0 / 720 - d / 5040))))));
+        e = c.e0 + c.e0 * q;
+        m = c.m0 + c.e0 * q;
+        return;
+    }
+    c.x0 = x;
+    c.e0 = std::exp(-x);
+    c.m0 = std::expm1(-x);
+    e = c.e0;
+    m = c.m0;
+}
+
+}  // namespace
+
+void CellStepper::DecayCache::eval(double x, double& e, double& m) { decay_eval(*this, x, e, m); }
+
+CellStepper::CellStepper(const CellModel& model) : model_(model), p_(model.params()) {}
+
+void CellStepper::refresh_parameters(double soc, double f_t, double f_i) {
+    key_soc_ = soc;
+    key_ft_ = f_t;
+    key_fi_ = f_i;
+    const Located l = locate_hold(p_.soc, soc_bracket_, soc);
+    const auto& ext = p_.extensions;
+    const double dr0 = ext.series_resistance_offset ? ext.series_resistance_offset->r_ohm : 0.0;
+    auto rc = [&](const RcTable& t, Rc2Params<double>& p) {
+        const double r1 = l.of(t.r1_ohm), r2 = l.of(t.r2_ohm);
+        p = {l.of(t.r0_ohm), r1, r1 * l.of(t.c1_f), r2, r2 * l.of(t.c2_f)};
+        p.r0_ohm = p.r0_ohm * f_t + dr0;
+        p.r1_ohm *= f_t * f_i;
+        p.tau1_s *= f_t * f_i;
+        p.r2_ohm *= f_t * f_i;
+        p.tau2_s *= f_t * f_i;
+    };
+    rc(p_.discharge, pd_);
+    rc(p_.charge, pc_);
+    ehc_ = p_.thermal.ehc_soc.empty()
+               ? 0.0
+               : locate_hold(p_.thermal.ehc_soc, ehc_bracket_, soc).of(p_.thermal.ehc_v_per_k);
+    if (ext.entropic_heat) ehc_ += ext.entropic_heat->ehc_v_per_k + ext.entropic_heat->ehc_slope_v_per_k * (soc - 0.5);
+    const double tau3 = ext.extra_rc ? ext.extra_rc->tau_s * f_t : 1.0;
+    rate_[0] = 1.0 / pd_.tau1_s;
+    rate_[1] = 1.0 / pd_.tau2_s;
+    rate_[2] = 1.0 / pc_.tau1_s;
+    rate_[3] = 1.0 / pc_.tau2_s;
+    rate_[4] = 1.0 / tau3;
+    tau_[0] = pd_.tau1_s;
+    tau_[1] = pd_.tau2_s;
+    tau_[2] = pc_.tau1_s;
+    tau_[3] = pc_.tau2_s;
+    tau_[4] = tau3;
+}
+
+CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, double dt_s) {
+    if (!(dt_s > 0)) return model_.step(s, current_a, ambient_c, dt_s);  // evaluation only: the reference
+    const auto& th = p_.thermal;
+    const auto& ext = p_.extensions;
+    if (ext.thermal_second_order && !std::isfinite(s.core_temperature_c)) s.core_temperature_c = s.temperature_c;
+    const double t_inner = ext.thermal_second_order ? s.core_temperature_c : s.temperature_c;
+    if (ext.ambient_drift)
+        ambient_c += ext.ambient_drift->offset_c + ext.ambient_drift->rate_c_per_h * (s.elapsed_s + 0.5 * dt_s) / 3600.0;
+
+    if (ext.resistance_temperature && !(t_inner == t_inner_key_)) {
+        t_inner_key_ = t_inner;
+        f_t_ = model_.resistance_factor(t_inner);
+    }
+    if (ext.resistance_current && !(current_a == i_key_)) {
+        i_key_ = current_a;
+        f_i_ = model_.current_factor(current_a);
+    }
+    if (!(s.soc == key_soc_ && f_t_ == key_ft_ && f_i_ == key_fi_)) refresh_parameters(s.soc, f_t_, f_i_);
+
+    const double i = current_a;
+    const double ohmic_v = ohmic_drop_v(pd_, pc_, i);
+    const double capacity = model_.capacity_ah();
+    CellOutputs out;
+    out.ambient_c = ambient_c;
+
+    const double id = discharge_part(i), ic = charge_part(i);
+    const double r3 = ext.extra_rc ? ext.extra_rc->r_ohm * f_t_ : 0.0;
+    double* v[5] = {&s.rc.v1_discharge_v, &s.rc.v2_discharge_v, &s.rc.v1_charge_v, &s.rc.v2_charge_v, &s.extra_rc_v};
+    const double vss[5] = {pd_.r1_ohm * id, pd_.r2_ohm * id, pc_.r1_ohm * ic, pc_.r2_ohm * ic, r3 * i};
+    double d[5], e[5], m[5], vss_sum = 0;
+    for (int j = 0; j < 5; ++j) {
+        d[j] = *v[j] - vss[j];
+        vss_sum += vss[j];
+        if (d[j] != 0.0) decay_eval(pair_[j], rate_[j] * dt_s, e[j], m[j]);
+    }
+    // integral_of_decay(rate, dt) = (1 - e^{-rate dt}) / rate, given m_neg = expm1(-rate dt) and 1/rate.
+    auto iod = [dt_s](double rate, double inv_rate, double m_neg) {
+        const double x = rate * dt_s;
+        if (std::abs(x) < 1e-8) return dt_s * (1.0 - 0.5 * x);
+        return -m_neg * inv_rate;
+    };
+
+    double h_mean = s.hysteresis_v;
+    if (ext.ocv_hysteresis && i != 0.0) {
+        const double k = ext.ocv_hysteresis->rate_per_capacity * std::abs(i) / (3600.0 * capacity);
+        const double target = (i > 0 ? 1.0 : -1.0) * ext.ocv_hysteresis->magnitude_v;
+        const double h0 = s.hysteresis_v;
+        s.hysteresis_v = target + (h0 - target) * std::exp(-k * dt_s);
+        h_mean = target + (h0 - target) * integral_of_decay(k, dt_s) / dt_s;
+    }
+
+    // At zero current the transient heat and the RC terms of the thermal step vanish (they carry a factor I).
+    const bool flowing = i != 0.0;
+    double transient_heat_j = 0;
+    if (flowing)
+        for (int j = 0; j < 5; ++j)
+            if (d[j] != 0.0) transient_heat_j += i * d[j] * iod(rate_[j], tau_[j], m[j]);
+    const double steady_heat_w = i * (ohmic_v + vss_sum + h_mean);
+    out.heat_irreversible_w = steady_heat_w + transient_heat_j / dt_s;
+    const double t0 = s.temperature_c, tc0 = t_inner;
+    const double ehc = ehc_;
+
+    if (!ext.thermal_second_order) {
+        const double beta = (1.0 / th.r_th_k_per_w - i * ehc) / th.c_th_j_per_k;
+        const double c0 = (steady_heat_w + i * ehc * kZeroCelsiusK + ambient_c / th.r_th_k_per_w) / th.c_th_j_per_k;
+        double eb, mb;
+        decay_eval(beta_, beta * dt_s, eb, mb);
+        double t1 = t0 * eb + c0 * iod(beta, 1.0 / beta, mb);
+        for (int j = 0; j < 5 && flowing; ++j) {
+            if (d[j] == 0.0) continue;
+            // exp(-a dt) * integral_of_decay(beta - a, dt) = (e^{-a dt} - e^{-beta dt}) / (beta - a)
+            const double gap = beta - rate_[j];
+            const double cross = std::abs(gap * dt_s) < 1e-2 ? e[j] * integral_of_decay(gap, dt_s) : (m[j] - mb) / gap;
+            t1 += i * d[j] / th.c_th_j_per_k * cross;
+        }
+        s.temperature_c = t1;
+        out.heat_reversible_w = i * ehc * (0.5 * (t0 + t1) + kZeroCelsiusK);
+    } else {
+        const auto& so = *ext.thermal_second_order;
+        const double cc = so.core_fraction * th.c_th_j_per_k, cs = th.c_th_j_per_k - cc;
+        const double g_cs = 1.0 / so.r_core_surface_k_per_w, g_sa = 1.0 / th.r_th_k_per_w;
+        const double a[2][2] = {{(-g_cs + i * ehc) / cc, g_cs / cc}, {g_cs / cs, (-g_cs - g_sa) / cs}};
+        const double b[2] = {(out.heat_irreversible_w + i * ehc * kZeroCelsiusK) / cc, g_sa * ambient_c / cs};
+        double x[2] = {tc0, t0};
+        two_node_step(a, b, x, dt_s);
+        s.core_temperature_c = x[0];
+        s.temperature_c = x[1];
+        out.heat_reversible_w = i * ehc * (0.5 * (tc0 + x[0]) + kZeroCelsiusK);
+    }
+
+    for (int j = 0; j < 5; ++j) *v[j] = d[j] != 0.0 ? vss[j] + d[j] * e[j] : vss[j] + d[j];
+    s.soc += i * dt_s / (3600.0 * capacity);
+    s.elapsed_s += dt_s;
+
+    out.ocv_v = locate_extrap(p_.soc, soc_bracket_, s.soc).of(p_.ocv_v);
     out.voltage_v = out.ocv_v + ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v;
     out.heat_flow_out_w = (s.temperature_c - ambient_c) / th.r_th_k_per_w;
     out.sensor_heat_flow_w = out.heat_flow_out_w * (ext.heat_flux_sensor_gain ? ext.heat_flux_sensor_gain->gain : 1.0);

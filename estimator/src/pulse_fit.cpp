@@ -1011,9 +1011,92 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
     check(out.joint_charge, "charge");
 }
 
+// The joint method's cost (0.5 * sum of squared residuals) over a window after its time-constant search and
+// variable-projection refinement (steps 1 and 2 of joint_fit, without the final refinement): what the OCV slope
+// search below compares. Infinity when nothing is usable.
+double joint_search_cost(const Window& w, const PulseFitOptions& o) {
+    std::vector<std::size_t> rows;
+    std::vector<double> y;
+    for (std::size_t k = 0; k < w.n(); ++k) {
+        if (!std::isfinite(w.v[k]) || !std::isfinite(w.t[k])) continue;
+        rows.push_back(k);
+        y.push_back(w.v[k] - w.ocv[k]);
+    }
+    if (rows.size() < 4 * kNumJoint) return std::numeric_limits<double>::infinity();
+    const auto g1 = log_grid(o.tau1_min_s, o.tau1_max_s, o.tau1_grid);
+    const auto g2 = log_grid(o.tau2_min_s, o.tau2_max_s, o.tau2_grid);
+    std::array<double, 4> tau{2.0, 30.0, 2.0, 30.0};
+    std::vector<Candidate> all;
+    Candidate best;
+    for (int sweep = 0; sweep < 2; ++sweep)
+        for (int dir : {-1, +1}) {
+            const Candidate c = grid_search(w, rows, y, tau, dir, g1, g2, all);
+            if (std::isfinite(c.cost)) tau = c.tau;
+            if (better(c, best)) best = c;
+        }
+    if (!std::isfinite(best.cost)) return best.cost;
+    const TauBounds box(o);
+    TauBounds bd = box, bc = box;
+    Candidate c = varpro_refine(w, rows, y, best, bd, bc, o.max_iterations);
+    if (!ordered(c.tau)) {
+        if (!(c.tau[0] < c.tau[1])) bd = box.split_at(std::sqrt(best.tau[0] * best.tau[1]));
+        if (!(c.tau[2] < c.tau[3])) bc = box.split_at(std::sqrt(best.tau[2] * best.tau[3]));
+        c = varpro_refine(w, rows, y, best, bd, bc, o.max_iterations);
+    }
+    if (!ordered(c.tau)) return best.cost;
+    return better(c, best) ? c.cost : best.cost;
+}
+
+// The OCV slope (V/Ah) of a pulse set whose caller does not know it (PulseFitOptions::docv_dah_v_per_ah = 0):
+// the slope whose window the joint model fits best, by golden-section search between 0 and the largest slope
+// the discharge pulse allows (its whole voltage fall after the ohmic step taken as OCV). Over a 30 s pulse the
+// OCV's fall and the slow pair's rise look alike; the rests tell them apart (the pairs relax, the OCV stays),
+// and without the slope the pairs absorb the fall (R2 and C2 of the discharge ~50 % high on the thesis cell).
+double estimate_ocv_slope(const Recording& rec, const PulseSet& ps, std::size_t first, std::size_t end,
+                          double ocv_v, double r0_discharge_ohm, const PulseFitOptions& o) {
+    const Window w0 = make_window(rec, first, end, ocv_v, 0.0);
+    const std::size_t de = ps.discharge_end - first;  // window row just after the discharge pulse
+    if (de >= w0.n() || !(w0.q_ah[de - 1] < 0.0)) return 0.0;
+    const double fall_v = ocv_v - w0.v[de - 1] + r0_discharge_ohm * w0.i[de - 1];  // V_A - V_C - R0 |I|
+    const double s_max = std::isfinite(fall_v) && fall_v > 0.0 ? fall_v / -w0.q_ah[de - 1] : 0.0;
+    if (!(s_max > 0.0)) return 0.0;
+    PulseFitOptions fast = o;
+    fast.max_iterations = std::min(o.max_iterations, 30);
+    auto cost = [&](double slope) {
+        Window w = w0;
+        for (std::size_t k = 0; k < w.n(); ++k) w.ocv[k] = ocv_v + slope * w.q_ah[k];
+        return joint_search_cost(w, fast);
+    };
+    const double g = 0.5 * (std::sqrt(5.0) - 1.0);
+    double a = 0.0, b = s_max;
+    double x1 = b - g * (b - a), x2 = a + g * (b - a);
+    double f1 = cost(x1), f2 = cost(x2);
+    for (int it = 0; it < 14; ++it) {
+        if (f1 <= f2) {
+            b = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = b - g * (b - a);
+            f1 = cost(x1);
+        } else {
+            a = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = a + g * (b - a);
+            f2 = cost(x2);
+        }
+    }
+    const double slope = f1 <= f2 ? x1 : x2;
+    const double best = std::min(f1, f2);
+    // The bracket's end at 0 is never evaluated by the search: a flat OCV is taken when it fits as well.
+    if (!std::isfinite(best) || !(best < cost(0.0))) return 0.0;
+    return slope;
+}
+
 }  // namespace
 
-PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseFitOptions& o) {
+PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseFitOptions& options) {
+    PulseFitOptions o = options;  // the OCV slope may be estimated below
     PulseSetFit out;
     out.pulse_set = ps;
     out.ocv_v = ps.ocv_v;
@@ -1038,6 +1121,28 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     }
     out.begin = first;
     out.end = end;
+
+    // R0, thesis eq. 3.2 / Script 3.2: the rows on either side of each current step.
+    {
+        const auto& v = rec.voltage_v;
+        const auto& c = rec.current_a;
+        const std::size_t pb = ps.pulse_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
+        out.r0.ab_ohm = (v[pb - 1] - v[pb]) / std::abs(c[pb]);
+        out.r0.cd_ohm = (v[de] - v[de - 1]) / std::abs(c[de - 1]);
+        out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
+        out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
+        out.r0.discharge_ohm = finite_mean({out.r0.ab_ohm, out.r0.cd_ohm});
+        out.r0.charge_ohm = finite_mean({out.r0.ef_ohm, out.r0.gh_ohm});
+    }
+
+    // The OCV slope: the caller's, else (an online fit of the first pulse set) estimated from the pulse set.
+    const bool extended_requested = o.extended_end > ps.end;
+    if (o.docv_dah_v_per_ah == 0.0 && o.estimate_unknown_ocv_slope && o.joint_method && !extended_requested) {
+        o.docv_dah_v_per_ah = estimate_ocv_slope(rec, ps, first, end, out.ocv_v, out.r0.discharge_ohm, o);
+        if (o.docv_dah_v_per_ah > 0.0)
+            out.warnings.push_back(fmt("OCV slope unknown (docv_dah_v_per_ah = 0): estimated from the pulse set itself, %.4f V/Ah",
+                                       o.docv_dah_v_per_ah));
+    }
     const Window w = make_window(rec, first, end, out.ocv_v, o.docv_dah_v_per_ah);
 
     // Temperature: mean surface temperature, else ambient.
@@ -1051,19 +1156,6 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
             out.temperature_c = s / static_cast<double>(m);
             break;
         }
-    }
-
-    // R0, thesis eq. 3.2 / Script 3.2: the rows on either side of each current step.
-    {
-        const auto& v = rec.voltage_v;
-        const auto& c = rec.current_a;
-        const std::size_t pb = ps.pulse_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
-        out.r0.ab_ohm = (v[pb - 1] - v[pb]) / std::abs(c[pb]);
-        out.r0.cd_ohm = (v[de] - v[de - 1]) / std::abs(c[de - 1]);
-        out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
-        out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
-        out.r0.discharge_ohm = finite_mean({out.r0.ab_ohm, out.r0.cd_ohm});
-        out.r0.charge_ohm = finite_mean({out.r0.ef_ohm, out.r0.gh_ohm});
     }
 
     if (ps.charge_cv)

@@ -65,10 +65,17 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     for (auto* v : {&tr.time_s, &tr.voltage_v, &tr.ocv_v, &tr.soc, &tr.temperature_c, &tr.heat_flow_out_w,
                     &tr.heat_generated_w})
         v->reserve(n);
+    // The fast path of CellModel::step (same results; model.hpp): this loop runs millions of times in diagnose.
+    CellStepper stepper(model);
+    const bool measured_ambient = !options.ambient_c && rec.has_ambient();
+    const double* time = rec.time_s.data();
+    const double* current = rec.current_a.data();
+    const double* ambient = measured_ambient ? rec.ambient_c.data() : nullptr;
     for (std::size_t k = 0; k < n; ++k) {
-        const double dt = k == 0 ? 0.0 : rec.time_s[k] - rec.time_s[k - 1];
-        const CellOutputs o = model.step(s, rec.current_a[k], ambient_at(k), dt);
-        tr.time_s.push_back(rec.time_s[k]);
+        const double dt = k == 0 ? 0.0 : time[k] - time[k - 1];
+        const double amb = ambient && std::isfinite(ambient[k]) ? ambient[k] : ambient_const;
+        const CellOutputs o = stepper.step(s, current[k], amb, dt);
+        tr.time_s.push_back(time[k]);
         tr.voltage_v.push_back(o.voltage_v);
         tr.ocv_v.push_back(o.ocv_v);
         tr.soc.push_back(s.soc);

@@ -3,7 +3,8 @@
 // the sequencer into the run store.
 //  - The FULL HPPC (config/programs/hppc.json: pilot discharge, pulse sets 100 % -> 10 % SOC, final discharge
 //    to 0 %): every step and samples stored, one fit per pulse set, fitted discharge R0 within 3 % of the
-//    simulated cell's.
+//    simulated cell's; R1, C1, R2, C2 of both directions printed against the cell's (issue 11's 15 % goal is
+//    not met yet on the noisy tester: see below), positive, with no flag on them.
 //    Time scale: CELLBENCH_HIL_TIME_SCALE (default kHppcTimeScale); the wall time is printed.
 //    CELLBENCH_HIL_VERBOSE=1 logs at debug level and lists the steps.
 //  - Safety: an over-temperature (a low max_temperature_c, heated by a 40 A discharge) stops the current
@@ -20,6 +21,8 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <string>
+#include <utility>
 #include <thread>
 #include <vector>
 
@@ -29,6 +32,7 @@
 #include "cellbench/daemon/bench_daemon.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/estimator/params.hpp"
+#include "cellbench/estimator/pulse_fit.hpp"
 #include "cellbench/sim/plant.hpp"
 #include "hil/hil_support.hpp"
 
@@ -138,6 +142,37 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
         EXPECT_NEAR(r0, r0_true, 0.03 * r0_true) << "pulse set " << f["pulse_set"] << " at SOC " << soc;
     }
     std::printf("  worst R0 error %.2f %%\n", worst);
+    // Issue 11 (Daemon HIL): the online fits should recover the RC pairs too -- R1, C1, R2, C2 of both directions
+    // within 15 % of the simulated cell's at every SOC level. Measured and printed here, NOT yet asserted: with
+    // the simulated tester's 0.2 mV voltage noise a 30 s + 40 s / 10 s + 40 s pulse set does not pin the fast
+    // pair (C1 off by 15-20 % at several levels, the charge tau1 at 100 % SOC half the truth) and some levels
+    // land in a wrong local optimum (discharge R1 x2 at 90 %, R2 +50 % at 20 %). The noise-free online fit
+    // meets 15 % (Sequencer.RunsAShortHppcAndFitsEveryPulseSetOnline asserts it). Nothing on them is flagged.
+    std::printf("  set   SOC  dir        R1 mOhm (truth)      C1 F (truth)     R2 mOhm (truth)      C2 F (truth)\n");
+    double worst_rc = 0;
+    for (const auto& f : fits) {
+        const double soc = f["soc"].get<double>();
+        for (const char* dir : {"discharge", "charge"}) {
+            const json& got = f[dir];
+            ASSERT_TRUE(got.is_object()) << dir << " values missing, pulse set " << f["pulse_set"];
+            const auto truth_rc = estimator::to_rc_values(truth.rc_at(soc, std::string(dir) == "charge" ? +1 : -1));
+            const std::pair<const char*, double> want[] = {{"r1_ohm", truth_rc.r1_ohm}, {"c1_f", truth_rc.c1_f},
+                                                           {"r2_ohm", truth_rc.r2_ohm}, {"c2_f", truth_rc.c2_f}};
+            std::printf("  %3d  %5.3f  %-9s", f["pulse_set"].get<int>(), soc, dir);
+            for (const auto& [name, value] : want) {
+                const double v = got.contains(name) && got[name].is_number() ? got[name].get<double>() : NAN;
+                const double scale_v = name[0] == 'r' ? 1e3 : 1.0;
+                std::printf(" %8.3f (%8.3f)", v * scale_v, value * scale_v);
+                worst_rc = std::max(worst_rc, std::abs(v - value) / value);
+                EXPECT_TRUE(std::isfinite(v) && v > 0.0) << dir << " " << name << ", pulse set " << f["pulse_set"];
+            }
+            std::printf("\n");
+            if (got.contains("flags")) EXPECT_TRUE(got["flags"].empty()) << dir << " flags " << got["flags"].dump();
+        }
+        if (f.contains("flags")) EXPECT_TRUE(f["flags"].empty()) << "flags " << f["flags"].dump();
+    }
+    std::printf("  worst R1/C1/R2/C2 error %.1f %%\n", 100.0 * worst_rc);
+    RecordProperty("worst_rc_error_percent", std::to_string(100.0 * worst_rc));
     // A pulse set ends with the rest after its charge pulse; the detector sees that end when the next step (the
     // SOC step, id 12) begins. Latency in wall time = bench seconds / time scale (+- one 100 ms poll).
     std::vector<double> soc_step_t_s;

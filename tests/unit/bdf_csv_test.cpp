@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <charconv>
 #include <cmath>
 #include <cstring>
 #include <random>
@@ -350,3 +351,27 @@ TEST(BdfCsv, MangledInputEitherParsesOrThrowsInputError) {
 }
 
 }  // namespace
+
+TEST(BdfCsv, NumbersReadBitForBitAsFromChars) {
+    // The reader's fast path for plain decimals must give exactly what std::from_chars gives (correct rounding),
+    // and leave everything else (exponents, more than 15 digits, junk) to it.
+    std::mt19937_64 rng(7);
+    std::uniform_int_distribution<int> digit(0, 9), len(1, 18), point(0, 19), sign(0, 3);
+    for (int k = 0; k < 200000; ++k) {
+        std::string cell = sign(rng) == 0 ? "-" : "";
+        const int n = len(rng), dot = point(rng);
+        for (int j = 0; j < n; ++j) {
+            if (j == dot) cell += '.';
+            cell += static_cast<char>('0' + digit(rng));
+        }
+        if (k % 50 == 0) cell += "e-3";
+        double want = 0.0, got = 0.0;
+        const auto [ptr, ec] = std::from_chars(cell.data(), cell.data() + cell.size(), want);
+        ASSERT_TRUE(ec == std::errc{} && ptr == cell.data() + cell.size()) << cell;
+        ASSERT_EQ(cellbench::protocol::csv::parse_double(cell, got), cellbench::protocol::csv::NumberStatus::ok) << cell;
+        ASSERT_EQ(std::memcmp(&got, &want, sizeof got), 0) << cell << ": " << got << " vs " << want;
+    }
+    double v = 0.0;
+    for (const char* bad : {".", "-", "1.2.3", "1,5", "--1", "1-", "0x10", "1e"})
+        EXPECT_NE(cellbench::protocol::csv::parse_double(bad, v), cellbench::protocol::csv::NumberStatus::ok) << bad;
+}

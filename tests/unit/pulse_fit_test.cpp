@@ -256,3 +256,23 @@ TEST(PulseFit, DefaultJointFitHoldsR0AtTheSamplingCorrectedSteps) {
     EXPECT_TRUE(std::isnan(raw.r0.discharge_corrected_ohm));
     EXPECT_GT(raw.joint_rms_v, fit.joint_rms_v);
 }
+
+TEST(PulseFit, UnknownOcvSlopeIsEstimatedAndTheSlowPairRecovered) {
+    // The first pulse set of an online run has no earlier rest to take the OCV slope from (docv = 0). Held flat,
+    // the OCV's fall during the discharge pulse lands in the slow pair; estimated from the pulse set itself, the
+    // slope comes out near the truth and the pairs with it. Noise as on the simulated tester.
+    test::SyntheticOptions o;
+    o.soc0 = 0.7;
+    o.voltage_noise_v = 2e-4;
+    const auto h = make_hppc(1, o);
+    ASSERT_EQ(h.seg.pulse_sets.size(), 1u);
+    PulseFitOptions held = free_r0();
+    held.estimate_unknown_ocv_slope = false;
+    const auto flat = fit_pulse_set(h.rec, h.seg.pulse_sets[0], held);
+    const auto fit = fit_pulse_set(h.rec, h.seg.pulse_sets[0], free_r0());
+    EXPECT_GT(rel(flat.joint_discharge.r2_ohm, o.discharge.r2_ohm), 0.15);  // what the estimate repairs
+    expect_params(fit.joint_discharge, o.discharge, 0.03, 0.10, 0.10, "estimated slope, discharge");
+    expect_params(fit.joint_charge, o.charge, 0.03, 0.10, 0.15, "estimated slope, charge");
+    EXPECT_TRUE(std::any_of(fit.warnings.begin(), fit.warnings.end(),
+                            [](const std::string& w) { return w.find("estimated from the pulse set") != std::string::npos; }));
+}

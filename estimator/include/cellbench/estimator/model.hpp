@@ -21,6 +21,9 @@
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/params.hpp"
 
+#include <cstddef>
+#include <vector>
+
 namespace cellbench::estimator {
 
 struct CellState {
@@ -64,6 +67,42 @@ public:
 
 private:
     ParameterSet params_;
+};
+
+// The fast path of CellModel::step for long runs (simulate(), diagnose, the fits' simulations): the same exact
+// ZOH step, with what repeats from one sample to the next cached instead of recomputed -- the SOC bracket of
+// the tables (one bracket for all R/C/OCV columns, one for the entropic table), the parameters while SOC,
+// temperature factor and current factor are unchanged (rests), and exp/expm1 of each (rate * dt): an exact
+// re-evaluation when it moved far, else the last exact value times a Taylor series of the small change
+// (|change| <= 1e-2, truncation < 1e-18 relative). The heat integrals reuse the same exponentials
+// ((e^-a dt - e^-b dt)/(b - a) in place of a third exponential, exact formula kept where a ~ b). Results equal
+// CellModel::step to ~1e-14 relative (tests/unit/model_fast_test.cpp pins it). Holds a reference to the model;
+// not thread-safe (one per thread).
+class CellStepper {
+public:
+    explicit CellStepper(const CellModel& model);
+    CellOutputs step(CellState& state, double current_a, double ambient_c, double dt_s);
+
+    // exp(-x) and expm1(-x) for x = rate * dt, reusing the last exact evaluation (see above).
+    struct DecayCache {
+        double x0 = kNaN, e0 = 1.0, m0 = 0.0;
+        void eval(double x, double& e, double& m);
+    };
+
+private:
+    void refresh_parameters(double soc, double f_t, double f_i);
+
+    const CellModel& model_;
+    const ParameterSet& p_;
+    std::size_t soc_bracket_ = 0, ehc_bracket_ = 0;
+    // Parameters in force (after the factors) and the key they were computed for.
+    double key_soc_ = kNaN, key_ft_ = kNaN, key_fi_ = kNaN;
+    Rc2Params<double> pd_{}, pc_{};
+    double ehc_ = 0.0;
+    double rate_[5] = {1, 1, 1, 1, 1}, tau_[5] = {1, 1, 1, 1, 1};
+    DecayCache pair_[5], beta_;
+    double t_inner_key_ = kNaN, f_t_ = 1.0;
+    double i_key_ = kNaN, f_i_ = 1.0;
 };
 
 }  // namespace cellbench::estimator

@@ -49,6 +49,10 @@ struct PulseFitOptions {
     // Local OCV slope per Ah of charge throughput (V/Ah, positive: charging raises the OCV), from the OCV
     // table: dOCV/dSOC / capacity_ah. 0 = unknown (OCV held constant apart from the offset c).
     double docv_dah_v_per_ah = 0.0;
+    // With docv_dah_v_per_ah = 0 (and no extended window): estimate the slope from the pulse set itself, the
+    // slope with which the joint model fits its rows best (golden-section search; the online fit of the first
+    // pulse set of a run, which has no earlier rest to take a chord from). false: hold the OCV at V_A.
+    bool estimate_unknown_ocv_slope = true;
     // The charge relaxation used in the fits is cut after this long (a pulse set followed by a long rest).
     double max_relaxation_s = 300.0;
     // Extended window (offline): when extended_end > the pulse set's end, the joint fit and both RMS values

@@ -1,0 +1,133 @@
+// The fast simulation path (CellStepper, used by simulate()) against the reference step-by-step model
+// (CellModel::step): the same exact ZOH step with caches, so the same numbers to rounding, on a varied profile
+// (variable sampling, rests and pulses both ways, a slow ramp, the temperature and the ambient changing, SOC
+// crossing table breakpoints) with no extension and with every extension present.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <random>
+#include <sstream>
+
+#include "cellbench/estimator/model.hpp"
+#include "cellbench/estimator/simulate.hpp"
+
+using namespace cellbench;
+using namespace cellbench::estimator;
+
+namespace {
+
+ParameterSet thesis_params() {
+    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/config/cells/p45b-thesis.json");
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ParameterSet::from_json(nlohmann::json::parse(ss.str()));
+}
+
+ParameterSet with_every_extension(ParameterSet p, bool second_order) {
+    auto& e = p.extensions;
+    e.entropic_heat = EntropicHeatExt{5e-5, -1e-4};
+    if (second_order) e.thermal_second_order = ThermalSecondOrderExt{0.7, 1.5};
+    e.resistance_temperature = ResistanceTemperatureExt{30000.0};
+    e.resistance_current = ResistanceCurrentExt{6.0, 4.5};
+    e.ocv_hysteresis = OcvHysteresisExt{0.01, 25.0};
+    e.extra_rc = ExtraRcExt{0.004, 900.0};
+    e.capacity_error = CapacityErrorExt{0.97};
+    e.series_resistance_offset = SeriesResistanceOffsetExt{0.0007};
+    e.heat_flux_sensor_gain = HeatFluxSensorGainExt{0.9};
+    e.ambient_drift = AmbientDriftExt{0.4, 1.5};
+    return p;
+}
+
+// About 2.5 h of a varied profile: HPPC-like pulses at 0.1 s, a random walk at irregular 0.05-2 s steps,
+// long rests at 1-10 s, a low-rate ramp, a charge, ambient steps; SOC from 0.95 down through several
+// breakpoints and partly back.
+Recording varied_profile(unsigned seed) {
+    Recording r;
+    std::mt19937 rng(seed);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    double t = 0.0, amb = 30.0;
+    auto add = [&](double dt, double i) {
+        t += dt;
+        r.time_s.push_back(t);
+        r.current_a.push_back(i);
+        r.voltage_v.push_back(4.0);
+        r.ambient_c.push_back(amb);
+    };
+    add(0.0, 0.0);
+    for (int set = 0; set < 4; ++set) {
+        for (int k = 0; k < 300; ++k) add(0.1, -4.5);    // discharge pulse
+        for (int k = 0; k < 400; ++k) add(0.1, 0.0);     // rest
+        for (int k = 0; k < 100; ++k) add(0.1, 3.375);   // charge pulse
+        for (int k = 0; k < 200; ++k) add(0.2, 0.0);
+        for (int k = 0; k < 340; ++k) add(1.0, -4.0);    // SOC step
+        for (int k = 0; k < 120; ++k) add(10.0, 0.0);    // long rest, 1 s -> 10 s sampling
+        amb += set % 2 ? -3.0 : 5.0;
+    }
+    for (int k = 0; k < 8000; ++k) {  // random walk at irregular steps, bursts of equal dt
+        const double dt = k % 50 < 30 ? 0.1 : 0.05 + 1.95 * u(rng);
+        add(dt, -7.5 + 13.0 * u(rng));
+    }
+    for (int k = 0; k < 600; ++k) add(1.0, -0.2 - 0.001 * k);  // slow ramp
+    for (int k = 0; k < 900; ++k) add(2.0, 4.0);                // charge
+    return r;
+}
+
+void expect_same(const CellModel& model, const Recording& rec) {
+    // Reference: CellModel::step row by row, the loop simulate() ran before the fast path.
+    const auto fast = simulate(model, rec);
+    CellState s;
+    s.soc = fast.initial_soc;
+    s.temperature_c = rec.ambient_c[0];
+    if (const auto& h = model.params().extensions.ocv_hysteresis) s.hysteresis_v = (s.soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v;
+    double worst_v = 0, worst_t = 0, worst_soc = 0, worst_heat = 0;
+    ASSERT_EQ(fast.voltage_v.size(), rec.size());
+    for (std::size_t k = 0; k < rec.size(); ++k) {
+        const double dt = k == 0 ? 0.0 : rec.time_s[k] - rec.time_s[k - 1];
+        const auto o = model.step(s, rec.current_a[k], rec.ambient_c[k], dt);
+        const auto rel = [](double a, double b) { return std::abs(a - b) / std::max(1.0, std::abs(b)); };
+        worst_v = std::max(worst_v, rel(fast.voltage_v[k], o.voltage_v));
+        worst_t = std::max(worst_t, rel(fast.temperature_c[k], s.temperature_c));
+        worst_soc = std::max(worst_soc, rel(fast.soc[k], s.soc));
+        worst_heat = std::max(worst_heat, rel(fast.heat_generated_w[k], o.heat_irreversible_w + o.heat_reversible_w));
+        ASSERT_TRUE(std::isfinite(fast.voltage_v[k])) << "row " << k;
+    }
+    EXPECT_LT(worst_v, 1e-12);
+    EXPECT_LT(worst_t, 1e-12);
+    EXPECT_LT(worst_soc, 1e-12);
+    EXPECT_LT(worst_heat, 1e-12);
+    // The profile does what it is meant to: SOC crosses table breakpoints and the cell heats.
+    const auto [lo, hi] = std::minmax_element(fast.soc.begin(), fast.soc.end());
+    EXPECT_GT(*hi - *lo, 0.3);
+    const auto [tlo, thi] = std::minmax_element(fast.temperature_c.begin(), fast.temperature_c.end());
+    EXPECT_GT(*thi - *tlo, 2.0);
+}
+
+}  // namespace
+
+TEST(CellStepper, EqualsTheReferenceStepWithoutExtensions) {
+    expect_same(CellModel(thesis_params()), varied_profile(1));
+}
+
+TEST(CellStepper, EqualsTheReferenceStepWithEveryExtension) {
+    expect_same(CellModel(with_every_extension(thesis_params(), false)), varied_profile(2));
+}
+
+TEST(CellStepper, EqualsTheReferenceStepWithTheTwoNodeThermalModel) {
+    expect_same(CellModel(with_every_extension(thesis_params(), true)), varied_profile(3));
+}
+
+TEST(CellStepper, ExponentialCacheStaysExactAsTheArgumentDrifts) {
+    // exp(-x) and expm1(-x) from the cache, for x drifting in small and large steps, both directions.
+    CellStepper::DecayCache c;
+    double x = 0.05;
+    for (int k = 0; k < 20000; ++k) {
+        x *= k % 3000 < 1500 ? 1.0 + 1e-4 : 1.0 - 3e-4;
+        if (k % 997 == 0) x += 0.02;
+        double e, m;
+        c.eval(x, e, m);
+        ASSERT_NEAR(e, std::exp(-x), 1e-15 * std::exp(-x)) << k;
+        ASSERT_NEAR(m, std::expm1(-x), 2e-15 * std::abs(std::expm1(-x))) << k;
+    }
+}

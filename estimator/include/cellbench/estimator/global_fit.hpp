@@ -47,6 +47,7 @@ struct GlobalFitOptions {
     double min_temperature_span_k = 5.0;
     double min_current_ratio = 2.5;
     double long_rest_s = 600.0;              // windows break at rests at least this long
+    double step_lag = 0.0;                   // start value of the fitted current-step timing (0: at the row)
     int max_iterations = 80;
     bool compute_uncertainty = true;
     Progress progress;
@@ -85,6 +86,7 @@ struct GlobalFitResult {
     std::vector<GlobalWindow> windows;
     double rms_v = kNaN;
     double residual_autocorrelation = kNaN;
+    double step_lag = kNaN;  // fitted fraction of a step's sample interval the new current flowed before its row
     std::vector<std::string> notes;
 
     static constexpr const char* kQuantities[7] = {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s"};

@@ -1,0 +1,108 @@
+// Bad input to the characterization (issue 11): a recording with no pulses, a single pulse, pulses at 0 A, or NaN
+// in the middle gives one clear error or a flagged partial result, never a silent table.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/fit.hpp"
+#include "unit/hppc_synthetic.hpp"
+
+namespace {
+
+namespace est = cellbench::estimator;
+using cellbench::Recording;
+using cellbench::test::Step;
+
+est::CharacterizationOptions options() {
+    est::CharacterizationOptions o;
+    o.fallback_capacity_ah = cellbench::test::kCapacityAh;  // what a user would give (--capacity-ah)
+    o.fallback_c_th_j_per_k = 70.0;
+    o.fallback_r_th_k_per_w = 8.0;
+    return o;
+}
+
+Recording synth(const std::vector<Step>& program) {
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 1.0;
+    so.voltage_noise_v = 2e-4;
+    return cellbench::test::synthesize(program, so);
+}
+
+// The message of the InputError characterize() throws ("" when it returns).
+std::string error_of(const std::vector<Recording>& recs) {
+    try {
+        (void)est::characterize(recs, options());
+    } catch (const cellbench::InputError& e) {
+        return e.what();
+    }
+    return {};
+}
+
+TEST(CharacterizeBadInput, NoPulsesIsOneClearError) {
+    // Rest, a CC discharge, rest: nothing to identify a resistance from.
+    const auto rec = synth({{700, 0.0, "Rest"}, {1800, -1.9, "CC DChg"}, {700, 0.0, "Rest"}});
+    const std::string e = error_of({rec});
+    EXPECT_NE(e.find("pulses"), std::string::npos) << e;
+}
+
+TEST(CharacterizeBadInput, PulsesAtZeroAmpereAreNoPulses) {
+    // The program of an HPPC whose pulses carry no current (a cycler channel left open): rests only, with SOC
+    // steps, so there are long rests but nothing that excites the polarization.
+    std::vector<Step> p;
+    for (int k = 0; k < 3; ++k) {
+        for (const auto& s : cellbench::test::pulse_set_program(700.0, 0.0)) p.push_back(s);
+        p.push_back({300, -4.5, "CC DChg"});
+    }
+    p.push_back({700, 0.0, "Rest"});
+    const std::string e = error_of({synth(p)});
+    EXPECT_NE(e.find("pulses"), std::string::npos) << e;
+}
+
+TEST(CharacterizeBadInput, SinglePulseIsAnErrorOrFlagged) {
+    // One discharge pulse between two long rests: one SOC level, no charge pulse.
+    const auto rec = synth({{700, 0.0, "Rest"}, {30, -4.5, "CC DChg"}, {700, 0.0, "Rest"}});
+    try {
+        const auto c = est::characterize({rec}, options());
+        // Not refused: then the result must say what it could not identify.
+        EXPECT_FALSE(c.warnings.empty());
+        ASSERT_TRUE(c.global.has_value());
+        EXPECT_GT(c.global->flagged_count(), 0u) << "a single pulse identifies one SOC level, not a table";
+    } catch (const cellbench::InputError& e) {
+        EXPECT_FALSE(std::string(e.what()).empty());
+    }
+}
+
+TEST(CharacterizeBadInput, NanInTheMiddleIsAnErrorOrFlagged) {
+    auto rec = synth(cellbench::test::hppc_program(3));
+    // A dropout of the voltage channel in the middle of the second pulse set's discharge pulse.
+    const std::size_t mid = rec.size() / 2;
+    for (std::size_t k = mid; k < mid + 20 && k < rec.size(); ++k) rec.voltage_v[k] = std::numeric_limits<double>::quiet_NaN();
+    try {
+        const auto c = est::characterize({rec}, options());
+        for (double v : c.params.ocv_v) EXPECT_TRUE(std::isfinite(v));
+        for (double v : c.params.discharge.r0_ohm) EXPECT_TRUE(std::isfinite(v));
+        // The fit ran around the gap; it must say so.
+        bool told = false;
+        for (const auto& w : c.warnings) told = told || w.find("NaN") != std::string::npos || w.find("missing") != std::string::npos;
+        EXPECT_TRUE(told) << "the rows without a voltage are not mentioned in the warnings";
+    } catch (const cellbench::InputError& e) {
+        EXPECT_FALSE(std::string(e.what()).empty());
+    }
+}
+
+}  // namespace
+
+namespace {
+
+TEST(CharacterizeBadInput, NanCurrentInTheMiddleIsOneClearError) {
+    auto rec = synth(cellbench::test::hppc_program(3));
+    rec.current_a[rec.size() / 2] = std::numeric_limits<double>::quiet_NaN();
+    const std::string e = error_of({rec});
+    EXPECT_NE(e.find("NaN"), std::string::npos) << e;
+}
+
+}  // namespace

@@ -82,6 +82,15 @@ const std::vector<EffectSpec>& specs() {
              p.thermal.r_th_k_per_w *= x[1];
          },
          "parameters_wrong"},
+        {"ocv_band",
+         {{"offset_v", -0.1, 0.1, false}, {"center_soc", 0.0, 1.0, false}, {"half_width_soc", 0.1, 0.35, false}},
+         {{-0.01, 0.0, 0.12}, {0.01, 0.0, 0.12}, {-0.01, 0.2, 0.15}, {0.01, 0.2, 0.15}, {-0.01, 0.95, 0.12}, {0.01, 0.95, 0.12}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             // the OCV table re-identified in one SOC band: a triangular correction of peak x0 at x1, half width x2
+             for (std::size_t k = 0; k < p.ocv_v.size() && k < p.soc.size(); ++k)
+                 p.ocv_v[k] += x[0] * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
+         },
+         "parameters_wrong"},
         {"ocv_offset",
          {{"offset_v", -0.06, 0.06, false}, {"slope_v_per_soc", -0.12, 0.12, false}},
          {{0.0, 0.0}, {0.005, 0.0}, {-0.005, 0.0}},
@@ -322,6 +331,10 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
                num("%.1f", x[0] * base.thermal.c_th_j_per_k) + " J/K instead of " + num("%.1f", base.thermal.c_th_j_per_k) +
                ", R_th " + num("%.2f", x[1] * base.thermal.r_th_k_per_w) + " K/W instead of " +
                num("%.2f", base.thermal.r_th_k_per_w);
+    else if (id == "ocv_band")
+        what = "the OCV table is off in one SOC band (parameters wrong, re-identified on this recording): " +
+               num("%+.1f", x[0] * 1e3) + " mV at SOC " + pct(x[1]) + ", fading to 0 at SOC " +
+               pct(std::max(0.0, x[1] - x[2])) + " and " + pct(std::min(1.0, x[1] + x[2]));
     else if (id == "ocv_offset") {
         const double lo = x[0] - 0.4 * x[1], hi = x[0] + 0.4 * x[1];
         what = "the OCV table is off (parameters wrong, re-identified on this recording): " + num("%+.1f", x[0] * 1e3) +

@@ -16,11 +16,33 @@ namespace {
 // is below the quantization (all differences 0 or one LSB), the LSB/sqrt(12) floor is used.
 std::optional<double> scatter(const std::vector<double>& x, const std::vector<char>& pair_ok, double scale) {
     if (x.empty()) return std::nullopt;
+    // A slower instrument merged onto a faster time base repeats each value over several rows (sample and hold):
+    // the typical run of equal values among the rows that change tells the hold length, and only rows that far
+    // apart are compared. A quantized signal that does not move has no changing rows: the LSB floor applies.
+    std::size_t hold = 1;
+    {
+        std::vector<std::size_t> runs;
+        std::size_t run = 1;
+        for (std::size_t k = 1; k < x.size(); ++k) {
+            if (x[k] == x[k - 1]) {
+                ++run;
+            } else {
+                if (run < 100) runs.push_back(run);
+                run = 1;
+            }
+        }
+        if (runs.size() > 20) {
+            std::nth_element(runs.begin(), runs.begin() + static_cast<long>(runs.size() / 2), runs.end());
+            hold = std::max<std::size_t>(1, runs[runs.size() / 2]);
+        }
+    }
     std::vector<double> d;
     double lsb = INFINITY;
-    for (std::size_t k = 1; k < x.size() && k < pair_ok.size(); ++k) {
-        if (!pair_ok[k] || !std::isfinite(x[k]) || !std::isfinite(x[k - 1])) continue;
-        const double v = x[k] - x[k - 1];
+    for (std::size_t k = hold; k < x.size() && k < pair_ok.size(); k += hold) {
+        bool ok = true;
+        for (std::size_t j = k - hold + 1; j <= k && ok; ++j) ok = pair_ok[j];
+        if (!ok || !std::isfinite(x[k]) || !std::isfinite(x[k - hold])) continue;
+        const double v = x[k] - x[k - hold];
         d.push_back(v);
         if (std::abs(v) > 0) lsb = std::min(lsb, std::abs(v));
     }

@@ -153,6 +153,7 @@ const std::map<std::string, std::string>& effect_words() {
         {"heat_flux_sensor_gain", "Heat flux sensor sensitivity or coverage differs"},
         {"ambient_drift", "Ambient (chamber) temperature not constant"},
         {"ocv_offset", "OCV table off (re-identified on this recording)"},
+        {"ocv_band", "OCV table off in one SOC band (re-identified on this recording)"},
         {"thermal_parameters", "Lumped thermal parameters off (C_th, R_th re-identified)"},
     };
     return m;

@@ -74,8 +74,8 @@ const std::vector<EffectSpec>& specs() {
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.capacity_error = CapacityErrorExt{x[0]}; },
          "parameters_wrong"},
         {"thermal_parameters",
-         {{"c_th_scale", 0.5, 2.0, true}, {"r_th_scale", 0.5, 2.0, true}},
-         {{1.0, 1.0}, {0.8, 1.0}, {1.25, 1.0}},
+         {{"c_th_scale", 0.1, 10.0, true}, {"r_th_scale", 0.2, 5.0, true}},
+         {{1.0, 1.0}, {0.5, 1.0}, {2.0, 1.0}, {5.0, 1.0}},
          [](ParameterSet& p, const std::vector<double>& x) {
              // the lumped thermal parameters re-identified on this recording
              p.thermal.c_th_j_per_k *= x[0];
@@ -644,6 +644,18 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         for (std::size_t k = 0; k < round_findings.size(); ++k)
             if (round_findings[k].significant && (best == round_findings.size() || round_findings[k].score > round_findings[best].score))
                 best = k;
+        // Occam: when re-identifying part of the base parameter set explains nearly as much (>= 80 % of the best
+        // score) as adding physics, the base is corrected first and the physics is tested again on top of it
+        // (a wrong C_th otherwise passes for a second thermal node).
+        if (best < round_findings.size() && round_findings[best].kind == "physics_missing") {
+            std::size_t alt = round_findings.size();
+            for (std::size_t k = 0; k < round_findings.size(); ++k)
+                if (round_findings[k].significant && round_findings[k].kind == "parameters_wrong" &&
+                    round_findings[k].score >= 0.8 * round_findings[best].score &&
+                    (alt == round_findings.size() || round_findings[k].score > round_findings[alt].score))
+                    alt = k;
+            if (alt < round_findings.size()) best = alt;
+        }
         for (auto& f : round_findings) last_round[f.effect] = f;
         if (best == round_findings.size()) break;
         const auto& spec =

@@ -27,6 +27,8 @@ struct EffectSpec {
     std::vector<ParamSpec> params;
     std::vector<std::vector<double>> starts;  // natural units
     void (*apply)(ParameterSet&, const std::vector<double>&);
+    const char* kind = "physics_missing";     // or "parameters_wrong": the base set re-identified in part
+    bool (*present)(const ParameterSet&) = nullptr;  // the parameter set already holds it
 };
 
 const std::vector<EffectSpec>& specs() {
@@ -46,14 +48,18 @@ const std::vector<EffectSpec>& specs() {
          {{3e4}, {6e4}},
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.resistance_temperature = ResistanceTemperatureExt{x[0]};
-         }},
+         },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.resistance_temperature.has_value(); }},
         {"resistance_current",
          {{"exchange_current_a", 0.3, 300.0, true}},
          {{2.0}, {10.0}, {50.0}},
          [](ParameterSet& p, const std::vector<double>& x) {
              // Tables are identified with 1C pulses (thesis Table 2.12): the factor is 1 at 1C.
              p.extensions.resistance_current = ResistanceCurrentExt{x[0], p.capacity_ah};
-         }},
+         },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.resistance_current.has_value(); }},
         {"ocv_hysteresis",
          {{"magnitude_v", 0.0, 0.08, false}, {"rate_per_capacity", 1.0, 300.0, true}},
          {{0.01, 20.0}, {0.02, 100.0}},
@@ -65,7 +71,36 @@ const std::vector<EffectSpec>& specs() {
         {"capacity_error",
          {{"capacity_scale", 0.6, 1.4, false}},
          {{0.95}, {1.05}},
-         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.capacity_error = CapacityErrorExt{x[0]}; }},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.capacity_error = CapacityErrorExt{x[0]}; },
+         "parameters_wrong"},
+        {"thermal_parameters",
+         // wide: a characterization without a long cooling can miss C_th by an order of magnitude
+         {{"c_th_scale", 0.02, 200.0, true}, {"r_th_scale", 0.1, 10.0, true}},
+         {{1.0, 1.0}, {0.3, 1.0}, {3.0, 1.0}, {20.0, 1.0}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             // the lumped thermal parameters re-identified on this recording
+             p.thermal.c_th_j_per_k *= x[0];
+             p.thermal.r_th_k_per_w *= x[1];
+         },
+         "parameters_wrong"},
+        {"ocv_band",
+         {{"offset_v", -0.1, 0.1, false}, {"center_soc", 0.0, 1.0, false}, {"half_width_soc", 0.1, 0.35, false}},
+         {{-0.01, 0.0, 0.12}, {0.01, 0.0, 0.12}, {-0.01, 0.2, 0.15}, {0.01, 0.2, 0.15}, {-0.01, 0.95, 0.12}, {0.01, 0.95, 0.12}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             // the OCV table re-identified in one SOC band: a triangular correction of peak x0 at x1, half width x2
+             for (std::size_t k = 0; k < p.ocv_v.size() && k < p.soc.size(); ++k)
+                 p.ocv_v[k] += x[0] * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
+         },
+         "parameters_wrong"},
+        {"ocv_offset",
+         // a plain offset: a slope along SOC is what a capacity error looks like on a drive that discharges
+         // steadily (the two cannot be told apart there), and a local error is ocv_band's
+         {{"offset_v", -0.06, 0.06, false}},
+         {{0.0}, {0.005}, {-0.005}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             for (std::size_t k = 0; k < p.ocv_v.size() && k < p.soc.size(); ++k) p.ocv_v[k] += x[0];
+         },
+         "parameters_wrong"},
         {"series_resistance_offset",
          {{"r_ohm", -5e-3, 0.03, false}},
          {{1e-3}, {-1e-3}},
@@ -82,6 +117,20 @@ const std::vector<EffectSpec>& specs() {
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ambient_drift = AmbientDriftExt{x[0], x[1]}; }},
     };
     return s;
+}
+
+bool already_present(const EffectSpec& spec, const ParameterSet& p) {
+    if (spec.present) return spec.present(p);
+    const auto& e = p.extensions;
+    if (spec.id == "entropic_heat") return e.entropic_heat.has_value();
+    if (spec.id == "thermal_second_order") return e.thermal_second_order.has_value();
+    if (spec.id == "ocv_hysteresis") return e.ocv_hysteresis.has_value();
+    if (spec.id == "extra_rc") return e.extra_rc.has_value();
+    if (spec.id == "capacity_error") return e.capacity_error.has_value();
+    if (spec.id == "series_resistance_offset") return e.series_resistance_offset.has_value();
+    if (spec.id == "heat_flux_sensor_gain") return e.heat_flux_sensor_gain.has_value();
+    if (spec.id == "ambient_drift") return e.ambient_drift.has_value();
+    return false;
 }
 
 double to_u(const ParamSpec& s, double x) { return s.log ? std::log(x) : x; }
@@ -279,7 +328,19 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
     else if (id == "extra_rc")
         what = "a slow diffusion time constant beyond the two RC pairs: " + num("%.2f", x[0] * 1e3) + " mOhm with tau " +
                num("%.0f", x[1]) + " s";
-    else if (id == "capacity_error")
+    else if (id == "thermal_parameters")
+        what = "the lumped thermal parameters are off (parameters wrong, re-identified on this recording): C_th " +
+               num("%.1f", x[0] * base.thermal.c_th_j_per_k) + " J/K instead of " + num("%.1f", base.thermal.c_th_j_per_k) +
+               ", R_th " + num("%.2f", x[1] * base.thermal.r_th_k_per_w) + " K/W instead of " +
+               num("%.2f", base.thermal.r_th_k_per_w);
+    else if (id == "ocv_band")
+        what = "the OCV table is off in one SOC band (parameters wrong, re-identified on this recording): " +
+               num("%+.1f", x[0] * 1e3) + " mV at SOC " + pct(x[1]) + ", fading to 0 at SOC " +
+               pct(std::max(0.0, x[1] - x[2])) + " and " + pct(std::min(1.0, x[1] + x[2]));
+    else if (id == "ocv_offset") {
+        what = "the OCV table is off by " + num("%+.1f", x[0] * 1e3) +
+               " mV over the whole SOC range (parameters wrong, re-identified on this recording)";
+    } else if (id == "capacity_error")
         what = "the usable capacity is " + pct(x[0]) + " of the parameter set's (" + num("%.3f", x[0] * base.capacity_ah) +
                " Ah instead of " + num("%.3f", base.capacity_ah) + " Ah): the SOC drifts";
     else if (id == "series_resistance_offset")
@@ -479,18 +540,33 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     const std::size_t n = rec.size();
     std::vector<char> all(n, 1);
     std::vector<std::vector<char>> train(folds, std::vector<char>(n, 1)), test(folds, std::vector<char>(n, 0));
+    // Interleaved blocks: block j belongs to fold j mod K. A drifting recording (a Random Walk through SOC)
+    // then puts every SOC, current and temperature range in every fold, instead of one range per fold.
+    const double block_s = options.holdout_block_s > 0
+                               ? options.holdout_block_s
+                               : std::max(60.0, duration / (static_cast<double>(folds) * 8.0));
     for (std::size_t k = 0; k < n; ++k) {
-        const double f = (rec.time_s[k] - rec.time_s.front()) / duration;
-        const std::size_t b = std::min(folds - 1, static_cast<std::size_t>(f * static_cast<double>(folds)));
+        const auto j = static_cast<std::size_t>((rec.time_s[k] - rec.time_s.front()) / block_s);
+        const std::size_t b = j % folds;
         train[b][k] = 0;
         test[b][k] = 1;
     }
+    d.holdout = {{"scheme", "interleaved_blocks"},
+                 {"folds", folds},
+                 {"block_s", block_s},
+                 {"rule", "block j = floor((t - t0) / block_s) is held out in fold j mod folds; each fold spans the "
+                          "whole recording (its SOC, current and temperature range)"}};
     const double n_eff = std::max(duration / 10.0, 10.0);
 
-    std::vector<std::string> candidates = options.effects.empty() ? effect_catalogue() : options.effects;
-    for (const auto& id : candidates)
-        if (std::find(effect_catalogue().begin(), effect_catalogue().end(), id) == effect_catalogue().end())
-            throw InputError("diagnose: unknown effect id \"" + id + "\"");
+    std::vector<std::string> candidates;
+    for (const auto& id : options.effects.empty() ? effect_catalogue() : options.effects) {
+        const auto it = std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
+        if (it == specs().end()) throw InputError("diagnose: unknown effect id \"" + id + "\"");
+        if (already_present(*it, params))
+            d.skipped.push_back(id);  // the parameter set holds it: not proposed again as missing
+        else
+            candidates.push_back(id);
+    }
 
     ParameterSet current = params;
     QuantityRms current_rms = d.baseline;
@@ -520,6 +596,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                 const auto& spec = *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
                 Finding& fd = round_findings[c];
                 fd.effect = id;
+                fd.kind = spec.kind;
                 fd.parameters_count = spec.params.size();
                 const Fit full = fit_effect(pb, current, spec, all, spec.starts, 25);
                 if (!std::isfinite(full.j)) {
@@ -567,6 +644,18 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         for (std::size_t k = 0; k < round_findings.size(); ++k)
             if (round_findings[k].significant && (best == round_findings.size() || round_findings[k].score > round_findings[best].score))
                 best = k;
+        // Occam: when re-identifying part of the base parameter set explains nearly as much (>= 80 % of the best
+        // score) as adding physics, the base is corrected first and the physics is tested again on top of it
+        // (a wrong C_th otherwise passes for a second thermal node).
+        if (best < round_findings.size() && round_findings[best].kind == "physics_missing") {
+            std::size_t alt = round_findings.size();
+            for (std::size_t k = 0; k < round_findings.size(); ++k)
+                if (round_findings[k].significant && round_findings[k].kind == "parameters_wrong" &&
+                    round_findings[k].score >= 0.8 * round_findings[best].score &&
+                    (alt == round_findings.size() || round_findings[k].score > round_findings[alt].score))
+                    alt = k;
+            if (alt < round_findings.size()) best = alt;
+        }
         for (auto& f : round_findings) last_round[f.effect] = f;
         if (best == round_findings.size()) break;
         const auto& spec =
@@ -587,15 +676,62 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     progress(0.95, "simulating the improved model");
     d.improved_params = current;
     d.improved = rms_of(current, rec_full, &d.improved_trace);
+    // No false reassurance: compare what remains with the recording's own noise.
+    d.noise = estimate_noise(rec_full, params.capacity_ah);
+    if (d.noise.sigma.heat_flux_w) *d.noise.sigma.heat_flux_w *= params.thermal.area_m2;
+    {
+        Unexplained u;
+        u.rms = d.improved;
+        u.noise = d.noise.sigma;
+        auto above = [&](const char* name, const std::optional<double>& r, const std::optional<double>& sg) {
+            if (r && sg && *r > options.noise_factor * *sg) u.above_noise.push_back(name);
+        };
+        above("voltage", u.rms.voltage_v, u.noise.voltage_v);
+        above("temperature", u.rms.temperature_c, u.noise.temperature_c);
+        above("heat_flux", u.rms.heat_flux_w, u.noise.heat_flux_w);
+        if (!u.above_noise.empty()) {
+            auto located = locate_errors(current, rec_full, d.improved_trace);
+            std::vector<ConditionError> combined;
+            for (const auto& c : located)
+                if (c.dimension == "combined") combined.push_back(c);
+            std::sort(combined.begin(), combined.end(),
+                      [](const auto& a, const auto& b) { return a.share_of_voltage_error > b.share_of_voltage_error; });
+            for (std::size_t k = 0; k < std::min<std::size_t>(3, combined.size()); ++k) u.where.push_back(combined[k]);
+            u.voltage = sparse_residual_model(rec_full, d.improved_trace, current, false);
+            if (rec_full.has_surface()) u.temperature = sparse_residual_model(rec_full, d.improved_trace, current, true);
+            std::string q;
+            for (const auto& a : u.above_noise) q += (q.empty() ? "" : ", ") + a;
+            u.summary = "after the findings the " + q + " error stays above " + num("%.0f", options.noise_factor) +
+                        "x the measurement noise estimated from the recording's rests";
+            if (u.rms.voltage_v && u.noise.voltage_v)
+                u.summary += " (voltage " + num("%.1f", *u.rms.voltage_v * 1e3) + " mV RMS against " +
+                             num("%.2f", *u.noise.voltage_v * 1e3) + " mV noise)";
+            if (!u.where.empty())
+                u.summary += "; most of it in " + u.where.front().condition + " (" +
+                             pct(u.where.front().share_of_voltage_error) + " of the squared voltage error, bias " +
+                             num("%+.1f", u.where.front().voltage_bias_v * 1e3) + " mV)";
+            if (!u.voltage.terms.empty() && u.voltage.explained >= 0.2) {
+                u.summary += "; a sparse model of the voltage residual explains " + pct(u.voltage.explained) + " with";
+                for (const auto& t : u.voltage.terms) u.summary += " " + t.term;
+                u.summary += " (" + u.voltage.terms.front().meaning + ")";
+            }
+            d.unexplained = std::move(u);
+        }
+    }
     if (d.accepted.empty()) {
-        d.summary = "No candidate physics passes the significance test (held-out error reduction >= " +
+        d.summary = "No candidate passes the significance test (held-out error reduction >= " +
                     pct(options.min_cv_improvement) + " on average and in " + std::to_string(folds - 1) + " of " +
-                    std::to_string(folds) + " blocks, BIC improvement > " + num("%.0f", -options.bic_threshold) +
-                    "): the model is adequate for this recording.";
+                    std::to_string(folds) + " interleaved folds, BIC improvement > " +
+                    num("%.0f", -options.bic_threshold) + ")";
+        d.summary += d.unexplained ? ", but the model is NOT adequate: " + d.unexplained->summary + "."
+                                   : " and the residual is at the noise level: the model is adequate for this recording.";
     } else {
-        d.summary = "Left out of the model, in order of evidence:";
+        d.summary = "In order of evidence:";
         for (const auto& f : d.findings)
-            if (f.significant) d.summary += " " + f.effect + " (" + pct(f.score) + " of the held-out error);";
+            if (f.significant)
+                d.summary += " " + f.effect + (f.kind == "parameters_wrong" ? " [parameters wrong]" : " [physics missing]") +
+                             " (" + pct(f.score) + " of the held-out error);";
+        if (d.unexplained) d.summary += " Still unexplained: " + d.unexplained->summary + ".";
     }
     progress(1.0, "done");
     return d;
@@ -615,6 +751,7 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
     j["findings"] = nlohmann::json::array();
     for (const auto& f : d.findings)
         j["findings"].push_back({{"effect", f.effect},
+                                 {"kind", f.kind},
                                  {"significant", f.significant},
                                  {"score", f.score},
                                  {"folds_improved", f.folds_improved},
@@ -623,6 +760,42 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
                                  {"parameters", f.parameters},
                                  {"improved", rms_json(f.improved)}});
     j["accepted"] = d.accepted;
+    j["skipped_in_baseline"] = d.skipped;
+    j["holdout"] = d.holdout.is_null() ? nlohmann::json::object() : d.holdout;
+    j["noise"] = {{"voltage_v", d.noise.sigma.voltage_v ? nlohmann::json(*d.noise.sigma.voltage_v) : nlohmann::json(nullptr)},
+                  {"temperature_c", d.noise.sigma.temperature_c ? nlohmann::json(*d.noise.sigma.temperature_c) : nlohmann::json(nullptr)},
+                  {"heat_flux_w", d.noise.sigma.heat_flux_w ? nlohmann::json(*d.noise.sigma.heat_flux_w) : nlohmann::json(nullptr)},
+                  {"rest_pairs", d.noise.rest_pairs},
+                  {"method", "robust sample-to-sample scatter of consecutive rest rows (MAD / sqrt 2)"}};
+    if (d.unexplained) {
+        const auto& u = *d.unexplained;
+        auto model = [](const ResidualModel& m) {
+            nlohmann::json t = nlohmann::json::array();
+            for (const auto& x : m.terms)
+                t.push_back({{"term", x.term}, {"meaning", x.meaning}, {"coefficient", x.coefficient}, {"share", x.share}});
+            nlohmann::json c = nlohmann::json::object();
+            for (const auto& [k, v] : m.correlations) c[k] = v;
+            return nlohmann::json{{"quantity", m.quantity}, {"explained", m.explained}, {"terms", t}, {"correlations", c}};
+        };
+        nlohmann::json w = nlohmann::json::array();
+        for (const auto& c : u.where)
+            w.push_back({{"condition", c.condition},
+                         {"share_of_voltage_error", c.share_of_voltage_error},
+                         {"time_share", c.time_share},
+                         {"voltage_rms_v", c.voltage_rms_v},
+                         {"voltage_bias_v", c.voltage_bias_v}});
+        nlohmann::json corr = nlohmann::json::object();
+        for (const auto& [k, v] : u.voltage.correlations) corr[k] = v;
+        j["unexplained"] = {{"rms", rms_json(u.rms)},
+                            {"noise", rms_json(u.noise)},
+                            {"above_noise", u.above_noise},
+                            {"where", w},
+                            {"correlates_with", corr},
+                            {"sparse_model", {{"voltage", model(u.voltage)}, {"temperature", model(u.temperature)}}},
+                            {"summary", u.summary}};
+    } else {
+        j["unexplained"] = nullptr;
+    }
     j["improved"] = rms_json(d.improved);
     j["summary"] = d.summary;
     return j;

@@ -10,13 +10,23 @@
 //    the measured quantities of their mean squared error relative to the baseline's, so each quantity's
 //    relative improvement counts alike. Searches run on a copy merged to 1 s intervals (charge conserved);
 //    every figure reported is measured at full resolution.
-// 3. Evidence: K-fold cross-validation over contiguous time blocks (fit on K-1 blocks, score on the held-out
-//    one; the simulation always runs the whole recording so the states stay continuous) and BIC with an
+// 3. Evidence: K-fold cross-validation over interleaved time blocks (block b belongs to fold b mod K, blocks
+//    short against the recording, so every fold spans the SOC, current and temperature range of a drifting
+//    recording; fit on K-1 folds, score on the held-out one; the simulation always runs the whole recording so
+//    the states stay continuous) and BIC with an
 //    effective sample count (residuals 10 s apart are taken as independent). A finding is significant when
 //    (a) it removes at least min_cv_improvement of the held-out error on average, (b) it improves at least
 //    K-1 of the K held-out blocks, and (c) its BIC improves by more than bic_threshold.
 // 4. Combinations: after accepting the strongest significant finding, the remaining candidates are fitted
-//    again on top of it (a recording may hide two effects), up to max_accepted.
+//    again on top of it (a recording may hide two effects), up to max_accepted. A candidate the parameter set
+//    already holds (the global fit identifies resistance_temperature and resistance_current) is not proposed
+//    again as missing.
+// 5. Kinds: a finding is "physics_missing" (an effect of the catalogue) or "parameters_wrong" (the base set is
+//    off: OCV table offset in a SOC band, capacity; re-identified on this recording).
+// 6. No false reassurance: the measurement noise is estimated from the recording itself (sample-to-sample
+//    scatter in rests); when a quantity's residual after the accepted findings stays above noise_factor times
+//    its noise, `unexplained` says where, how large, what it correlates with and which terms a sparse
+//    regression of the residual keeps (residual_regression.cpp). The summary never says "adequate" then.
 #include <atomic>
 #include <cstddef>
 #include <functional>
@@ -48,6 +58,10 @@ struct DiagnoseOptions {
     double voltage_floor_v = 0.005;       // cycler voltage accuracy class (0.05 % of a 10 V range)
     double temperature_floor_c = 0.3;     // thermocouple-grade agreement
     double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface
+    // Held-out folds: interleaved blocks of this length (0: duration / (folds * 8), at least 60 s).
+    double holdout_block_s = 0.0;
+    // `unexplained` is reported while a residual RMS exceeds this multiple of the quantity's measurement noise.
+    double noise_factor = 2.0;
     // Progress of diagnose() (baseline, round r candidate k of n, final simulation); empty = none.
     Progress progress;
     // Set by another thread to give up: diagnose() stops after the candidate fits under way and throws
@@ -77,6 +91,7 @@ struct ConditionError {
 
 struct Finding {
     std::string effect;
+    std::string kind = "physics_missing";  // or "parameters_wrong"
     bool significant = false;
     double score = 0.0;           // mean held-out error reduction (fraction), the ranking key
     std::size_t folds_improved = 0;
@@ -85,6 +100,39 @@ struct Finding {
     nlohmann::json parameters = nlohmann::json::object();
     QuantityRms improved;         // full-resolution RMS with this effect added to the accepted ones
     std::string explanation;
+};
+
+// Measurement noise (1 sigma) estimated from the recording: robust sample-to-sample scatter in rests.
+struct NoiseEstimate {
+    QuantityRms sigma;
+    std::size_t rest_pairs = 0;  // consecutive rest rows the estimate rests on
+};
+NoiseEstimate estimate_noise(const Recording& rec, double capacity_ah);
+
+// Sparse regression of a residual over a library of candidate terms (sequentially thresholded least squares on
+// standardised columns): I, |I|, I*|I|, I low-passed at 10/100/1000 s, a throughput-driven direction state,
+// temperature rise, SOC, and products. `explained` is the share of the residual variance the kept terms remove.
+struct SparseTerm {
+    std::string term;        // e.g. "I_lp100s" or "I*dT"
+    std::string meaning;     // plain words
+    double coefficient = 0;  // natural units: residual unit per term unit
+    double share = 0;        // share of the residual variance this term alone carries (standardised beta^2)
+};
+struct ResidualModel {
+    std::string quantity;    // "voltage_v" or "temperature_c"
+    std::vector<SparseTerm> terms;
+    double explained = 0.0;
+    std::vector<std::pair<std::string, double>> correlations;  // strongest Pearson r of the residual per term
+};
+ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace& trace, const ParameterSet& params,
+                                    bool temperature = false);
+
+struct Unexplained {
+    QuantityRms rms, noise;                  // residual after the accepted findings; estimated noise
+    std::vector<std::string> above_noise;    // quantities above noise_factor x noise
+    std::vector<ConditionError> where;       // largest shares of the remaining voltage error
+    ResidualModel voltage, temperature;      // sparse models of the remaining residuals
+    std::string summary;
 };
 
 struct Diagnosis {
@@ -97,6 +145,10 @@ struct Diagnosis {
     QuantityRms improved;                    // with all accepted effects
     SimulationTrace baseline_trace, improved_trace;
     std::string summary;                     // plain words
+    NoiseEstimate noise;
+    std::optional<Unexplained> unexplained;  // null: residual at the noise level or explained
+    std::vector<std::string> skipped;        // candidates the parameter set already holds
+    nlohmann::json holdout;                  // the hold-out scheme ({"scheme": "interleaved_blocks", ...})
 };
 
 // Throws InputError if the recording is too short to cross-validate (fewer than folds * 60 s).

@@ -1,0 +1,276 @@
+// Noise estimate and sparse regression of a residual (diagnose.hpp: estimate_noise, sparse_residual_model).
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+
+#include <Eigen/Dense>
+
+#include "cellbench/estimator/diagnose.hpp"
+
+namespace cellbench::estimator {
+
+namespace {
+
+// Robust 1-sigma noise of a signal from the differences of consecutive rest rows: the differences remove slow
+// relaxation, the median absolute deviation ignores the odd step; sigma_diff = sqrt(2) sigma. Where the scatter
+// is below the quantization (all differences 0 or one LSB), the LSB/sqrt(12) floor is used.
+std::optional<double> scatter(const std::vector<double>& x, const std::vector<char>& pair_ok, double scale) {
+    if (x.empty()) return std::nullopt;
+    // A slower instrument merged onto a faster time base repeats each value over several rows (sample and hold):
+    // the typical run of equal values among the rows that change tells the hold length, and only rows that far
+    // apart are compared. A quantized signal that does not move has no changing rows: the LSB floor applies.
+    std::size_t hold = 1;
+    {
+        std::vector<std::size_t> runs;
+        std::size_t run = 1;
+        for (std::size_t k = 1; k < x.size(); ++k) {
+            if (x[k] == x[k - 1]) {
+                ++run;
+            } else {
+                if (run < 100) runs.push_back(run);
+                run = 1;
+            }
+        }
+        if (runs.size() > 20) {
+            std::nth_element(runs.begin(), runs.begin() + static_cast<long>(runs.size() / 2), runs.end());
+            hold = std::max<std::size_t>(1, runs[runs.size() / 2]);
+        }
+    }
+    std::vector<double> d;
+    double lsb = INFINITY;
+    for (std::size_t k = hold; k < x.size() && k < pair_ok.size(); k += hold) {
+        bool ok = true;
+        for (std::size_t j = k - hold + 1; j <= k && ok; ++j) ok = pair_ok[j];
+        if (!ok || !std::isfinite(x[k]) || !std::isfinite(x[k - hold])) continue;
+        const double v = x[k] - x[k - hold];
+        d.push_back(v);
+        if (std::abs(v) > 0) lsb = std::min(lsb, std::abs(v));
+    }
+    if (d.size() < 20) return std::nullopt;
+    auto median = [](std::vector<double> v) {
+        std::nth_element(v.begin(), v.begin() + static_cast<long>(v.size() / 2), v.end());
+        return v[v.size() / 2];
+    };
+    const double m = median(d);
+    for (auto& v : d) v = std::abs(v - m);
+    double sigma = 1.4826 * median(d) / std::sqrt(2.0);
+    if (std::isfinite(lsb)) sigma = std::max(sigma, lsb / std::sqrt(12.0));
+    return sigma * scale;
+}
+
+double lowpass_step(double y, double x, double dt, double tau) { return y + (x - y) * (1.0 - std::exp(-dt / tau)); }
+
+}  // namespace
+
+NoiseEstimate estimate_noise(const Recording& rec, double capacity_ah) {
+    NoiseEstimate ne;
+    const std::size_t n = rec.size();
+    std::vector<char> ok(n, 0);
+    const double i_rest = std::max(0.01, 0.01 * capacity_ah);
+    double t_step = rec.time_s.empty() ? 0.0 : rec.time_s[0];
+    for (std::size_t k = 1; k < n; ++k) {
+        if (std::abs(rec.current_a[k] - rec.current_a[k - 1]) > i_rest) t_step = rec.time_s[k];
+        const bool rest = std::abs(rec.current_a[k]) < i_rest && std::abs(rec.current_a[k - 1]) < i_rest;
+        const double dt = rec.time_s[k] - rec.time_s[k - 1];
+        ok[k] = rest && dt > 0 && dt <= 5.0 && rec.time_s[k] - t_step > 10.0;
+        ne.rest_pairs += ok[k];
+    }
+    ne.sigma.voltage_v = scatter(rec.voltage_v, ok, 1.0);
+    if (rec.has_surface()) ne.sigma.temperature_c = scatter(rec.surface_c, ok, 1.0);
+    // heat flux in W over the configured surface is scaled by the caller (area)
+    if (rec.has_heat_flux()) ne.sigma.heat_flux_w = scatter(rec.heat_flux_w_per_m2, ok, 1.0);
+    return ne;
+}
+
+ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace& tr, const ParameterSet& params,
+                                    bool temperature) {
+    ResidualModel out;
+    out.quantity = temperature ? "temperature_c" : "voltage_v";
+    const std::size_t n = std::min(rec.size(), tr.time_s.size());
+    if (n < 50 || (temperature && !rec.has_surface())) return out;
+    const double c1 = std::max(params.capacity_ah, 1e-3);
+    // Library, in natural units (I in A, dT in K, SOC fraction).
+    struct Col {
+        std::string name, meaning;
+        std::vector<double> v;
+    };
+    std::vector<Col> cols;
+    auto add = [&](std::string name, std::string meaning) -> std::vector<double>& {
+        cols.push_back({std::move(name), std::move(meaning), std::vector<double>(n)});
+        return cols.back().v;
+    };
+    double t_first = kNaN;
+    if (rec.has_surface())
+        for (double v : rec.surface_c)
+            if (std::isfinite(v)) {
+                t_first = v;
+                break;
+            }
+    std::vector<double> I(n), dT(n), soc(n);
+    for (std::size_t k = 0; k < n; ++k) {
+        I[k] = rec.current_a[k];
+        const double ts = std::isfinite(tr.temperature_c[k]) ? tr.temperature_c[k] : kNaN;
+        dT[k] = std::isfinite(ts) && std::isfinite(t_first) ? ts - t_first : 0.0;
+        soc[k] = tr.soc[k];
+    }
+    {
+        auto& c = add("I", "current (an ohmic term: a resistance off)");
+        c = I;
+    }
+    {
+        auto& c = add("|I|", "current magnitude (a direction-independent overpotential)");
+        for (std::size_t k = 0; k < n; ++k) c[k] = std::abs(I[k]);
+    }
+    {
+        auto& c = add("I*|I|", "current squared with its sign (overpotential not linear in current)");
+        for (std::size_t k = 0; k < n; ++k) c[k] = I[k] * std::abs(I[k]) / c1;
+    }
+    for (double tau : {10.0, 100.0, 1000.0}) {
+        auto& c = add("I_lp" + std::to_string(static_cast<int>(tau)) + "s",
+                      "current low-passed at " + std::to_string(static_cast<int>(tau)) + " s (a polarization with this time constant)");
+        double y = 0;
+        for (std::size_t k = 0; k < n; ++k) {
+            if (k > 0) y = lowpass_step(y, I[k], rec.time_s[k] - rec.time_s[k - 1], tau);
+            c[k] = y;
+        }
+    }
+    {
+        auto& c = add("h_dir", "direction of the recent charge throughput (hysteresis-like, settles over 5 % of the capacity)");
+        double h = 0;
+        for (std::size_t k = 1; k < n; ++k) {
+            const double dq = std::abs(I[k]) * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0 / c1;
+            const double s = I[k] > 0.02 * c1 ? 1.0 : I[k] < -0.02 * c1 ? -1.0 : h;
+            h += (s - h) * (1.0 - std::exp(-dq / 0.05));
+            c[k] = h;
+        }
+    }
+    {
+        auto& c = add("dT", "temperature rise (a temperature dependence)");
+        c = dT;
+    }
+    {
+        auto& c = add("I*dT", "current times temperature rise (resistance changing with temperature)");
+        for (std::size_t k = 0; k < n; ++k) c[k] = I[k] * dT[k];
+    }
+    {
+        auto& c = add("SOC", "state of charge (OCV or capacity off)");
+        c = soc;
+    }
+    {
+        auto& c = add("I*SOC", "current times SOC (a resistance table off along SOC)");
+        for (std::size_t k = 0; k < n; ++k) c[k] = I[k] * (soc[k] - 0.5);
+    }
+    {
+        auto& c = add("t", "elapsed time in hours (a drift)");
+        for (std::size_t k = 0; k < n; ++k) c[k] = (rec.time_s[k] - rec.time_s[0]) / 3600.0;
+    }
+    {
+        auto& c = add("I^2_lp100s", "I^2 low-passed at 100 s (heat: a thermal or heat-driven effect)");
+        double y = 0;
+        for (std::size_t k = 0; k < n; ++k) {
+            if (k > 0) y = lowpass_step(y, I[k] * I[k], rec.time_s[k] - rec.time_s[k - 1], 100.0);
+            c[k] = y;
+        }
+    }
+    // Residual (simulated minus measured) on rows where it exists; weights = time.
+    std::vector<std::size_t> rows;
+    std::vector<double> r;
+    for (std::size_t k = 0; k < n; ++k) {
+        const double e = temperature ? tr.temperature_c[k] - rec.surface_c[k] : tr.voltage_v[k] - rec.voltage_v[k];
+        if (std::isfinite(e)) rows.push_back(k), r.push_back(e);
+    }
+    if (rows.size() < 50) return out;
+    const std::size_t m = rows.size(), p = cols.size();
+    Eigen::MatrixXd X(m, p);
+    Eigen::VectorXd y(m);
+    std::vector<double> mean(p), sd(p);
+    const double ry = std::accumulate(r.begin(), r.end(), 0.0) / static_cast<double>(m);
+    for (std::size_t i = 0; i < m; ++i) y(static_cast<long>(i)) = r[i] - ry;
+    const double sy = std::sqrt(y.squaredNorm() / static_cast<double>(m));
+    if (!(sy > 0)) return out;
+    for (std::size_t j = 0; j < p; ++j) {
+        double s = 0, s2 = 0;
+        for (std::size_t i = 0; i < m; ++i) s += cols[j].v[rows[i]];
+        mean[j] = s / static_cast<double>(m);
+        for (std::size_t i = 0; i < m; ++i) s2 += std::pow(cols[j].v[rows[i]] - mean[j], 2);
+        sd[j] = std::sqrt(s2 / static_cast<double>(m));
+        for (std::size_t i = 0; i < m; ++i)
+            X(static_cast<long>(i), static_cast<long>(j)) = sd[j] > 0 ? (cols[j].v[rows[i]] - mean[j]) / sd[j] : 0.0;
+    }
+    // Correlations.
+    for (std::size_t j = 0; j < p; ++j) {
+        if (!(sd[j] > 0)) continue;
+        const double c = X.col(static_cast<long>(j)).dot(y) / static_cast<double>(m) / sy;
+        out.correlations.emplace_back(cols[j].name, c);
+    }
+    std::sort(out.correlations.begin(), out.correlations.end(),
+              [](const auto& a, const auto& b) { return std::abs(a.second) > std::abs(b.second); });
+    if (out.correlations.size() > 4) out.correlations.resize(4);
+    // Sequentially thresholded least squares (standardised; ridge 1e-6 for near-collinear columns).
+    std::vector<char> active(p, 0);
+    for (std::size_t j = 0; j < p; ++j) active[j] = sd[j] > 0;
+    const double threshold = 0.1 * sy;  // a kept term moves the residual by at least 10 % of its spread per sigma
+    Eigen::VectorXd beta = Eigen::VectorXd::Zero(static_cast<long>(p));
+    const Eigen::MatrixXd G = X.transpose() * X / static_cast<double>(m);
+    const Eigen::VectorXd b = X.transpose() * y / static_cast<double>(m);
+    for (int it = 0; it < 12; ++it) {
+        std::vector<long> idx;
+        for (std::size_t j = 0; j < p; ++j)
+            if (active[j]) idx.push_back(static_cast<long>(j));
+        if (idx.empty()) break;
+        Eigen::MatrixXd g(idx.size(), idx.size());
+        Eigen::VectorXd bb(idx.size());
+        for (std::size_t a = 0; a < idx.size(); ++a) {
+            bb(static_cast<long>(a)) = b(idx[a]);
+            for (std::size_t c = 0; c < idx.size(); ++c) g(static_cast<long>(a), static_cast<long>(c)) = G(idx[a], idx[c]);
+            g(static_cast<long>(a), static_cast<long>(a)) += 1e-6;
+        }
+        const Eigen::VectorXd sol = g.ldlt().solve(bb);
+        beta.setZero();
+        bool changed = false;
+        for (std::size_t a = 0; a < idx.size(); ++a) beta(idx[a]) = sol(static_cast<long>(a));
+        // drop below the threshold; keep at most 5 terms (the largest)
+        std::vector<long> order(idx);
+        std::sort(order.begin(), order.end(), [&](long u, long v) { return std::abs(beta(u)) > std::abs(beta(v)); });
+        for (std::size_t a = 0; a < order.size(); ++a)
+            if (std::abs(beta(order[a])) < threshold || a >= 5) {
+                active[static_cast<std::size_t>(order[a])] = 0;
+                changed = true;
+            }
+        if (!changed) break;
+    }
+    for (std::size_t j = 0; j < p; ++j)
+        if (!active[j]) beta(static_cast<long>(j)) = 0;
+    const Eigen::VectorXd res = y - X * beta;
+    out.explained = std::max(0.0, 1.0 - res.squaredNorm() / y.squaredNorm());
+    // Share of a kept term: the variance the model explains less when it is refitted without that term (columns
+    // of a drive profile are correlated, so beta^2 alone would overstate it).
+    auto sse_without = [&](long drop) {
+        std::vector<long> idx;
+        for (std::size_t j = 0; j < p; ++j)
+            if (active[j] && static_cast<long>(j) != drop) idx.push_back(static_cast<long>(j));
+        if (idx.empty()) return y.squaredNorm();
+        Eigen::MatrixXd g(idx.size(), idx.size());
+        Eigen::VectorXd bb(idx.size());
+        for (std::size_t a = 0; a < idx.size(); ++a) {
+            bb(static_cast<long>(a)) = b(idx[a]);
+            for (std::size_t c = 0; c < idx.size(); ++c) g(static_cast<long>(a), static_cast<long>(c)) = G(idx[a], idx[c]);
+            g(static_cast<long>(a), static_cast<long>(a)) += 1e-6;
+        }
+        const Eigen::VectorXd sol = g.ldlt().solve(bb);
+        Eigen::VectorXd fit = Eigen::VectorXd::Zero(static_cast<long>(m));
+        for (std::size_t a = 0; a < idx.size(); ++a) fit += sol(static_cast<long>(a)) * X.col(idx[a]);
+        return (y - fit).squaredNorm();
+    };
+    const double sse_full = res.squaredNorm();
+    for (std::size_t j = 0; j < p; ++j) {
+        const double bj = beta(static_cast<long>(j));
+        if (bj == 0.0) continue;
+        const double share = std::max(0.0, (sse_without(static_cast<long>(j)) - sse_full) / y.squaredNorm());
+        out.terms.push_back({cols[j].name, cols[j].meaning, bj / sd[j], share});
+    }
+    std::sort(out.terms.begin(), out.terms.end(), [](const auto& a, const auto& b) { return a.share > b.share; });
+    return out;
+}
+
+}  // namespace cellbench::estimator

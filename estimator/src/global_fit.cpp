@@ -40,10 +40,9 @@ T asinh_ratio(const T& x) {
 
 // One tick of a window: the merged rows (t0, t1] with the mean current held, and the voltage measured at t1.
 struct Tick {
-    double dt_s = 0, current_a = 0;     // current held over the tick (the RC pairs' input)
-    double current_end_a = 0;           // current at the tick's last row (with R0, the voltage measured there)
-    bool step = false;                  // the current steps in the tick's last sample interval
-    double last_dt_s = 0;               // that interval
+    double dt_s = 0, current_a = 0;     // mean of the currents its rows report
+    double current_before_a = 0;        // a step tick: the current the row before it reports
+    bool step = false;                  // one sample interval across which the current steps
     double soc_start = 0, soc_end = 0;  // Coulomb-counted (before a window's fitted offset)
     double temperature_c = 0;
     double voltage_v = kNaN;            // NaN: no residual
@@ -152,8 +151,8 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         };
         if (tk.step) {
             // The step happened `lag` of the interval before the row that shows it (see make_ticks).
-            advance(i, tk.dt_s - lag * tk.last_dt_s);
-            advance(tk.current_end_a, lag * tk.last_dt_s);
+            advance(tk.current_before_a, (1.0 - lag) * tk.dt_s);
+            advance(i, lag * tk.dt_s);
         } else if (tk.dt_s > 0) {
             advance(i, T(tk.dt_s));
         }
@@ -162,8 +161,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         locate(soc1, jo, wo);
         if (lo == hi) wo = T(0.0);
         const T ocv = kv[jo - lo].ocv + wo * (kv[std::min(jo + 1, hi) - lo].ocv - kv[jo - lo].ocv);
-        const double i_end = tk.current_end_a;
-        const T v = ocv + (i_end < 0 ? r0d * i_end : r0c * i_end) + v1d + v2d + v1c + v2c;
+        const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
         if (model_v) model_v[k] = scalar(v);
         if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
     }
@@ -330,12 +328,13 @@ struct Builder {
 // every transient keeps its fine sampling and long steady stretches cost few ticks. Exact under ZOH apart from
 // the SOC-dependence frozen over a tick.
 //
-// Sampling convention: the current a row reports holds from that row on, i.e. over (t_k, t_k+1]. A cycler writes
-// a record at the instant a step starts (the row that first shows the new current and step count, its voltage
-// already stepped by R0*I but no polarization built up yet), so a current step happens AT the row that shows it.
-// Taking the row's current as held over the interval before it instead (the step one sample early) lets the RC
-// pairs charge for a whole sample before the first voltage after the step: at 1 s sampling and tau1 of a few
-// seconds the fit then passes 15-20 % of R1 off as missing R0 (the validation plant's R0 came out 10-17 % low).
+// Current steps: a row's current is held over the interval before it (the ZOH convention of electrical.hpp),
+// except across a step, where the new current flows only the fitted last fraction `step_lag` of the interval
+// before the row that shows it. A cycler writes a record at the instant a step starts (voltage already stepped
+// by R0*I, no polarization built up yet: lag 0); a DAQ sampling on its own clock sees the step somewhere in the
+// interval. Taking every step a whole sample early lets the RC pairs charge for a sample before the first voltage
+// after the step: at 1 s sampling and tau1 of a few seconds the fit then passes 15-20 % of R1 off as missing R0
+// (the validation plant's R0 came out 10-17 % low). At lag 1 the model is the plain ZOH one.
 std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_t end, const std::vector<double>& soc,
                              double t_ref_c) {
     std::vector<Tick> ticks;
@@ -348,7 +347,6 @@ std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_
     first.soc_start = first.soc_end = soc[begin];
     first.temperature_c = temp_at(begin);
     first.current_a = rec.current_a[begin];
-    first.current_end_a = rec.current_a[begin];
     first.voltage_v = rec.voltage_v[begin];
     ticks.push_back(first);
     double t_change = rec.time_s[begin];
@@ -360,26 +358,25 @@ std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_
         const double t0 = rec.time_s[k - 1];
         double q = 0, span = 0;
         std::size_t j = k;
-        // held(m): the current over (t_m-1, t_m], reported by row m - 1
-        auto held = [&](std::size_t m) { return rec.current_a[m - 1]; };
-        const double i_first = held(k);
+        const double i_first = rec.current_a[k];
         if (std::abs(i_first - ticks.back().current_a) > std::max(0.05, 0.05 * std::abs(i_first))) t_change = t0;
         for (; j < end; ++j) {
             const double dt = rec.time_s[j] - rec.time_s[j - 1];
             const double mean = span > 0 ? q / span : i_first;
             if (j > k) {
-                if (std::abs(held(j) - mean) > std::max(0.05, 0.05 * std::abs(mean))) break;
+                if (std::abs(rec.current_a[j] - mean) > std::max(0.05, 0.05 * std::abs(mean))) break;
                 const double limit = std::min(30.0, 0.2 * (rec.time_s[j] - t_change));
                 if (span + dt > limit) break;
             }
-            q += held(j) * dt;
+            q += rec.current_a[j] * dt;
             span += dt;
         }
         tk.dt_s = span;
-        tk.current_a = span > 0 ? q / span : held(j - 1);
-        tk.current_end_a = rec.current_a[j - 1];
-        tk.last_dt_s = rec.time_s[j - 1] - rec.time_s[j - 2];
-        tk.step = tk.last_dt_s > 0 && std::abs(tk.current_end_a - tk.current_a) > std::max(0.05, 0.05 * std::abs(tk.current_a));
+        tk.current_a = span > 0 ? q / span : rec.current_a[j - 1];
+        tk.current_before_a = rec.current_a[k - 1];
+        // The first tick after a change is one interval (its limit is a fifth of the time since the change).
+        tk.step = j == k + 1 && span > 0 &&
+                  std::abs(tk.current_a - tk.current_before_a) > std::max(0.05, 0.05 * std::abs(tk.current_a));
         tk.soc_end = soc[j - 1];
         tk.voltage_v = rec.voltage_v[j - 1];
         ticks.push_back(tk);

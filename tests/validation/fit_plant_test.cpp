@@ -128,10 +128,10 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
             std::printf("seed %d: capacity %.4f Ah (%s), truth %.4f Ah, sample %.2f s\n", seed, c.capacity.capacity_ah,
                         c.capacity.method.c_str(), d.truth.capacity_ah, d.cell.measurement.sample_s);
             if (c.global) {
-                std::printf("   global: Ea %.0f J/mol (T dep %d), I0 %.3f A ref %.3f A (I dep %d), T_ref %.2f C, smoothness %.0f\n",
+                std::printf("   global: Ea %.0f J/mol (T dep %d), I0 %.3f A ref %.3f A (I dep %d), T_ref %.2f C, smoothness %.0f, step lag %.3f\n",
                             c.global->activation_energy_j_per_mol.value, c.global->temperature_dependence,
                             c.global->exchange_current_a.value, c.global->reference_current_a, c.global->current_dependence,
-                            c.params.reference_temperature_c, c.global->smoothness);
+                            c.params.reference_temperature_c, c.global->smoothness, c.global->step_lag);
                 for (const auto& w : c.global->windows)
                     std::printf("   window rec %zu %s soc %.3f..%.3f offset %+.4f scale %.4f rms %.2f mV\n", w.recording,
                                 w.kind.c_str(), w.soc_min, w.soc_max, w.soc_offset, w.capacity_scale, 1e3 * w.rms_v);
@@ -155,11 +155,15 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
     std::printf("median worst-level error: OCV %.2f mV, R0 %.2f %%, R1+R2 %.2f %%, capacity %.2f %%, drive %.2f mV\n",
                 ocv, 100 * r0, 100 * r12, 100 * cap, drive);
     // What the fit holds today on every layout (issue 11's targets are tighter; the closing note reports both).
-    // Measured at the time of writing (3 seeds): OCV 29 mV, R0 9.5 %, capacity 1.8-5.2 %, drive 4.4-5.1 mV.
-    EXPECT_LT(ocv, 45.0);
-    EXPECT_LT(r0, 0.15);
-    EXPECT_LT(cap, 0.08);
-    EXPECT_LT(drive, 15.0);
+    // Measured (3 seeds, medians thesis / usabc): OCV 28.8 / 17.8 mV (the worst level is 10 % SOC: the OCV's
+    // knee cut by the 10 % knots' chord), R0 7.3 / 6.1 % (worst at 10-20 % SOC; within 1-2 % at 30-90 % since the
+    // current steps are fitted where they happen, global.step_lag; before: 9.4 % with 10-23 % at 1 s sampling),
+    // R1+R2 10.8 / 6.0 % (before 18.0 %), capacity 5.2 / 1.8 %, drive 5.1 / 4.0 mV.
+    EXPECT_LT(ocv, 35.0);
+    EXPECT_LT(r0, 0.09);
+    EXPECT_LT(r12, 0.13);
+    EXPECT_LT(cap, 0.07);
+    EXPECT_LT(drive, 8.0);
 }
 
 INSTANTIATE_TEST_SUITE_P(Layouts, FitOnIndependentPlant,

@@ -70,7 +70,6 @@ json nullable(double x) { return std::isfinite(x) ? json(x) : json(nullptr); }
 // one (the host starved the daemon) adds only kPaceMaxStepWallS x scale bench seconds.
 constexpr auto kPacePeriod = std::chrono::milliseconds(10);
 constexpr double kPaceMaxStepWallS = 0.1;
-constexpr auto kPaceHoldAfter = std::chrono::milliseconds(50);
 
 // A bench-time period as a wall timer period (the simulation runs time_scale bench s per wall s), >= 1 ms.
 std::chrono::milliseconds wall_period(double bench_ms, double scale, double min_ms = 1.0) {
@@ -318,9 +317,7 @@ struct BenchDaemon::Impl {
     // cycler poll, and at a high time scale the first reading after a current step would come late (R0 high).
     std::mutex feed_m;
     std::condition_variable feed_cv;
-    std::deque<std::pair<SteadyClock::time_point, std::function<void()>>> feed_q;  // (enqueued, job)
-    // Since when (steady ns; 0: idle) the cycler's latest reading is being handled (on_neware_sample).
-    std::atomic<std::int64_t> neware_busy_since_ns{0};
+    std::deque<std::function<void()>> feed_q;
     bool feed_stop = false;
     std::thread feed_thread;
     std::thread refit_thread;  // final fits redone at start (runs whose fit did not land before a stop)
@@ -328,7 +325,7 @@ struct BenchDaemon::Impl {
     void feed(std::function<void()> job) {
         {
             std::lock_guard l(feed_m);
-            feed_q.emplace_back(SteadyClock::now(), std::move(job));
+            feed_q.push_back(std::move(job));
         }
         feed_cv.notify_one();
     }
@@ -337,7 +334,7 @@ struct BenchDaemon::Impl {
         while (true) {
             feed_cv.wait(l, [&] { return feed_stop || !feed_q.empty(); });
             if (feed_q.empty()) return;  // stopping and drained
-            auto job = std::move(feed_q.front().second);
+            auto job = std::move(feed_q.front());
             feed_q.pop_front();
             l.unlock();
             try {
@@ -711,11 +708,6 @@ struct BenchDaemon::Impl {
     double neware_test_start_s = kNaN;
 
     void on_neware_sample(const drivers::NewareSample& s) {
-        neware_busy_since_ns = SteadyClock::now().time_since_epoch().count();
-        struct Idle {
-            std::atomic<std::int64_t>& since;
-            ~Idle() { since = 0; }
-        } idle{neware_busy_since_ns};
         const double t = bench_at(s.time);
         const auto& g = s.group;
         const auto status = std::string(protocol::neware::to_string(g.status));
@@ -1297,20 +1289,7 @@ struct BenchDaemon::Impl {
         pace_timer->async_wait([this](const boost::system::error_code& ec) {
             if (ec || stopping) return;
             const auto now = SteadyClock::now();
-            // The daemon behind its readings (the feed thread's oldest job, or the cycler reading being handled,
-            // older than kPaceHoldAfter): bench time waits for it, so no reading arrives "late" in bench time.
-            // A silent instrument leaves both idle: its silence still counts.
-            bool behind = false;
-            {
-                std::lock_guard l(feed_m);
-                behind = !feed_q.empty() && now - feed_q.front().first > kPaceHoldAfter;
-            }
-            const std::int64_t busy = neware_busy_since_ns.load();
-            if (busy != 0 && now.time_since_epoch().count() - busy >
-                                 std::chrono::duration_cast<SteadyClock::duration>(kPaceHoldAfter).count())
-                behind = true;
-            if (behind) clock->hold(now);
-            else clock->pace(now);
+            clock->pace(now);
             if (now >= pace_report_at) {
                 pace_report_at = now + std::chrono::seconds(10);
                 report_pace();

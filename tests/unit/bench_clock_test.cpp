@@ -83,4 +83,17 @@ TEST(BenchClock, HeldClockLetsWallTimePassWithoutBenchTime) {
     EXPECT_GE(clock.at(w0 + 500ms), b0);
 }
 
+// A reading received before hundreds of paces and holds (handled late on a busy daemon) keeps the bench time
+// of its arrival: it once mapped by extrapolation from the oldest remembered bounded step, hundreds of bench
+// seconds too early, and read as cycler silence.
+TEST(BenchClock, AnInstantBeforeManyHoldsKeepsItsBenchTime) {
+    BenchClock clock(400.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    clock.pace(w0);
+    const double b1 = clock.pace(w0 + 10ms);
+    for (int k = 2; k < 300; ++k) (k % 2 ? clock.hold(w0 + k * 10ms) : clock.pace(w0 + k * 10ms));
+    EXPECT_NEAR(clock.at(w0 + 10ms), b1, 1e-6);
+    EXPECT_NEAR(clock.at(w0 + 5ms), b1 - 2.0, 1e-6);  // 5 ms x 400
+}
+
 }  // namespace

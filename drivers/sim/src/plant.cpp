@@ -211,7 +211,7 @@ double BenchPlant::now_s() const {
 
 namespace {
 double seconds(BenchClock::WallClock::duration d) { return std::chrono::duration<double>(d).count(); }
-constexpr std::size_t kMaxJumps = 64;
+constexpr std::size_t kTrail = 2048;  // pace()/hold() calls kept for at() (about 20 s at the daemon's 10 ms)
 constexpr std::size_t kHistory = 11;  // about 10 s of (wall, bench) pairs at 1 s spacing
 }  // namespace
 
@@ -238,15 +238,19 @@ double BenchClock::read_locked(WallClock::time_point wall) const {
         if (held_) return anchor_bench_;  // held: no reader runs ahead until the next pace()
         return anchor_bench_ + std::min(seconds(wall - anchor_wall_) * time_scale_, max_step_wall_s_ * time_scale_);
     }
-    // An instant before the last pace(): linear between the bounded steps, each step's gap squeezed.
-    for (auto it = jumps_.rbegin(); it != jumps_.rend(); ++it) {
-        if (wall >= it->wall) return it->bench + seconds(wall - it->wall) * time_scale_;
-        if (wall >= it->wall_before)
-            return it->bench_before + std::min(seconds(wall - it->wall_before) * time_scale_, it->bench - it->bench_before);
+    // An instant before the last pace(): between the two pace()/hold() calls around it (every call of the last
+    // ~20 s is kept): linear at the scale when that step was whole, squeezed when it was bounded, flat when held.
+    const auto after = std::upper_bound(trail_.begin(), trail_.end(), wall,
+                                        [](WallClock::time_point w, const auto& p) { return w < p.first; });
+    if (after == trail_.begin()) {
+        const auto& [w0, b0] = trail_.empty() ? std::pair{anchor_wall_, anchor_bench_} : trail_.front();
+        return b0 - seconds(w0 - wall) * time_scale_;  // older than the trail: extrapolated
     }
-    const auto ref_wall = jumps_.empty() ? anchor_wall_ : jumps_.front().wall_before;
-    const double ref_bench = jumps_.empty() ? anchor_bench_ : jumps_.front().bench_before;
-    return ref_bench - seconds(ref_wall - wall) * time_scale_;
+    const auto& [w1, b1] = *std::prev(after);
+    if (after == trail_.end()) return b1;
+    const auto& [w2, b2] = *after;
+    const double span = seconds(w2 - w1);
+    return span > 0 ? b1 + (b2 - b1) * std::min(1.0, seconds(wall - w1) / span) : b1;
 }
 
 double BenchClock::at(WallClock::time_point wall) const {
@@ -289,11 +293,10 @@ double BenchClock::advance_locked(WallClock::time_point wall, bool hold) {
     const double dt = seconds(wall - anchor_wall_);
     const double step = hold ? 0.0 : std::min(dt, max_step_wall_s_);
     const double next = std::max(anchor_bench_ + step * time_scale_, last_read_);
-    if (step < dt) {
-        lost_wall_s_ += dt - step;
-        jumps_.push_back({anchor_wall_, wall, anchor_bench_, next});
-        if (jumps_.size() > kMaxJumps) jumps_.pop_front();
-    }
+    if (step < dt) lost_wall_s_ += dt - step;
+    if (trail_.empty()) trail_.emplace_back(anchor_wall_, anchor_bench_);
+    trail_.emplace_back(wall, next);
+    while (trail_.size() > kTrail) trail_.pop_front();
     anchor_wall_ = wall;
     anchor_bench_ = next;
     last_read_ = anchor_bench_;

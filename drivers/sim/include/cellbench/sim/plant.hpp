@@ -135,10 +135,6 @@ public:
     [[nodiscard]] double lost_wall_s() const;
 
 private:
-    struct Jump {  // a pace() that hit the bound: bench time from (wall_before, bench_before) to (wall, bench)
-        WallClock::time_point wall_before, wall;
-        double bench_before, bench;
-    };
     double read_locked(WallClock::time_point wall) const;
     double advance_locked(WallClock::time_point wall, bool hold);
 
@@ -152,7 +148,7 @@ private:
     WallClock::time_point anchor_wall_;  // last pace()
     double anchor_bench_ = 0.0;
     mutable double last_read_ = 0.0;     // readers never see time go back
-    std::deque<Jump> jumps_;             // the latest bounded steps (at() of an instant before them)
+    std::deque<std::pair<WallClock::time_point, double>> trail_;  // (wall, bench) of recent pace()/hold()
     std::deque<std::pair<WallClock::time_point, double>> history_;  // (wall, bench) about once a second
     double lost_wall_s_ = 0.0;
     bool held_ = false;  // the last call was hold(): readers see no time pass

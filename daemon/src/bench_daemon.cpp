@@ -392,6 +392,7 @@ struct BenchDaemon::Impl {
         if (!was_connected.insert(instrument).second) ++reconnects[instrument];
     }
     std::optional<CyclerSample> live_cycler;
+    std::vector<protocol::neware::InquireEntry> live_members;  // the group's channels, newest poll
     std::optional<DaqSample> live_daq;
     std::optional<ChamberSample> live_chamber;
     double live_soc = kNaN;
@@ -803,6 +804,7 @@ struct BenchDaemon::Impl {
         row.t_s = t;  // live: bench time
         row.soc = live_soc;
         live_cycler = row;
+        live_members = s.members;
     }
 
     void on_neware_event(const drivers::NewareEvent& e) {
@@ -1660,6 +1662,13 @@ json BenchDaemon::status() {
         j["instruments"][0]["data_age_s"] = age(d.live_cycler);
         j["instruments"][1]["data_age_s"] = age(d.live_chamber);
         j["instruments"][2]["data_age_s"] = age(d.live_daq);
+        // The tester channels wired in parallel as the cycler, each as it reports itself (newest poll).
+        json members = json::array();
+        for (const auto& m : d.live_members)
+            members.push_back({{"channel", m.channel.key()}, {"voltage_v", nullable(m.voltage_v)},
+                               {"current_a", nullable(m.current_a)},
+                               {"status", std::string(protocol::neware::to_string(m.workstatus))}});
+        j["instruments"][0]["members"] = std::move(members);
         json live = {{"time_unix_s", unix_now_s()}, {"test_time_s", nullptr}, {"voltage_v", nullptr},
                      {"current_a", nullptr}, {"soc", nullptr}, {"surface_c", nullptr}, {"ambient_c", nullptr},
                      {"t1_c", nullptr}, {"t2_c", nullptr}, {"heat_flux_w_per_m2", nullptr}};

@@ -344,8 +344,10 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
         what = "the usable capacity is " + pct(x[0]) + " of the parameter set's (" + num("%.3f", x[0] * base.capacity_ah) +
                " Ah instead of " + num("%.3f", base.capacity_ah) + " Ah): the SOC drifts";
     else if (id == "series_resistance_offset")
-        what = "extra series resistance of " + num("%+.2f", x[0] * 1e3) +
-               " mOhm (harness, contacts) that was not there in characterization";
+        what = x[0] >= 0 ? "extra series resistance of " + num("%.2f", x[0] * 1e3) +
+                               " mOhm (harness, contacts) that was not there in characterization"
+                         : "series resistance " + num("%.2f", -x[0] * 1e3) +
+                               " mOhm lower than the parameter set's (its R0 is too high for this cell or set-up)";
     else if (id == "heat_flux_sensor_gain")
         what = "the heat flux sensor reads " + pct(x[0]) + " of the heat leaving the cell (sensitivity or coverage)";
     else if (id == "ambient_drift")
@@ -603,8 +605,12 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     fd.explanation = "the fit of this effect did not converge";
                 } else {
                     double sum_red = 0;
+                    // The fold fits (each leaves one interleaved block set out) give the parameters' uncertainty:
+                    // their jackknife spread, which holds with correlated residuals where the Jacobian's would not.
+                    std::vector<std::vector<double>> fold_x;
                     for (std::size_t f = 0; f < folds; ++f) {
                         const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 15);
+                        if (std::isfinite(ff.j)) fold_x.push_back(ff.x);
                         ParameterSet p = current;
                         spec.apply(p, std::isfinite(ff.j) ? ff.x : full.x);
                         const double jt = objective(pb, errors_of(p, rec), test[f]);
@@ -617,7 +623,21 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                                    static_cast<double>(spec.params.size()) * std::log(n_eff);
                     fd.significant = fd.score >= options.min_cv_improvement && fd.folds_improved + 1 >= folds &&
                                      fd.delta_bic < options.bic_threshold;
-                    for (std::size_t j = 0; j < spec.params.size(); ++j) fd.parameters[spec.params[j].name] = full.x[j];
+                    for (std::size_t j = 0; j < spec.params.size(); ++j) {
+                        const auto& ps = spec.params[j];
+                        fd.parameters[ps.name] = full.x[j];
+                        // A value on its search bound is not an estimate (the optimum may lie beyond): flagged.
+                        const double u = to_u(ps, full.x[j]), ulo = to_u(ps, ps.lo), uhi = to_u(ps, ps.hi);
+                        if (std::abs(u - ulo) <= 1e-4 * (uhi - ulo) || std::abs(uhi - u) <= 1e-4 * (uhi - ulo))
+                            fd.parameters[std::string(ps.name) + "_flags"] = nlohmann::json::array({"at_bound"});
+                        if (fold_x.size() < 2) continue;  // no spread to judge: the value carries no "_sd"
+                        double mean = 0, ss = 0;
+                        for (const auto& x : fold_x) mean += x[j];
+                        mean /= static_cast<double>(fold_x.size());
+                        for (const auto& x : fold_x) ss += (x[j] - mean) * (x[j] - mean);
+                        const double k = static_cast<double>(fold_x.size());
+                        fd.parameters[std::string(spec.params[j].name) + "_sd"] = std::sqrt((k - 1.0) / k * ss);
+                    }
                     ParameterSet p = current;
                     spec.apply(p, full.x);
                     fd.improved = rms_of(p, rec_full);

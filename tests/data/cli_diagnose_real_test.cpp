@@ -2,6 +2,7 @@
 // discharge: a significant finding, never "adequate" while the residual is above twice the recording's own noise,
 // nothing the baseline holds proposed again, and what it finds must not make the cell's voltage or temperature
 // worse on another real recording (the 4C discharge) or on the HPPC.
+#include <cmath>
 #include <gtest/gtest.h>
 
 #include <cstdio>
@@ -68,6 +69,13 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
     for (const auto& f : dg["findings"]) {
         EXPECT_TRUE(f["kind"] == "physics_missing" || f["kind"] == "parameters_wrong");
         any_significant = any_significant || f["significant"].get<bool>();
+        // Every fitted value of a finding carries its uncertainty (the spread of the hold-out folds' fits).
+        for (const auto& [name, value] : f["parameters"].items()) {
+            if (name.ends_with("_sd") || name.ends_with("_flags")) continue;
+            ASSERT_TRUE(f["parameters"].contains(name + "_sd")) << f.dump(2);
+            const double sd = f["parameters"][name + "_sd"].get<double>();
+            EXPECT_TRUE(std::isfinite(sd) && sd >= 0) << f.dump(2);
+        }
     }
     ASSERT_TRUE(any_significant) << dg.dump(2);
 

@@ -79,6 +79,18 @@ TEST(DaemonFitReplay, RunParametersAreValidatedAndFitDbGivesTheDaemonsParameters
             if (!i.contains("data_age_s") || !i["data_age_s"].is_number() || i["data_age_s"].get<double>() < 0) return false;
         return true;
     }, 30s)) << d.status()["instruments"].dump(2);
+    // The cycler's entry lists the tester channels wired in parallel (three in bench.sim.json), each with its own
+    // voltage, current and status, in the configured order.
+    {
+        const json members = d.status()["instruments"][0]["members"];
+        ASSERT_EQ(members.size(), 3u) << members.dump(2);
+        for (std::size_t k = 0; k < 3; ++k) {
+            EXPECT_EQ(members[k]["channel"], "24-1-1-" + std::to_string(k + 1)) << members.dump(2);
+            EXPECT_GT(members[k]["voltage_v"].get<double>(), 2.0) << members.dump(2);
+            EXPECT_TRUE(members[k]["current_a"].is_number()) << members.dump(2);
+            EXPECT_TRUE(members[k]["status"].is_string()) << members.dump(2);
+        }
+    }
 
     // Every problem of the overrides in one refusal; no run is recorded.
     daemon::StartRequest bad{"hppc_short", "p45b", {}, {}};

@@ -381,6 +381,12 @@ TEST(DashboardBrowser, RunStartedPausedResumedAndStoppedFromThePage) {
                          "[...document.querySelectorAll('#instrument-health td[data-metric=faults]')].every(t => /^\\d+$/.test(t.innerText));")
             .get<bool>();
     }, 10s)) << "instrument health table incomplete";
+    // The three tester channels wired in parallel as the cycler, each with its own voltage and current.
+    EXPECT_TRUE(eventually([&] {
+        return wd.script("const m = document.querySelectorAll('#group-members [data-member]'); return m.length === 3 && "
+                         "[...m].every(e => / V, -?\\d+\\.\\d{3} A/.test(e.innerText));")
+            .get<bool>();
+    }, 10s)) << "group members missing: " << wd.script("const g = document.getElementById('group-members'); return g ? g.innerText : null;").dump();
     EXPECT_TRUE(wd.script("return !/-0\\.0+ /.test(document.body.innerText);").get<bool>()) << "a negative zero is shown";
     const fs::path shots = kBuild / "screenshots";
     wd.resize(1440, 1700);
@@ -452,6 +458,10 @@ TEST(ReportBrowser, DiagnoseReportRendersAndPrintsToPdf) {
     EXPECT_NE(page.str().find("Error / mV"), std::string::npos) << "voltage error in mV";
     EXPECT_NE(page.str().find("Heat flow / W"), std::string::npos) << "heat flux trace";
     EXPECT_EQ(page.str().find("25366.170263845732"), std::string::npos);
+    // Fitted values with their uncertainty; the thesis set's R0 is so far above this cell's that the extra series
+    // resistance lands on its lower search bound, and the page says it is not an estimate.
+    EXPECT_NE(page.str().find(" ± "), std::string::npos) << "fitted values carry their uncertainty";
+    EXPECT_NE(page.str().find("at its search bound"), std::string::npos) << "a value on its bound is not shown as fine";
 
     const std::uint16_t wd_port = free_port();
     ChildProcess driver({chromedriver, "--port=" + std::to_string(wd_port)}, kBuild / "chromedriver-report.log");

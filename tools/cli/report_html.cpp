@@ -322,11 +322,14 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
         if (!params.empty()) {
             o << "<table><tr><th>fitted parameter</th><th class='num'>value</th><th>unit</th></tr>";
             for (const auto& [name, value] : params.items()) {
-                if (name.ends_with("_sd") || !value.is_number()) continue;
+                if (name.ends_with("_sd") || name.ends_with("_flags") || !value.is_number()) continue;
                 const auto [label, unit] = parameter_name_and_unit(name);
                 std::string shown = round_sig(value.get<double>(), 3);
                 if (params.contains(name + "_sd") && params[name + "_sd"].is_number())
                     shown += " ± " + round_sig(params[name + "_sd"].get<double>(), 2);
+                if (params.contains(name + "_flags") && params[name + "_flags"].is_array())
+                    for (const auto& flag : params[name + "_flags"])
+                        if (flag == "at_bound") shown += " (at its search bound: not an estimate)";
                 o << "<tr><td>" << html_escape(label) << "</td><td class='num'>" << html_escape(shown) << "</td><td>"
                   << html_escape(unit) << "</td></tr>";
             }

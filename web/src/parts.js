@@ -61,6 +61,12 @@ export function instrumentList(instruments, live = {}, metrics = "") {
         extra = `set point ${fmt(live.setpoint_c, 1)} °C, air ${fmt(live.ambient_c, 2)} °C` + (extra ? ` · ${extra}` : "");
       if (i.kind === "cycler" && live?.voltage_v != null)
         extra = `${fmt(live.voltage_v, 4)} V, ${fmt(live.current_a, 3)} A` + (extra ? ` · ${extra}` : "");
+      // The tester channels wired in parallel as the cycler: each member's own voltage and current, so a
+      // loose sense lead or a channel not sharing the current shows before the group check trips.
+      const members = (i.members || []).length > 1
+        ? h("div.members.small", { id: "group-members" }, i.members.map((mb) =>
+          h("div", { "data-member": mb.channel }, `${mb.channel}: ${fmt(mb.voltage_v, 4)} V, ${fmt(mb.current_a, 3)} A · ${mb.status}`)))
+        : null;
       return h("tr", { "data-instrument": i.name },
         h("td", null, h("b", null, i.name), h("div.small.muted", null, `${i.kind} · ${i.mode || ""} · ${i.address || ""}`)),
         h("td", null, pill(i.state)),
@@ -69,7 +75,7 @@ export function instrumentList(instruments, live = {}, metrics = "") {
         h("td.num", { "data-metric": "faults" }, num(m("cellbench_instrument_faults_total"))),
         h("td.num", null, num(m("cellbench_instrument_reconnects_total"))),
         h("td.num", { "data-metric": "lost" }, num(m("cellbench_instrument_lost_frames_total"))),
-        h("td.detail", null, extra));
+        h("td.detail", null, extra, members));
     }))));
 }
 

@@ -128,13 +128,11 @@ EventLevel event_level(const std::string& severity) {
     return EventLevel::error;  // "alarm", "error"
 }
 
-// The API's run states: the store's aborted/interrupted are "failed" (with the reason as "error").
-std::string api_state(RunState s) {
-    switch (s) {
-        case RunState::aborted:
-        case RunState::interrupted: return "failed";
-        default: return std::string(to_string(s));
-    }
+// The API's run state (INTERFACES.md): the store's word, except that a live run waiting for the cell and
+// chamber to reach equilibrium says so.
+std::string api_state(RunState s, bool waiting_equilibrium) {
+    if (s == RunState::running && waiting_equilibrium) return "waiting_equilibrium";
+    return std::string(to_string(s));
 }
 
 bool live_state(RunState s) { return s == RunState::starting || s == RunState::running || s == RunState::paused; }
@@ -1475,18 +1473,22 @@ struct BenchDaemon::Impl {
         // Commands land in the store's queue: a run we know is live is reported by its live state.
         auto c = current();
         RunState st = r.state;
+        bool waiting = false;
         if (c && c->id == r.id) {
             const auto s = static_cast<sequencer::RunState>(c->seq_state.load());
             if (s != sequencer::RunState::Idle) st = store_state(s);
+            waiting = st == RunState::running && c->seq->waiting_for_equilibrium();
         }
-        j["state"] = api_state(st);
-        // The store's word for how it ended ("failed" covers aborted and interrupted), null while live.
+        j["state"] = api_state(st, waiting);
+        // How it ended (the end state), null while live; `reason` says why in words.
         j["outcome"] = is_terminal(st) ? json(std::string(to_string(st))) : json(nullptr);
         std::string reason = r.reason;
         if (c && c->id == r.id && is_terminal(st)) {
             std::lock_guard l(c->m);
             if (!c->end_reason.empty()) reason = c->end_reason;
         }
+        j["reason"] = is_terminal(st) && !reason.empty() ? json(reason) : json(nullptr);
+        // `error`: the reason of a run that did not end as asked (aborted, interrupted), null otherwise.
         j["error"] = (st == RunState::aborted || st == RunState::interrupted) && !reason.empty() ? json(reason) : json(nullptr);
         j["step"] = nullptr;
         if (c && c->id == r.id && live_state(st)) {
@@ -1877,9 +1879,9 @@ void check_effects(const std::vector<std::string>& effects) {
 json BenchDaemon::diagnose_run(RunId id, const DiagnoseRequest& request) {
     auto& d = *impl_;
     const json run = d.run_json(id);  // NotFound
-    const std::string state = run.value("state", "");
-    if (state == "starting" || state == "running" || state == "paused")
-        throw Conflict("run " + std::to_string(id) + " is still " + state + "; diagnose it once it has ended");
+    if (run["outcome"].is_null())  // not ended: any live state
+        throw Conflict("run " + std::to_string(id) + " is still " + run.value("state", "live") +
+                       "; diagnose it once it has ended");
     check_effects(request.effects);
     estimator::ParameterSet params;
     std::string used;

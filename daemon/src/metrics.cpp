@@ -226,7 +226,7 @@ void write_bench_metrics(Exposition& out, const BenchSnapshot& s) {
         const auto& r = *s.run;
         const std::string id = std::to_string(r.id);
         out.family("cellbench_run_state", MetricType::gauge,
-                   "State of the latest run: 1 for its state (starting, running, paused, completed, stopped, failed).");
+                   "State of the latest run: 1 for its state (the API's run states), 0 for the others.");
         for (auto st : kRunStates) out.sample(r.state == st ? 1.0 : 0.0, {{"run", id}, {"state", st}});
         out.gauge("cellbench_run_id", "Id of the latest run.", static_cast<double>(r.id));
         if (r.step_index) out.gauge("cellbench_run_step", "1-based index of the active run's current step.", *r.step_index);

@@ -467,6 +467,12 @@ RunState Sequencer::state() const {
     return state_;
 }
 
+bool Sequencer::waiting_for_equilibrium() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return state_ == RunState::Running && segment_ < program_.segments.size() &&
+           program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium;
+}
+
 nlohmann::json Sequencer::status() const {
     std::lock_guard<std::mutex> lock(mutex_);
     nlohmann::json j = {{"state", to_string(state_)}, {"program", program_.name}};

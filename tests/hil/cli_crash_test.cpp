@@ -12,7 +12,7 @@
 //  - restart: as soon as the API is up, the tester's channels are stopped with no current and the chamber's
 //    set point register holds the safe set point (read from the simulated instruments directly over their
 //    own protocols); the daemon's recovery runs before its API listens, and its log says so in that order;
-//    the run is "failed" with outcome "interrupted", a "recovery" event says both commands were acknowledged,
+//    the run is "interrupted" (state and outcome), a "recovery" event says both commands were acknowledged,
 //    and the run's sample count does not grow afterwards (it never silently continues).
 #include <gtest/gtest.h>
 
@@ -433,9 +433,9 @@ TEST_F(CrashTest, KillNineAtAnyMomentLeavesASoundFileAndTheRestartMakesTheBenchS
         EXPECT_NE(rec, std::string::npos) << log;
         EXPECT_TRUE(api == std::string::npos || rec < api) << "recovery must precede the API:\n" << log;
 
-        // The run: failed/interrupted, with its recovery event; it does not continue.
+        // The run: interrupted, with its recovery event; it does not continue.
         const json r = get("/runs/" + std::to_string(run));
-        EXPECT_EQ(r["state"], "failed") << r.dump(2);
+        EXPECT_EQ(r["state"], "interrupted") << r.dump(2);
         EXPECT_EQ(r["outcome"], "interrupted") << r.dump(2);
         EXPECT_TRUE(r["error"].is_string()) << r.dump(2);
         EXPECT_TRUE(get("/status")["run"].is_null());

@@ -44,7 +44,9 @@ constexpr double kTimeScale = 300.0;
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 const std::string kToken = "hil-token";
 
-bool terminal(const std::string& state) { return state == "completed" || state == "stopped" || state == "failed"; }
+bool terminal(const std::string& state) {
+    return state == "completed" || state == "stopped" || state == "aborted" || state == "interrupted";
+}
 
 // The run is diagnosed against the whole catalogue (as the dashboard asks); the upload, the same recording
 // again, against two candidates only, to keep the test short on a loaded two-core machine.
@@ -88,7 +90,7 @@ json wait_for_job(Api& api, std::int64_t job, double& wall_s) {
         const double p = j.value("progress", 0.0);
         if (p < last_progress) went_back = true;
         last_progress = p;
-        return j.value("state", "") != "running";
+        return !test::live_run_state(j.value("state", ""));
     }, 120s, 200ms);
     wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     EXPECT_FALSE(went_back) << "progress went backwards";

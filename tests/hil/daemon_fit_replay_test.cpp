@@ -47,7 +47,7 @@ CliRun run_cli(const std::string& command) {
     return r;
 }
 
-bool terminal(const std::string& s) { return s != "starting" && s != "running" && s != "paused" && s != "waiting_equilibrium" && s != "stopping"; }
+bool terminal(const std::string& s) { return !test::live_run_state(s); }
 
 double num(const json& j, const char* key) { return j.contains(key) && j[key].is_number() ? j[key].get<double>() : NAN; }
 

@@ -51,7 +51,9 @@ constexpr double kHppcTimeScale = 400.0;
 
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 
-bool terminal(const std::string& state) { return state == "completed" || state == "stopped" || state == "failed"; }
+bool terminal(const std::string& state) {
+    return state == "completed" || state == "stopped" || state == "aborted" || state == "interrupted";
+}
 
 estimator::ParameterSet thesis_cell() {
     std::ifstream in(kSource / "config/cells/p45b-thesis.json");
@@ -277,7 +279,7 @@ TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
     d.store().flush();
 
     const auto run = d.get_run(id);
-    EXPECT_EQ(state, "failed");
+    EXPECT_EQ(state, "aborted");
     ASSERT_TRUE(run["error"].is_string()) << run.dump();
     EXPECT_NE(run["error"].get<std::string>().find("temperature"), std::string::npos) << run["error"];
 

@@ -91,7 +91,7 @@ TEST(DaemonLoad, FiftyReadersDuringAShortHppcLoseNoSampleAndTheRunCompletes) {
     std::string state;
     const bool ended = eventually([&] {
         state = d.get_run(id)["state"].get<std::string>();
-        return state != "running" && state != "starting" && state != "paused";
+        return !test::live_run_state(state);
     }, 600s, 200ms);
     done = true;
     for (auto& t : clients) t.join();

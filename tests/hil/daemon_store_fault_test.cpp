@@ -3,7 +3,7 @@
 //  - disk full: the database's size limit (PRAGMA max_page_count through BenchDaemonOptions, the same SQLITE_FULL
 //    a full file system gives) is reached during the run;
 //  - locked: another connection holds the write lock (BEGIN EXCLUSIVE) beyond the daemon's busy timeout.
-// Either way: the run aborts ("failed", outcome "aborted", the reason names the database), the simulated cell
+// Either way: the run aborts (state and outcome "aborted", the reason names the database), the simulated cell
 // carries no current and the chamber goes to its safe set point, and the file passes integrity_check. The abort
 // records, which the database refused at that moment, are not lost: locked -> written as soon as the lock is
 // released (the store retries them every second); disk full -> committed as soon as they fit, else kept and at
@@ -93,7 +93,7 @@ TEST(DaemonStoreFault, ALockedDatabaseAbortsTheRunSafelyAndTheAbortIsRecordedOnc
     ASSERT_EQ(sqlite3_exec(other, "BEGIN EXCLUSIVE", nullptr, nullptr, nullptr), SQLITE_OK) << sqlite3_errmsg(other);
 
     json run;
-    ASSERT_TRUE(eventually([&] { return (run = f.d->get_run(id))["state"] == "failed"; }, 60s)) << run.dump(2);
+    ASSERT_TRUE(eventually([&] { return (run = f.d->get_run(id))["state"] == "aborted"; }, 60s)) << run.dump(2);
     EXPECT_EQ(run["outcome"], "aborted");
     EXPECT_NE(run.value("error", json("")).dump().find("database"), std::string::npos) << run.dump(2);
     EXPECT_TRUE(eventually([&] { return std::abs(f.current()) < 1e-3 && std::abs(f.setpoint() - kSafeSetpointC) < 0.05; }, 30s))
@@ -121,10 +121,10 @@ TEST(DaemonStoreFault, AFullDiskAbortsTheRunSafelyAndTheAbortIsRecorded) {
     ASSERT_TRUE(eventually([&] {
         run = f.d->get_run(id);
         if (run["state"] == "running") current_while_running = std::max(current_while_running, std::abs(f.current()));
-        return run["state"] != "running";
+        return !test::live_run_state(run["state"].get<std::string>());
     }, 120s)) << run.dump(2);
     EXPECT_GT(current_while_running, 1.0) << "precondition: the cell was charging when the disk filled up";
-    EXPECT_EQ(run["state"], "failed") << run.dump(2);
+    EXPECT_EQ(run["state"], "aborted") << run.dump(2);
     EXPECT_EQ(run["outcome"], "aborted");
     EXPECT_NE(run.value("error", json("")).dump().find("disk full"), std::string::npos) << run.dump(2);
     EXPECT_TRUE(eventually([&] { return std::abs(f.current()) < 1e-3 && std::abs(f.setpoint() - kSafeSetpointC) < 0.05; }, 30s))

@@ -306,7 +306,7 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
     // findings, the "where" table and the trace charts.
     ASSERT_TRUE(eventually([&] {
         const auto st = d.get_run(id)["state"].get<std::string>();
-        return st == "completed" || st == "stopped" || st == "failed";
+        return st == "completed" || st == "stopped" || st == "aborted" || st == "interrupted";
     }, 120s, 500ms));
     wd.script("localStorage.setItem('cellbench.token', 'browser-test'); return null;");
     wd.navigate(base + "/#/diagnosis/" + std::to_string(id));

@@ -66,6 +66,11 @@ inline daemon::BenchConfig sim_bench_config(const std::filesystem::path& file) {
     return cfg;
 }
 
+// A live run state of the API (INTERFACES.md): the run has not ended.
+inline bool live_run_state(const std::string& s) {
+    return s == "starting" || s == "waiting_equilibrium" || s == "running" || s == "paused" || s == "stopping";
+}
+
 inline bool instruments_connected(daemon::BenchDaemon& d) {
     const nlohmann::json s = d.status();  // kept alive while its members are iterated
     for (const auto& i : s["instruments"])

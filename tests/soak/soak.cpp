@@ -279,7 +279,7 @@ int main(int argc, char** argv) {
                 ++r.events;
                 if (e.value("kind", "") == "abort") r.abort_event = true;
             }
-        if (r.state != "completed" && r.state != "stopped" && r.state != "failed")
+        if (r.state != "completed" && r.state != "stopped" && r.state != "aborted" && r.state != "interrupted")
             problems.push_back("run " + std::to_string(id) + " ended in an undefined state '" + r.state + "'");
         if (r.events == 0) problems.push_back("run " + std::to_string(id) + " has no events");
         if (r.outcome == "aborted") {

@@ -217,14 +217,14 @@ private:
         r["state"] = state;
         r["step"] = nullptr;
         r["ended_unix_s"] = 1.7e9 + 60;
-        if (state == "failed") r["error"] = "cycler reported over-voltage";
+        if (state == "aborted") r["error"] = r["reason"] = "cycler reported over-voltage";
         if (active_ == id) active_ = 0;
     }
     json control(RunId id, const std::string& to) {
         std::lock_guard lock(mu);
         auto& r = run_or_throw(id);
         const std::string state = r["state"];
-        if (state == "completed" || state == "stopped" || state == "failed")
+        if (state == "completed" || state == "stopped" || state == "aborted" || state == "interrupted")
             throw daemon::Conflict("run " + std::to_string(id) + " is already " + state);
         if (to == "running" && state != "paused") throw daemon::Conflict("run " + std::to_string(id) + " is not paused");
         if (to == "paused" && state != "running") throw daemon::Conflict("run " + std::to_string(id) + " is not running");

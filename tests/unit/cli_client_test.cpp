@@ -170,11 +170,11 @@ TEST_F(CliClient, StartFollowWaitsForTheEndAndIsQuietWhenPiped) {
     // A run that fails makes --follow exit 1, with the reason.
     {
         std::lock_guard lock(backend_.mu);
-        backend_.final_state = "failed";
+        backend_.final_state = "aborted";
     }
     r = run("start --program hppc --cell p45b --follow --interval 0.02 --token " + kToken + " " + server_args());
     EXPECT_EQ(r.status, 1);
-    EXPECT_TRUE(contains(r.out, "failed")) << r.out;
+    EXPECT_TRUE(contains(r.out, "aborted")) << r.out;
     EXPECT_TRUE(contains(r.out, "over-voltage")) << r.out;
 }
 

@@ -212,7 +212,8 @@ TEST(MetricsBench, SnapshotExposesInstrumentsStreamStoreAndRun) {
     EXPECT_DOUBLE_EQ(value_of(text, "cellbench_store_last_batch_seconds"), 0.004);
     EXPECT_EQ(value_of(text, "cellbench_run_active"), 1);
     EXPECT_EQ(value_of(text, "cellbench_run_state{run=\"3\",state=\"running\"}"), 1);
-    EXPECT_EQ(value_of(text, "cellbench_run_state{run=\"3\",state=\"failed\"}"), 0);
+    EXPECT_EQ(value_of(text, "cellbench_run_state{run=\"3\",state=\"aborted\"}"), 0);
+    EXPECT_EQ(value_of(text, "cellbench_run_state{run=\"3\",state=\"waiting_equilibrium\"}"), 0);
     EXPECT_EQ(value_of(text, "cellbench_run_step"), 12);
     EXPECT_EQ(value_of(text, "cellbench_run_steps"), 140);
     EXPECT_DOUBLE_EQ(value_of(text, "cellbench_cell_voltage_volts"), 3.712);

@@ -327,9 +327,11 @@ TEST(Sequencer, EquilibriumWaitsForEveryThermocouple) {
     feed_thermal(seq, 0.0, 600.0, 33.0);  // T2 3 K off for 10 min
     EXPECT_EQ(seq.state(), RunState::Running);
     EXPECT_EQ(segment_kind(seq), "wait_equilibrium");
+    EXPECT_TRUE(seq.waiting_for_equilibrium()) << "the API reports the run as waiting_equilibrium from this";
     EXPECT_FALSE(cyc.runner) << "the program went on with a terminal 3 K off";
     feed_thermal(seq, 601.0, 700.0, 30.1);  // every sensor in tolerance for more than the 60 s hold
     EXPECT_EQ(segment_kind(seq), "cycler");
+    EXPECT_FALSE(seq.waiting_for_equilibrium());
     EXPECT_TRUE(cyc.runner);
 }
 

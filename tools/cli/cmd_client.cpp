@@ -353,7 +353,6 @@ std::string live_text(const json& live, bool all) {
 std::string run_summary(const json& run) {
     std::string s = fmt::format("run {}: {} on {}, {}", str(run, "id"), str(run, "program"), str(run, "cell"),
                                 str(run, "state"));
-    // "failed" is aborted (a fault or a limit) or interrupted (the daemon died while it was live).
     if (const auto o = str(run, "outcome", ""); !o.empty() && o != str(run, "state", "")) s += " (" + o + ")";
     if (const auto st = step_text(run); !st.empty()) {
         s += ", " + st;
@@ -366,7 +365,8 @@ std::string run_summary(const json& run) {
 void print_json(const json& j) { std::printf("%s\n", j.dump(2).c_str()); }
 
 bool terminal_state(const std::string& state) {
-    return state == "completed" || state == "stopped" || state == "failed";
+    // "failed": what daemons before the run-state vocabulary of INTERFACES.md answered for aborted/interrupted.
+    return state == "completed" || state == "stopped" || state == "aborted" || state == "interrupted" || state == "failed";
 }
 
 // --------------------------------------------------------------------------------------------------------

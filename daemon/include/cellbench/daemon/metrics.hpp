@@ -94,7 +94,7 @@ struct InstrumentSnapshot {
 
 struct RunSnapshot {
     std::int64_t id = 0;
-    std::string state;  // the API's run state: starting, running, paused, completed, stopped, failed
+    std::string state;  // the API's run state (kRunStates)
     bool active = false;
     std::optional<int> step_index, step_count;
 };
@@ -115,7 +115,8 @@ struct BenchSnapshot {
 };
 
 // The API's run states, in the order they are exposed as cellbench_run_state{state=...}.
-inline constexpr std::string_view kRunStates[] = {"starting", "running", "paused", "completed", "stopped", "failed"};
+inline constexpr std::string_view kRunStates[] = {"starting", "waiting_equilibrium", "running", "paused", "stopping",
+                                                   "completed", "stopped", "aborted", "interrupted"};
 // The API's instrument states, exposed as cellbench_instrument_state{state=...}.
 inline constexpr std::string_view kInstrumentStates[] = {"connected", "connecting", "offline", "error"};
 

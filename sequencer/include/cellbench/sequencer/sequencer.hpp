@@ -123,6 +123,8 @@ public:
     void tick(double t_mono_s);  // timeouts: instrument silence, equilibrium wait
 
     [[nodiscard]] RunState state() const;
+    // Running, in a segment that waits for the cell and the chamber to reach equilibrium.
+    [[nodiscard]] bool waiting_for_equilibrium() const;
     [[nodiscard]] double soc() const;  // live SOC (NaN before the first cycler row)
     [[nodiscard]] nlohmann::json status() const;  // segment, step, SOC, live values
     [[nodiscard]] Recording recording() const;    // the run so far (cycler time base, thermal values attached)

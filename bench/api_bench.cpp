@@ -10,11 +10,15 @@
 
 #include <algorithm>
 #include <chrono>
+#include <filesystem>
+#include <mutex>
+#include <string>
 #include <thread>
 #include <vector>
 
 #include <spdlog/spdlog.h>
 
+#include "../tests/hil/hil_support.hpp"
 #include "../tests/unit/api_test_support.hpp"
 
 namespace {
@@ -102,6 +106,53 @@ void BM_StatusLatency_NewConnection(benchmark::State& state) {
     });
 }
 BENCHMARK(BM_StatusLatency_NewConnection)->Arg(50)->Iterations(3)->Unit(benchmark::kMillisecond)->UseRealTime();
+
+// The figure: 50 keep-alive clients on the real cellbenchd (simulated bench, every instrument hosted)
+// while a short HPPC runs at 100x, each cycling through health, status, runs, the run's events and its samples
+// at max_points=2000. All answers count (200, or 503/429 with Retry-After: the caps at the edge); p50/p99 are
+// over every request, health_p99_ms over /health alone. Each iteration is 50 x 60 requests; the run goes on
+// underneath (one run for all iterations; the figure is the API's under acquisition, not the run's end).
+void BM_DaemonApiDuringRun(benchmark::State& state) {
+    spdlog::set_level(spdlog::level::warn);
+    cellbench::test::TempDir tmp("api-bench");
+    auto cfg = cellbench::test::sim_bench_config(std::filesystem::path(CELLBENCH_SOURCE_DIR) / "config/bench.sim.json");
+    cellbench::daemon::BenchDaemon d(cfg, cellbench::test::daemon_options_in(tmp, 100.0, "t"));
+    d.start();
+    if (!cellbench::test::eventually([&] { return cellbench::test::instruments_connected(d); }, std::chrono::seconds(30))) {
+        state.SkipWithError("the simulated instruments did not connect");
+        return;
+    }
+    const auto id = d.start_run({"hppc_short", "p45b", {}, {}})["id"].get<cellbench::daemon::RunId>();
+    const auto port = d.http_port();
+    const std::vector<std::string> targets = {"/api/v1/health", "/api/v1/status", "/api/v1/runs",
+                                              "/api/v1/runs/" + std::to_string(id) + "/events",
+                                              "/api/v1/runs/" + std::to_string(id) + "/samples?max_points=2000"};
+    std::vector<double> health;
+    std::mutex health_m;
+    run_clients(state, static_cast<int>(state.range(0)), 60, [&](std::vector<double>& lat, int n) {
+        Connection conn(port);
+        std::vector<double> mine;
+        for (int i = 0; i < n; ++i) {
+            const std::string& target = targets[static_cast<std::size_t>(i) % targets.size()];
+            const auto t = Clock::now();
+            conn.send(make_request(http::verb::get, target));
+            const auto r = conn.read();
+            if (!r) throw std::runtime_error("no answer");
+            const int code = r->result_int();
+            if (code != 200 && code != 503 && code != 429) throw std::runtime_error("bad answer");
+            const double ms = std::chrono::duration<double, std::milli>(Clock::now() - t).count();
+            lat.push_back(ms);
+            if (i % static_cast<int>(targets.size()) == 0) mine.push_back(ms);
+        }
+        std::lock_guard l(health_m);
+        health.insert(health.end(), mine.begin(), mine.end());
+    });
+    std::sort(health.begin(), health.end());
+    state.counters["health_p99_ms"] = health.empty() ? 0.0 : health[static_cast<std::size_t>(0.99 * (health.size() - 1))];
+    d.stop_run(id);
+    d.shutdown();
+}
+BENCHMARK(BM_DaemonApiDuringRun)->Arg(50)->Iterations(3)->Unit(benchmark::kMillisecond)->UseRealTime();
 
 }  // namespace
 

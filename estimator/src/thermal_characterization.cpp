@@ -24,8 +24,10 @@ struct ThermalFitData {
     std::vector<double> ambient_c;    // per row
 };
 
-double measured_heat_temperature_rms(const ThermalFitData& d, double c_th, double r_th) {
+double measured_heat_temperature_rms(const ThermalFitData& d, double c_th, double r_th,
+                                     std::vector<double>* residuals = nullptr) {
     double sum = 0, weight = 0, t = kNaN;
+    if (residuals) residuals->clear();
     for (std::size_t k = 0; k < d.dt_s.size(); ++k) {
         if (d.segment_start[k] || !std::isfinite(t)) {
             t = d.surface_c[k];
@@ -41,6 +43,7 @@ double measured_heat_temperature_rms(const ThermalFitData& d, double c_th, doubl
             const double err = t - d.surface_c[k];
             sum += err * err * d.dt_s[k];
             weight += d.dt_s[k];
+            if (residuals) residuals->push_back(err);
         }
     }
     return weight > 0 ? std::sqrt(sum / weight) : kNaN;
@@ -115,6 +118,49 @@ double golden_minimum(F f, double lo, double hi, int iterations) {
     return std::exp(0.5 * (a + b));
 }
 
+// Standard deviation of a scalar x fitted by minimizing the RMS f(x) of n residuals: var = 2 f^2 / (n_eff d2(f^2)/dx2),
+// n_eff = n (1 - rho) / (1 + rho) for residuals with lag-1 autocorrelation rho (a temperature residual is
+// strongly autocorrelated: n_eff is then a handful of independent stretches, not the rows).
+template <typename F>
+double curvature_sd(F rms, double x, const std::vector<double>& residuals) {
+    const std::size_t n = residuals.size();
+    if (n < 3 || !(x > 0)) return kNaN;
+    double num = 0, den = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+        den += residuals[i] * residuals[i];
+        if (i) num += residuals[i] * residuals[i - 1];
+    }
+    const double rho = den > 0 ? std::clamp(num / den, 0.0, 0.9999) : 0.0;
+    const double n_eff = std::max(1.0, static_cast<double>(n) * (1 - rho) / (1 + rho));
+    const double h = 0.02 * x;
+    const double f0 = rms(x), fp = rms(x + h), fm = rms(x - h);
+    const double d2 = (fp * fp - 2 * f0 * f0 + fm * fm) / (h * h);
+    if (!(d2 > 0)) return kNaN;  // flat: not identified
+    return std::sqrt(2 * f0 * f0 / (n_eff * d2));
+}
+
+void add_flag(std::vector<std::string>& flags, const std::string& f) {
+    if (std::find(flags.begin(), flags.end(), f) == flags.end()) flags.push_back(f);
+}
+
+// Plausibility of the thermal values (any Li-ion cell from coin to large pouch): about 1 kJ/(kg K) at 150-250
+// Wh/kg and ~3.6 V gives 15-25 J/K per Ah; a value outside 4-80 J/K per Ah, or R_th outside 0.3-100 K/W, is
+// implausible; an uncertainty above the value itself is "uncertain".
+void flag_thermal(ThermalCharacterization& t, double capacity_ah) {
+    const double per_ah = t.c_th_j_per_k / capacity_ah;
+    if (std::isfinite(t.c_th_j_per_k) && !(per_ah >= 4.0 && per_ah <= 80.0)) add_flag(t.c_th_flags, "implausible");
+    if (!std::isfinite(t.c_th_sigma_j_per_k) || t.c_th_sigma_j_per_k > t.c_th_j_per_k) add_flag(t.c_th_flags, "uncertain");
+    if (std::isfinite(t.r_th_k_per_w) && !(t.r_th_k_per_w >= 0.3 && t.r_th_k_per_w <= 100.0))
+        add_flag(t.r_th_flags, "implausible");
+    if (!std::isfinite(t.r_th_sigma_k_per_w) || t.r_th_sigma_k_per_w > t.r_th_k_per_w) add_flag(t.r_th_flags, "uncertain");
+    t.details["c_th_j_per_k_sd"] = num(t.c_th_sigma_j_per_k);
+    t.details["r_th_k_per_w_sd"] = num(t.r_th_sigma_k_per_w);
+    nlohmann::json flags = nlohmann::json::object();
+    if (!t.c_th_flags.empty()) flags["c_th_j_per_k"] = t.c_th_flags;
+    if (!t.r_th_flags.empty()) flags["r_th_k_per_w"] = t.r_th_flags;
+    if (!flags.empty()) t.details["flags"] = flags;
+}
+
 }  // namespace
 
 ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& recordings,
@@ -140,18 +186,19 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
     ThermalCharacterization out;
     const double area = options.area_m2;
 
-    // C_th from the long rests (eq. 4.8): the recording with the most usable rows wins.
+    // C_th from the energy balance of the long rests of every recording with heat flux (eq. 4.7 integrated).
     ThermalCapacityFit best_cth;
     std::string cth_source;
-    for (std::size_t r = 0; r < recordings.size(); ++r) {
-        if (!has_thermal(recordings[r]) || segments[r].long_rests.empty()) continue;
-        std::vector<RowRange> rests;
-        for (const auto& lr : segments[r].long_rests) rests.push_back({lr.begin, lr.end});
-        const auto fit = fit_thermal_capacity(recordings[r], rests, area);
-        if (std::isfinite(fit.c_th_j_per_k) && fit.points > best_cth.points) {
-            best_cth = fit;
-            cth_source = recordings[r].source;
+    {
+        std::vector<ThermalRests> sets;
+        for (std::size_t r = 0; r < recordings.size(); ++r) {
+            if (!has_thermal(recordings[r]) || segments[r].long_rests.empty()) continue;
+            ThermalRests set{&recordings[r], {}};
+            for (const auto& lr : segments[r].long_rests) set.rests.push_back({lr.begin, lr.end});
+            sets.push_back(std::move(set));
+            cth_source += (cth_source.empty() ? "" : " + ") + recordings[r].source;
         }
+        if (!sets.empty()) best_cth = fit_thermal_capacity(sets, area);
     }
     if (!std::isfinite(best_cth.c_th_j_per_k) && options.fallback_c_th_j_per_k <= 0) {
         // No heat flux sensor: C_th and R_th together from the surface temperature alone, the first-order model
@@ -184,16 +231,43 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         // Weakly heated recordings cannot separate C_th from R_th: C_th is held within what a Li-ion cell of this
         // capacity can have (about 1 kJ/(kg K) at 150-250 Wh/kg and ~3.6 V: 15-25 J/K per Ah; bounds x0.4..x2).
         const double cap = electrical.capacity_ah;
-        const double c_th = golden_minimum(rms_at, 6.0 * cap, 50.0 * cap, 30);
+        const double c_lo = 6.0 * cap, c_hi = 50.0 * cap;
+        const double c_th = golden_minimum(rms_at, c_lo, c_hi, 30);
         const double rms = rms_at(c_th);
         out.c_th_j_per_k = c_th;
         out.r_th_k_per_w = best_r;
+        // Uncertainties: C_th from the profile (R_th re-fitted at each C_th), R_th at the C_th found, and the
+        // C_th uncertainty carried into R_th along the profile.
+        {
+            const double r_at = best_r;  // rms_at re-fits best_r at every C_th it is asked
+            std::vector<double> res;
+            measured_heat_temperature_rms(data, c_th, r_at, &res);
+            out.c_th_sigma_j_per_k = curvature_sd(rms_at, c_th, res);
+            const double r_stat =
+                curvature_sd([&](double r) { return measured_heat_temperature_rms(data, c_th, r); }, r_at, res);
+            double r_prop = 0;
+            if (std::isfinite(out.c_th_sigma_j_per_k)) {
+                const double dc = std::min(out.c_th_sigma_j_per_k, 0.5 * c_th);
+                rms_at(c_th + dc);
+                const double r_hi = best_r;
+                rms_at(std::max(c_th - dc, 1e-3));
+                r_prop = 0.5 * std::abs(r_hi - best_r);
+            }
+            out.r_th_k_per_w = best_r = r_at;
+            out.r_th_sigma_k_per_w = std::sqrt(r_stat * r_stat + r_prop * r_prop);
+            // At a bound of the C_th search: the temperature alone does not hold it.
+            if (c_th < 1.02 * c_lo || c_th > 0.98 * c_hi) {
+                add_flag(out.c_th_flags, "at_bound");
+                add_flag(out.c_th_flags, "uncertain");
+            }
+        }
         out.r_th_method = "fitted with C_th from the surface temperature alone (no heat flux sensor): the first-order "
                           "model driven by the measured heat I*(V - OCV) reproduces it";
         out.details["temperature_only_fit"] = {{"c_th_j_per_k", c_th}, {"r_th_k_per_w", best_r},
                                                {"temperature_rms_c", num(rms)}};
         out.notes.push_back("no heat flux measured: C_th and R_th identified together from the surface temperature "
                             "(temperature RMS " + std::to_string(rms) + " degC); dU/dT left out");
+        flag_thermal(out, cap);
         return out;
     }
     if (!std::isfinite(best_cth.c_th_j_per_k)) {
@@ -203,7 +277,7 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
     out.c_th_j_per_k = best_cth.c_th_j_per_k;
     out.c_th_sigma_j_per_k = best_cth.c_th_se_j_per_k;
     out.c_th_r_squared = best_cth.r_squared;
-    out.details["c_th"] = {{"method", "rest cooling, zero-intercept regression of Q_out on -dT/dt (eq. 4.8)"},
+    out.details["c_th"] = {{"method", "rest cooling: energy balance C_th * (T(a) - T(b)) = integral of Q_out over chunks of the rests (eq. 4.7 integrated), robust zero-intercept regression"},
                            {"source", cth_source},
                            {"c_th_j_per_k", num(best_cth.c_th_j_per_k)},
                            {"se_j_per_k", num(best_cth.c_th_se_j_per_k)},
@@ -299,6 +373,21 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         const auto data = measured_heat_data(thermal_recs, p, thermal_socs);
         auto cost = [&](double r) { return measured_heat_temperature_rms(data, out.c_th_j_per_k, r); };
         out.r_th_k_per_w = golden_minimum(cost, 0.5, 50.0, 40);
+        {
+            std::vector<double> res;
+            measured_heat_temperature_rms(data, out.c_th_j_per_k, out.r_th_k_per_w, &res);
+            const double r_stat = curvature_sd(cost, out.r_th_k_per_w, res);
+            double r_prop = 0;  // C_th's uncertainty carried through the re-fit
+            if (std::isfinite(out.c_th_sigma_j_per_k) && out.c_th_sigma_j_per_k > 0) {
+                const double dc = std::min(out.c_th_sigma_j_per_k, 0.5 * out.c_th_j_per_k);
+                auto refit = [&](double c) {
+                    return golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 0.5,
+                                          50.0, 40);
+                };
+                r_prop = 0.5 * std::abs(refit(out.c_th_j_per_k + dc) - refit(out.c_th_j_per_k - dc));
+            }
+            out.r_th_sigma_k_per_w = std::sqrt(r_stat * r_stat + r_prop * r_prop);
+        }
         out.r_th_method = "fitted: first-order model driven by the measured heat I*(V - OCV) + I*T*dU/dT reproduces "
                           "the measured surface temperature (C_th held)";
         out.details["r_th_temperature_fit"] = {{"r_th_k_per_w", out.r_th_k_per_w},
@@ -307,6 +396,7 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         out.r_th_k_per_w = options.fallback_r_th_k_per_w;
         out.r_th_method = "fallback";
     }
+    flag_thermal(out, electrical.capacity_ah);
     return out;
 }
 

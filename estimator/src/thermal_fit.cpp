@@ -110,10 +110,15 @@ struct OriginRegression {
     std::size_t kept = 0, rejected = 0, clusters = 0;
 };
 
+// x_noise_var (optional, per point): variance of the noise in x. Noise in the regressor biases a least-squares
+// slope towards zero by sum(x_true^2) / sum(x^2); the denominator sum(w x^2) is corrected by sum(w var) (method of
+// moments for errors in variables), the correction capped at half the raw sum.
 OriginRegression robust_origin_regression(const std::vector<double>& x, const std::vector<double>& y,
-                                          const std::vector<std::size_t>& cluster) {
+                                          const std::vector<std::size_t>& cluster,
+                                          const std::vector<double>& x_noise_var = {}) {
     OriginRegression out;
     const std::size_t n = x.size();
+    auto xvar = [&](std::size_t i) { return i < x_noise_var.size() && finite(x_noise_var[i]) ? x_noise_var[i] : 0.0; };
     if (n < 3) return out;
     // Start: weighted median of the point slopes y/x, weights x^2 (robust, through the origin).
     std::vector<std::pair<double, double>> sw;
@@ -129,22 +134,23 @@ OriginRegression robust_origin_regression(const std::vector<double>& x, const st
     for (int it = 0; it < 100; ++it) {
         for (std::size_t i = 0; i < n; ++i) r[i] = y[i] - b * x[i];
         const double sigma = std::max(mad_sigma_about_zero(r), 1e-12 * std::max(ymax, 1e-300));
-        double sxy = 0, sxx = 0;
+        double sxy = 0, sxx = 0, svv = 0;
         for (std::size_t i = 0; i < n; ++i) {
             const double u = r[i] / (4.685 * sigma);
             w[i] = std::abs(u) < 1.0 ? (1 - u * u) * (1 - u * u) : 0.0;
             sxy += w[i] * x[i] * y[i];
             sxx += w[i] * x[i] * x[i];
+            svv += w[i] * xvar(i);
         }
         if (!(sxx > 0)) return out;
-        const double nb = sxy / sxx;
+        const double nb = sxy / (sxx - std::min(svv, 0.5 * sxx));
         const bool done = std::abs(nb - b) <= 1e-10 * std::abs(b);
         b = nb;
         if (done) break;
     }
     out.slope = b;
     // Fit quality and errors over the kept points.
-    double sxx = 0, ysum = 0, sse = 0, wsse = 0;
+    double sxx = 0, svv_kept = 0, ysum = 0, sse = 0, wsse = 0;
     std::size_t kept = 0;
     for (std::size_t i = 0; i < n; ++i) {
         r[i] = y[i] - b * x[i];
@@ -154,7 +160,9 @@ OriginRegression robust_origin_regression(const std::vector<double>& x, const st
         sse += r[i] * r[i];
         wsse += w[i] * r[i] * r[i];
         sxx += w[i] * x[i] * x[i];
+        svv_kept += w[i] * xvar(i);
     }
+    sxx -= std::min(svv_kept, 0.5 * sxx);
     out.kept = kept;
     out.rejected = n - kept;
     if (kept < 3 || !(sxx > 0)) return out;
@@ -395,65 +403,152 @@ std::vector<double> smooth_derivative(const std::vector<double>& time_s, const s
 }
 
 // ---------------------------------------------------------------------------------------------------------------
-ThermalCapacityFit fit_thermal_capacity(const Recording& rec, const std::vector<RowRange>& rests, double area_m2,
-                                        double skip_s, double window_s) {
-    require_thermal_channels(rec, "thermal capacity fit");
-    if (!(area_m2 > 0)) throw InputError(rec.source + ": thermal capacity fit: area_m2 must be > 0");
+namespace {
+
+// Value at row c of the least-squares line through the rows of [lo, hi) within +-half of t[c], and its variance
+// (from the line's own residuals).
+struct LineValue {
+    double value = kNaN, var = kNaN;
+};
+LineValue local_line_value(const std::vector<double>& t, const std::vector<double>& y, std::size_t lo, std::size_t hi,
+                           std::size_t c, double half) {
+    LineValue out;
+    std::size_t a = c, b = c + 1;
+    while (a > lo && t[a - 1] >= t[c] - half) --a;
+    while (b < hi && t[b] <= t[c] + half) ++b;
+    double n = 0, st = 0, stt = 0, sy = 0, sty = 0;
+    const double y_ref = finite(y[c]) ? y[c] : 0.0;
+    for (std::size_t k = a; k < b; ++k) {
+        if (!finite(y[k])) continue;
+        const double tt = t[k] - t[c], yy = y[k] - y_ref;
+        n += 1, st += tt, stt += tt * tt, sy += yy, sty += tt * yy;
+    }
+    if (n < 5) return out;
+    const double den = n * stt - st * st;
+    if (!(den > 0)) return out;
+    const double slope = (n * sty - st * sy) / den, icpt = (sy - slope * st) / n;
+    double sse = 0;
+    for (std::size_t k = a; k < b; ++k)
+        if (finite(y[k])) {
+            const double e = y[k] - y_ref - icpt - slope * (t[k] - t[c]);
+            sse += e * e;
+        }
+    const double s2 = sse / (n - 2.0), tbar = st / n, sxx = stt - n * tbar * tbar;
+    out.value = y_ref + icpt;
+    out.var = s2 * (1.0 / n + tbar * tbar / sxx);
+    return out;
+}
+
+}  // namespace
+
+ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, double area_m2, double skip_s,
+                                        double window_s) {
+    if (!(area_m2 > 0)) throw InputError("thermal capacity fit: area_m2 must be > 0");
     ThermalCapacityFit out;
     out.skip_s = skip_s;
     out.window_s = window_s;
-    const auto& t = rec.time_s;
-    const double h = 0.5 * window_s;
+    const double half = 0.25 * window_s;  // end values: lines over window_s / 2, centred
+    const double chunk_s = std::max(skip_s, 2.0 * window_s);
 
-    // Eq. 4.8: y = Q_out = q'' * A, x = -dT/dt, one cluster per rest.
-    std::vector<double> xs, ys;
-    std::vector<std::size_t> cl;
-    for (std::size_t r = 0; r < rests.size(); ++r) {
-        const RowRange range = clamp_range(rec, rests[r]);
-        double sxy = 0, sxx = 0;
-        if (range.size() >= 3) {
-            const auto d = smooth_derivative(t, rec.surface_c, range.begin, range.end, window_s);
-            const double t0 = t[range.begin], t1 = t[range.end - 1];
-            for (std::size_t k = range.begin; k < range.end; ++k) {
-                if (t[k] - t0 < skip_s || t[k] - h < t0 || t[k] + h > t1) continue;
-                const double dtdt = d[k - range.begin];
-                const double q = rec.heat_flux_w_per_m2[k];
-                if (!finite(dtdt) || !finite(q)) continue;
-                xs.push_back(-dtdt);
-                ys.push_back(q * area_m2);
-                cl.push_back(r);
-                sxy += xs.back() * ys.back();
-                sxx += xs.back() * xs.back();
+    // Energy balance per chunk of a rest (eq. 4.7 integrated): C_th * (T(a) - T(b)) = integral_a^b Q_out dt.
+    std::vector<double> xs, ys, vx;
+    std::vector<std::size_t> cl, rows;
+    std::size_t cluster = 0;
+    for (const auto& set : sets) {
+        const Recording& rec = *set.recording;
+        require_thermal_channels(rec, "thermal capacity fit");
+        const auto& t = rec.time_s;
+        const auto& temp = rec.surface_c;
+        const auto& q = rec.heat_flux_w_per_m2;
+        for (const RowRange& r0 : set.rests) {
+            const RowRange range = clamp_range(rec, r0);
+            double sxy = 0, sxx = 0;
+            std::size_t chunks = 0;
+            if (range.size() >= 10) {
+                const double t0 = t[range.begin], t1 = t[range.end - 1];
+                // Chunk boundaries: from skip_s into the rest every chunk_s, the last one where its end window
+                // still lies inside the rest (a shorter tail of at least half a chunk makes one more chunk).
+                std::vector<std::size_t> bounds;
+                double next = t0 + std::max(skip_s, half);
+                std::size_t last_ok = range.begin;
+                for (std::size_t k = range.begin; k < range.end; ++k)
+                    if (t[k] + half <= t1) last_ok = k;
+                for (std::size_t k = range.begin; k <= last_ok; ++k)
+                    if (t[k] >= next) {
+                        bounds.push_back(k);
+                        next = t[k] + chunk_s;
+                    }
+                if (!bounds.empty() && last_ok > bounds.back() && t[last_ok] - t[bounds.back()] >= 0.5 * chunk_s)
+                    bounds.push_back(last_ok);
+                std::vector<LineValue> tv;
+                for (std::size_t k : bounds) tv.push_back(local_line_value(t, temp, range.begin, range.end, k, half));
+                for (std::size_t c = 0; c + 1 < bounds.size(); ++c) {
+                    if (!finite(tv[c].value) || !finite(tv[c + 1].value)) continue;
+                    double e = 0, covered = 0, prev_t = kNaN, prev_q = kNaN;
+                    for (std::size_t k = bounds[c]; k <= bounds[c + 1]; ++k) {
+                        if (!finite(q[k])) continue;
+                        if (finite(prev_t)) e += 0.5 * (q[k] + prev_q) * (t[k] - prev_t), covered += t[k] - prev_t;
+                        prev_t = t[k], prev_q = q[k];
+                    }
+                    const double span = t[bounds[c + 1]] - t[bounds[c]];
+                    if (!(span > 0) || covered < 0.9 * span) continue;  // heat flux missing over the chunk
+                    xs.push_back(tv[c].value - tv[c + 1].value);
+                    ys.push_back(e * area_m2);
+                    vx.push_back(tv[c].var + tv[c + 1].var);
+                    cl.push_back(cluster);
+                    rows.push_back(bounds[c + 1] - bounds[c]);
+                    sxy += xs.back() * ys.back();
+                    sxx += xs.back() * xs.back() - vx.back();
+                    ++chunks;
+                }
             }
+            out.per_rest_c_th_j_per_k.push_back(chunks && sxx > 0 ? sxy / sxx : kNaN);
+            if (chunks) ++out.rests_used;
+            ++cluster;
         }
-        out.per_rest_c_th_j_per_k.push_back(sxx > 0 ? sxy / sxx : kNaN);
-        if (sxx > 0) ++out.rests_used;
     }
-    out.points = xs.size();
+    std::size_t total_rows = 0;
+    for (std::size_t n : rows) total_rows += n;
+    out.points = total_rows;
     if (xs.size() < 3) {
-        out.note = "no usable rest rows (rests shorter than skip " + fmt("%.0f", skip_s) + " s + window " +
-                   fmt("%.0f", window_s) + " s, or no thermal data in them)";
+        out.note = "no usable rest rows (rests shorter than skip " + fmt("%.0f", skip_s) + " s + a chunk of " +
+                   fmt("%.0f", chunk_s) + " s, or no thermal data in them)";
         return out;
     }
-    const auto reg = robust_origin_regression(xs, ys, cl);
+    const auto reg = robust_origin_regression(xs, ys, cl, vx);
     out.c_th_j_per_k = reg.slope;
     out.c_th_se_j_per_k = reg.se;
     out.r_squared = reg.r_squared;
-    out.points_rejected = reg.rejected;
+    // Rows of the chunks the robust weights dropped.
+    {
+        std::vector<double> res(xs.size());
+        for (std::size_t i = 0; i < xs.size(); ++i) res[i] = ys[i] - reg.slope * xs[i];
+        const double sigma = std::max(mad_sigma_about_zero(res), 1e-300);
+        for (std::size_t i = 0; i < xs.size(); ++i)
+            if (std::abs(res[i]) >= 4.685 * sigma) out.points_rejected += rows[i];
+    }
     if (!finite(out.c_th_j_per_k) || !(out.c_th_j_per_k > 0)) {
-        out.note = "regression of Q_out on -dT/dt gave no positive slope: the rests do not cool measurably";
+        out.note = "energy balance of the rests gave no positive C_th: the rests do not cool measurably";
         out.c_th_j_per_k = kNaN;
         return out;
     }
-    out.note = "C_th " + fmt("%.2f", out.c_th_j_per_k) + " +- " + fmt("%.2f", out.c_th_se_j_per_k) + " J/K from " +
-               std::to_string(out.rests_used) + " rest(s), " + std::to_string(out.points) + " rows (skip " +
-               fmt("%.0f", skip_s) + " s, derivative window " + fmt("%.0f", window_s) + " s), R^2 " +
-               fmt("%.4f", out.r_squared) + "; robust weights dropped " +
-               fmt("%.1f", 100.0 * static_cast<double>(out.points_rejected) / static_cast<double>(out.points)) +
+    out.note = "C_th " + fmt("%.2f", out.c_th_j_per_k) + " +- " + fmt("%.2f", out.c_th_se_j_per_k) +
+               " J/K from the energy balance of " + std::to_string(out.rests_used) + " rest(s) in " +
+               std::to_string(xs.size()) + " chunks of " + fmt("%.0f", chunk_s) + " s, " + std::to_string(out.points) +
+               " rows (skip " + fmt("%.0f", skip_s) + " s), R^2 " + fmt("%.4f", out.r_squared) +
+               "; robust weights dropped " +
+               fmt("%.1f", 100.0 * static_cast<double>(out.points_rejected) / static_cast<double>(std::max<std::size_t>(out.points, 1))) +
                " % of the rows";
     if (finite(out.r_squared) && out.r_squared < 0.9)
         out.note += "; low R^2: the rests hold little cooling (small excess temperature) or the data are noisy";
     return out;
+}
+
+ThermalCapacityFit fit_thermal_capacity(const Recording& rec, const std::vector<RowRange>& rests, double area_m2,
+                                        double skip_s, double window_s) {
+    require_thermal_channels(rec, "thermal capacity fit");
+    if (!(area_m2 > 0)) throw InputError(rec.source + ": thermal capacity fit: area_m2 must be > 0");
+    return fit_thermal_capacity(std::vector<ThermalRests>{{&rec, rests}}, area_m2, skip_s, window_s);
 }
 
 // ---------------------------------------------------------------------------------------------------------------

@@ -123,6 +123,7 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         co.fallback_capacity_ah = d.truth.nominal_capacity_ah;  // what a user gives (nominal)
         // diagnostics: another knot spacing than characterize() derives from the test's SOC levels
         if (const char* k = std::getenv("CELLBENCH_VALIDATION_KNOT_SPACING")) co.global.knot_spacing = std::atof(k);
+        if (const char* k = std::getenv("CELLBENCH_VALIDATION_SMOOTHNESS")) co.global.smoothness = std::atof(k);
         const auto c = est::characterize(recs, co);
         if (std::getenv("CELLBENCH_VALIDATION_VERBOSE")) {
             std::printf("seed %d: capacity %.4f Ah (%s), truth %.4f Ah, sample %.2f s\n", seed, c.capacity.capacity_ah,
@@ -136,6 +137,18 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
                     std::printf("   window rec %zu %s soc %.3f..%.3f offset %+.4f scale %.4f rms %.2f mV\n", w.recording,
                                 w.kind.c_str(), w.soc_min, w.soc_max, w.soc_offset, w.capacity_scale, 1e3 * w.rms_v);
             }
+            {
+                const double s_full = *std::max_element(d.hppc.true_soc.begin(), d.hppc.true_soc.end());
+                for (const auto& pt : c.ocv_points) {
+                    const double st = s_full - (1.0 - pt.soc) * c.params.capacity_ah / d.truth.capacity_ah;
+                    std::printf("   rest point fit soc %.3f (truth %.3f): rested %.4f V, truth OCV %.4f V (%+.2f mV), table %+.2f mV\n",
+                                pt.soc, st, pt.ocv_v, d.cell.ocv_ref_v(st), 1e3 * (pt.ocv_v - d.cell.ocv_ref_v(st)),
+                                1e3 * (c.params.ocv_at(pt.soc) - d.cell.ocv_ref_v(st)));
+                }
+            }
+            std::printf("   thermal: C_th %.2f +- %.2f J/K (truth %.2f), R_th %.3f +- %.3f K/W (truth %.3f)\n",
+                        c.thermal.c_th_j_per_k, c.thermal.c_th_sigma_j_per_k, d.truth.c_th_j_per_k,
+                        c.thermal.r_th_k_per_w, c.thermal.r_th_sigma_k_per_w, d.truth.r_th_k_per_w);
         }
         const auto e = compare(c, d, to_recording(d.drive, "drive"));
         std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %6.2f | %6.2f | %10.3f | %8.2f  (%s, %s)\n",
@@ -164,6 +177,12 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
     EXPECT_LT(r12, 0.13);
     EXPECT_LT(cap, 0.07);
     EXPECT_LT(drive, 8.0);
+    // C_th and R_th: issue 11's 5 % at every seed (before the energy-balance C_th: 17-97 % and 1-55 % off, the
+    // derivative's noise in the regressor of eq. 4.8; measured since: C_th within 0.1 %, R_th within 2 %).
+    for (const auto& e : all) {
+        EXPECT_LT(e.c_th, 0.05);
+        EXPECT_LT(e.r_th, 0.05);
+    }
 }
 
 INSTANTIATE_TEST_SUITE_P(Layouts, FitOnIndependentPlant,

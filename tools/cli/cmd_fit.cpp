@@ -66,7 +66,15 @@ void print_parameter_table(const estimator::Characterization& c) {
     std::printf("\nthermal: C_th %.2f J/K", p.thermal.c_th_j_per_k);
     if (std::isfinite(c.thermal.c_th_sigma_j_per_k)) std::printf(" +- %.2f", c.thermal.c_th_sigma_j_per_k);
     if (std::isfinite(c.thermal.c_th_r_squared)) std::printf(" (R^2 %.3f)", c.thermal.c_th_r_squared);
-    std::printf(", R_th %.3f K/W (%s)\n", p.thermal.r_th_k_per_w, c.thermal.r_th_method.c_str());
+    auto thermal_mark = [](const std::vector<std::string>& flags) -> const char* {
+        if (flags.empty()) return "";
+        for (const auto& f : flags)
+            if (f == "implausible") return " !";
+        return " ?";
+    };
+    std::printf("%s, R_th %.3f K/W", thermal_mark(c.thermal.c_th_flags), p.thermal.r_th_k_per_w);
+    if (std::isfinite(c.thermal.r_th_sigma_k_per_w)) std::printf(" +- %.3f", c.thermal.r_th_sigma_k_per_w);
+    std::printf("%s (%s)\n", thermal_mark(c.thermal.r_th_flags), c.thermal.r_th_method.c_str());
     if (!p.thermal.ehc_soc.empty()) {
         std::printf("entropic coefficient dU/dT (mV/K) by SOC:");
         for (std::size_t k = 0; k < p.thermal.ehc_soc.size(); ++k)

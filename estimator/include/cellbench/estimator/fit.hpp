@@ -52,8 +52,10 @@ struct CapacityMeasurement {
 // What the thermal fits gave, with the choice made and why (filled by fit_thermal_parameters).
 struct ThermalCharacterization {
     double c_th_j_per_k = kNaN, c_th_sigma_j_per_k = kNaN, c_th_r_squared = kNaN;
-    double r_th_k_per_w = kNaN;
+    double r_th_k_per_w = kNaN, r_th_sigma_k_per_w = kNaN;
     std::string r_th_method;
+    // Plausibility ("implausible", "uncertain", "at_bound"), as the global fit's table values carry them.
+    std::vector<std::string> c_th_flags, r_th_flags;
     nlohmann::json details = nlohmann::json::object();
     std::vector<double> ehc_soc, ehc_v_per_k;
     std::vector<std::string> notes;

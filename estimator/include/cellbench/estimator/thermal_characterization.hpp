@@ -1,7 +1,8 @@
 #pragma once
 // The thermal half of characterization: which recording serves which thermal parameter, and the choice of
 // R_th among the estimates that the data support.
-//  - C_th: rest cooling (thesis eq. 4.8) over the long rests of the recording with the most usable rows.
+//  - C_th: rest cooling (thesis eq. 4.7 integrated over chunks of the rests: energy balance, no differentiated
+//    temperature in the regressor) over the long rests of every recording with heat flux, in one regression.
 //  - dU/dT by SOC: the longest CC discharge that is not part of an HPPC (thesis eqs. 4.4-4.6).
 //  - R_th: three estimates are computed and reported: (a) heat flux against T - T_amb, (b) the cooling time
 //    constant of rests over C_th, (c) the value that best reproduces the measured surface temperature of the

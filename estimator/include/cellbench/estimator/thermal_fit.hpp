@@ -22,7 +22,9 @@
 //    300 s on.
 //  - kDefaultDerivativeWindowS = 60 s: the cooling time constant after a rest is ~330 s, so a 60 s local
 //    line biases dT/dt by (w/2/tau)^2/6 < 0.2 %, while averaging ~600 samples at 0.1 s beats the 0.1 mK
-//    quantization and the chamber's temperature ripple.
+//    quantization and the chamber's temperature ripple. In the C_th fit the chunk ends' temperatures come from
+//    centred lines over half of it (30 s): for an exponential cooling the value is biased by (w/tau)^2/24 of
+//    the excess, 0.3 % at the shortest time constant the validation plant has (120 s).
 #include <cstddef>
 #include <string>
 #include <vector>
@@ -54,11 +56,15 @@ std::vector<double> smooth_derivative(const std::vector<double>& time_s, const s
 // ---------------------------------------------------------------------------------------------------------------
 // Thermal capacity from rests (thesis section 4.2.1, eq. 4.7-4.8, Script 4.2).
 //
-// In a rest Q_gen = 0, so Q_out = C_th * (-dT/dt): a straight line through the origin. The regression uses, in
-// each rest, the rows at least skip_s after its start whose derivative window lies inside the rest. Unlike
-// Script 4.2's plain OLS it is a Tukey-biweight M-estimate (IRLS, tuning 4.685 robust sigma), started from the
-// weighted median of the point slopes: rows where the lumped premise is violated (a rest's edges smeared by
-// DAQ filtering or clock skew, chamber disturbances) get weight 0 instead of pulling the slope.
+// In a rest Q_gen = 0, so Q_out = C_th * (-dT/dt). Script 4.2 regresses Q_out on a differentiated temperature; the
+// derivative's noise then sits in the regressor and biases the slope towards zero (errors in variables: on a
+// rest that cools by a few tenths of a kelvin the 60 s slopes are mostly noise, and C_th came out 20-97 % low on
+// the validation plant). Here eq. 4.7 is integrated instead: each rest, from skip_s on, is cut into chunks of
+// max(skip_s, 2 window_s) and per chunk C_th * (T(a) - T(b)) = integral_a^b Q_out dt, T(a) and T(b) from local
+// lines over window_s / 2 centred on the chunk ends (whose variance is subtracted from the regressor's sum of
+// squares). The chunks of every rest given are regressed through the origin with Tukey-biweight weights (IRLS,
+// tuning 4.685 robust sigma, started from the weighted median of the chunk ratios): chunks where the lumped
+// premise is violated (a rest's end smeared by DAQ filtering or clock skew, chamber disturbances) get weight 0.
 struct ThermalCapacityFit {
     double c_th_j_per_k = kNaN;
     // Standard error of C_th. Points 0.1 s apart are not independent: the error is the cluster-robust
@@ -69,8 +75,8 @@ struct ThermalCapacityFit {
     // 1 - SSE/SST with SST centred on the mean (as MATLAB fitlm reports it, also without intercept), over the
     // points kept by the robust weights.
     double r_squared = kNaN;
-    std::size_t points = 0;          // rows that entered the regression
-    std::size_t points_rejected = 0; // of those, rows the robust weights dropped (weight 0)
+    std::size_t points = 0;          // rows of the chunks that entered the regression
+    std::size_t points_rejected = 0; // of those, rows of the chunks the robust weights dropped (weight 0)
     std::size_t rests_used = 0;      // rests that contributed at least one row
     std::vector<double> per_rest_c_th_j_per_k;  // OLS slope of each rest alone (NaN if it had no rows)
     double skip_s = kDefaultRestSkipS, window_s = kDefaultDerivativeWindowS;
@@ -79,6 +85,16 @@ struct ThermalCapacityFit {
 
 // Throws InputError if the recording lacks surface temperature or heat flux, or area_m2 <= 0.
 ThermalCapacityFit fit_thermal_capacity(const Recording& rec, const std::vector<RowRange>& rests, double area_m2,
+                                        double skip_s = kDefaultRestSkipS,
+                                        double window_s = kDefaultDerivativeWindowS);
+
+// The rests of several recordings in one regression (one cluster per rest): a hot discharge's cool-down and an
+// HPPC's many weakly heated rests weigh by what they hold.
+struct ThermalRests {
+    const Recording* recording = nullptr;
+    std::vector<RowRange> rests;
+};
+ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, double area_m2,
                                         double skip_s = kDefaultRestSkipS,
                                         double window_s = kDefaultDerivativeWindowS);
 

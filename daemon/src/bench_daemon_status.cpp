@@ -1,0 +1,129 @@
+// GET /status and GET /metrics: one snapshot of the instruments, the active run and the store.
+#include "bench_daemon_impl.hpp"
+
+#include <algorithm>
+#include <boost/asio/post.hpp>
+
+#include "cellbench/daemon/metrics.hpp"
+
+namespace cellbench::daemon {
+
+json BenchDaemon::status() {
+    auto& d = *impl_;
+    json j = {{"version", kVersion},
+              {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - d.started_at).count()},
+              {"bench_time_s", d.now_s()},
+              {"time_scale", d.scale},
+              {"time_scale_achieved", d.clock->achieved_scale()},
+              {"bench_time_paced", d.clock->paced()}};
+    auto c = d.active();
+    double t_rel = kNaN;
+    {
+        std::lock_guard l(d.live_m);
+        auto mode = [](bool simulated) { return simulated ? "simulated" : "real"; };
+        j["instruments"] = json::array({
+            {{"name", "neware"}, {"kind", "cycler"}, {"state", d.neware_state}, {"address", d.neware_address},
+             {"detail", d.neware_detail}, {"mode", mode(d.neware_server != nullptr)}},
+            {{"name", "chamber"}, {"kind", "chamber"}, {"state", d.chamber_state}, {"address", d.chamber_address},
+             {"detail", d.chamber_detail}, {"mode", mode(d.chamber_server != nullptr)}},
+            {{"name", "dewe"}, {"kind", "daq"}, {"state", d.daq_state}, {"address", d.daq_address},
+             {"detail", d.daq_detail}, {"mode", mode(d.dewe_publisher != nullptr)}},
+        });
+        // Data age: wall seconds since the instrument's newest reading (null before the first).
+        const double now_unix = unix_now_s();
+        auto age = [&](const auto& row) { return row ? json(std::max(0.0, now_unix - row->unix_s)) : json(nullptr); };
+        j["instruments"][0]["data_age_s"] = age(d.live_cycler);
+        j["instruments"][1]["data_age_s"] = age(d.live_chamber);
+        j["instruments"][2]["data_age_s"] = age(d.live_daq);
+        json live = {{"time_unix_s", unix_now_s()}, {"test_time_s", nullptr}, {"voltage_v", nullptr},
+                     {"current_a", nullptr}, {"soc", nullptr}, {"surface_c", nullptr}, {"ambient_c", nullptr},
+                     {"t1_c", nullptr}, {"t2_c", nullptr}, {"heat_flux_w_per_m2", nullptr}};
+        if (d.live_cycler) {
+            live["voltage_v"] = nullable(d.live_cycler->voltage_v);
+            live["current_a"] = nullable(d.live_cycler->current_a);
+            live["time_unix_s"] = d.live_cycler->unix_s;
+            if (c) {
+                t_rel = c->rel(d.live_cycler->t_s);
+                live["test_time_s"] = t_rel;
+                live["soc"] = nullable(d.live_soc);
+            }
+        }
+        if (d.live_daq) {
+            live["surface_c"] = nullable(d.live_daq->surface_c);
+            live["t1_c"] = nullable(d.live_daq->t1_c);
+            live["t2_c"] = nullable(d.live_daq->t2_c);
+            live["heat_flux_w_per_m2"] = nullable(d.live_daq->heat_flux_w_per_m2);
+        }
+        if (d.live_chamber) {
+            live["ambient_c"] = nullable(d.live_chamber->ambient_c);
+            live["setpoint_c"] = nullable(d.live_chamber->setpoint_c);
+        }
+        j["live"] = std::move(live);
+    }
+    j["run"] = c ? d.run_json(c->id) : json(nullptr);
+    // Progress by expected time: test time over the program's expected duration (an estimate: the fraction
+    // stays below 1 until the run ends).
+    if (c && std::isfinite(c->expected_s) && c->expected_s > 0 && std::isfinite(t_rel))
+        j["progress"] = {{"elapsed_s", t_rel},
+                         {"expected_duration_s", c->expected_s},
+                         {"fraction", std::clamp(t_rel / c->expected_s, 0.0, 0.99)}};
+    else
+        j["progress"] = nullptr;
+    if (c) j["sequencer"] = c->seq->status();
+    return j;
+}
+
+// ---- lab integration (issue 7): GET /metrics gathers a snapshot here, metrics.cpp formats it; post() is the
+// ---- watchdog's liveness probe of the io_context (cellbenchd's sd_notify WATCHDOG=1 pings).
+std::string BenchDaemon::metrics_text() {
+    auto& d = *impl_;
+    metrics::BenchSnapshot s;
+    s.uptime_s = std::chrono::duration<double>(SteadyClock::now() - d.started_at).count();
+    s.version = cellbench::version();
+    s.git = cellbench::git_describe();
+    const bool run_active = d.active() != nullptr;
+    {
+        std::lock_guard l(d.live_m);
+        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt, 0, 0, std::nullopt},
+                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt, 0, 0, std::nullopt},
+                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt, 0, 0, std::nullopt}};
+        if (d.live_cycler) s.voltage_v = d.live_cycler->voltage_v, s.current_a = d.live_cycler->current_a;
+        if (d.live_daq) s.surface_c = d.live_daq->surface_c;
+        if (d.live_chamber) s.ambient_c = d.live_chamber->ambient_c;
+        if (run_active) s.soc = d.live_soc;
+        for (auto& i : s.instruments) i.reconnects = d.reconnects.contains(i.name) ? d.reconnects.at(i.name) : 0;
+    }
+    {
+        std::lock_guard l(d.fault_m);
+        for (auto& i : s.instruments) {
+            if (const auto it = d.fault_count.find(i.name); it != d.fault_count.end()) i.faults = it->second;
+            if (i.name == "neware") i.lost_frames = d.lost_answers.contains("neware") ? d.lost_answers.at("neware") : 0;
+        }
+    }
+    if (d.neware_server) s.instruments[0].sim_requests = d.neware_server->stats().requests;
+    if (d.chamber_server) s.instruments[1].sim_requests = d.chamber_server->stats().requests;
+    if (d.dewe) {
+        s.daq_stream = d.dewe->health().stats;
+        s.instruments[2].lost_frames = s.daq_stream->lost_frames;
+    }
+    if (d.store) s.store = d.store->stats();
+    if (auto c = d.current()) {
+        metrics::RunSnapshot r;
+        r.id = c->id;
+        r.active = c->live;
+        try {
+            const json j = d.run_json(c->id);
+            r.state = j.value("state", "");
+            if (j.contains("step") && j["step"].is_object()) {
+                if (j["step"].contains("index") && j["step"]["index"].is_number_integer()) r.step_index = j["step"]["index"].get<int>();
+                if (j["step"].contains("count") && j["step"]["count"].is_number_integer()) r.step_count = j["step"]["count"].get<int>();
+            }
+        } catch (const std::exception& e) {
+            spdlog::debug("metrics: run {}: {}", c->id, e.what());
+        }
+        s.run = std::move(r);
+    }
+    return metrics::format_bench_metrics(s);
+}
+
+}  // namespace cellbench::daemon

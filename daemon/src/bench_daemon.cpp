@@ -166,9 +166,7 @@ void BenchDaemon::Impl::shutdown() {
     if (diagnoses) diagnoses->stop();  // before the store closes: a job may be reading a run
     if (tick_timer) tick_timer->cancel();
     if (pace_timer) pace_timer->cancel();
-    if (neware) neware->stop();
-    if (chamber) chamber->stop();
-    if (dewe) dewe->stop();
+    instruments.stop_all();
     if (dewe_publisher) dewe_publisher->stop();
     if (chamber_server) chamber_server->stop();
     if (neware_server) neware_server->stop();

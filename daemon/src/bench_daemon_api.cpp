@@ -15,8 +15,7 @@ namespace cellbench::daemon {
 json BenchDaemon::health() {
     std::lock_guard l(impl_->live_m);
     const bool db_ok = impl_->db_writable_again();
-    const bool ok = impl_->neware_state == "connected" && impl_->chamber_state == "connected" &&
-                    impl_->daq_state == "connected" && db_ok;
+    const bool ok = impl_->instruments.all_connected() && db_ok;
     json j = {{"status", ok ? "ok" : "degraded"},
               {"version", kVersion},
               {"uptime_s", std::chrono::duration<double>(SteadyClock::now() - impl_->started_at).count()},

@@ -75,8 +75,7 @@ void BenchDaemon::Impl::fault(const std::string& key, const std::string& kind, c
             first = true;
         }
         ++ep.occurrences;
-        ++fault_count[instrument];
-        if (kind == "timeout" || kind == "protocol_error") ++lost_answers[instrument];
+        if (auto* i = instruments.find(instrument)) i->count_fault(kind == "timeout" || kind == "protocol_error");
         ep.last_s = now;
         ep.message = message;
         run = c ? std::optional<RunId>(c->id) : ep.run;

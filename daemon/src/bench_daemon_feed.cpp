@@ -120,22 +120,18 @@ void BenchDaemon::Impl::on_neware_sample(const drivers::NewareSample& s) {
     row.t_s = t;  // live: bench time
     row.soc = live_soc;
     live_cycler = row;
+    cycler_instrument->note_reading(row.unix_s);
 }
 
 void BenchDaemon::Impl::on_neware_event(const drivers::NewareEvent& e) {
-    {
-        std::lock_guard lock(live_m);
-        switch (e.kind) {
-            case drivers::NewareEventKind::connected:
-                note_state("neware", neware_state, "connected");
-                neware_state = "connected";
-                neware_detail.clear();
-                break;
-            case drivers::NewareEventKind::disconnected:
-            case drivers::NewareEventKind::connect_failed: neware_state = "offline"; neware_detail = e.message; break;
-            case drivers::NewareEventKind::group_fault: neware_state = "error"; neware_detail = e.message; break;
-            default: neware_detail = e.message; break;
-        }
+    using instruments::InstrumentState;
+    auto& cyc = *cycler_instrument;
+    switch (e.kind) {
+        case drivers::NewareEventKind::connected: cyc.set_state(InstrumentState::connected, ""); break;
+        case drivers::NewareEventKind::disconnected:
+        case drivers::NewareEventKind::connect_failed: cyc.set_state(InstrumentState::offline, e.message); break;
+        case drivers::NewareEventKind::group_fault: cyc.set_state(InstrumentState::error, e.message); break;
+        default: cyc.set_detail(e.message); break;
     }
     spdlog::log(e.kind == drivers::NewareEventKind::connect_failed ? spdlog::level::debug : spdlog::level::info,
                 "neware: {}: {}", drivers::to_string(e.kind), e.message);
@@ -179,24 +175,19 @@ void BenchDaemon::Impl::on_dewe_sample(const drivers::DeweReading& r) {
     std::lock_guard lock(live_m);
     row.t_s = t;
     live_daq = row;
+    daq_instrument->note_reading(row.unix_s);
 }
 
 void BenchDaemon::Impl::on_dewe_health(const drivers::DeweHealth& h) {
-    std::string state;
+    using instruments::InstrumentState;
+    InstrumentState state = InstrumentState::offline;
     switch (h.state) {
-        case drivers::DeweStreamState::streaming: state = "connected"; break;
-        case drivers::DeweStreamState::waiting: state = "connecting"; break;
-        case drivers::DeweStreamState::silent: state = "offline"; break;
-        case drivers::DeweStreamState::stopped: state = "offline"; break;
+        case drivers::DeweStreamState::streaming: state = InstrumentState::connected; break;
+        case drivers::DeweStreamState::waiting: state = InstrumentState::connecting; break;
+        case drivers::DeweStreamState::silent: state = InstrumentState::offline; break;
+        case drivers::DeweStreamState::stopped: state = InstrumentState::offline; break;
     }
-    bool changed = false;
-    {
-        std::lock_guard lock(live_m);
-        changed = state != daq_state;
-        note_state("dewe", daq_state, state);
-        daq_state = state;
-        daq_detail = h.message;
-    }
+    const bool changed = daq_instrument->set_state(state, h.message);
     if (changed) spdlog::info("dewe: {} ({})", drivers::to_string(h.state), h.message);
     // Silence: a fault episode (the next sample closes it); the sequencer aborts past the DAQ's grace (tick:
     // no cell temperature). Lost frames (counter gaps) and garbage: counted, and an event at most every
@@ -255,17 +246,14 @@ void BenchDaemon::Impl::on_chamber_status(const drivers::ChamberStatus& s) {
     std::lock_guard lock(live_m);
     row.t_s = t;
     live_chamber = row;
-    note_state("chamber", chamber_state, "connected");
-    chamber_state = "connected";
-    chamber_detail.clear();
+    chamber_instrument->note_reading(row.unix_s);
+    chamber_instrument->set_state(instruments::InstrumentState::connected, "");
 }
 
 void BenchDaemon::Impl::on_chamber_fault(const drivers::ChamberFault& f) {
-    {
-        std::lock_guard lock(live_m);
-        chamber_state = f.kind == drivers::ChamberFaultKind::unreachable ? "offline" : "error";
-        chamber_detail = f.operation + ": " + f.message;
-    }
+    chamber_instrument->set_state(f.kind == drivers::ChamberFaultKind::unreachable ? instruments::InstrumentState::offline
+                                                                                   : instruments::InstrumentState::error,
+                                  f.operation + ": " + f.message);
     spdlog::warn("chamber: {} ({}): {}", drivers::to_string(f.kind), f.operation, f.message);
     // Policy (config: fault_policy.chamber). An alarm bit is immediately fatal; a set point not reached and
     // an exception answer are fatal when the policy says "abort"; the rest (no answer, lost connection,

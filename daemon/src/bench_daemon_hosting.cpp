@@ -86,11 +86,11 @@ void BenchDaemon::Impl::connect_drivers() {
     no.reconnect_initial = std::chrono::milliseconds(cfg.faults.cycler.reconnect_initial_ms);
     no.reconnect_max = std::chrono::milliseconds(cfg.faults.cycler.reconnect_max_ms);
     no.group = cfg.cycler.group;
-    neware_address = no.host + ":" + std::to_string(no.port);
     neware = std::make_unique<drivers::NewareClient>(io, no);
-    neware->on_sample([this](const drivers::NewareSample& s) { on_neware_sample(s); });
+    cycler_instrument = &instruments.add(std::make_unique<instruments::NewareInstrument>(*neware, neware_server.get()));
+    cycler_instrument->set_address(no.host + ":" + std::to_string(no.port));
+    cycler_instrument->on_reading([this](const drivers::NewareSample& s) { on_neware_sample(s); });
     neware->on_event([this](const drivers::NewareEvent& e) { on_neware_event(e); });
-    neware->start();
 
     // Chamber.
     drivers::ChamberClientOptions co;
@@ -108,15 +108,14 @@ void BenchDaemon::Impl::connect_drivers() {
     co.setpoint_tolerance_c = cfg.faults.chamber.setpoint_tolerance_c;
     co.setpoint_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(
         std::max(1.0, cfg.faults.chamber.setpoint_timeout_s * 1e3 / scale)));
-    chamber_address = co.host + ":" + std::to_string(co.port);
     chamber = std::make_unique<drivers::ChamberClient>(io, co);
-    chamber->on_status([this](const drivers::ChamberStatus& s) { on_chamber_status(s); });
+    chamber_instrument = &instruments.add(std::make_unique<instruments::ChamberInstrument>(*chamber, chamber_server.get()));
+    chamber_instrument->set_address(co.host + ":" + std::to_string(co.port));
+    chamber_instrument->on_reading([this](const drivers::ChamberStatus& s) { on_chamber_status(s); });
     chamber->on_fault([this](const drivers::ChamberFault& f) { on_chamber_fault(f); });
-    chamber->start();
 
     // DAQ.
     const auto ep = daq_endpoint();
-    daq_address = (ep.kind == drivers::CanEndpoint::Kind::socketcan ? "can " : "can-dgram ") + ep.name;
     drivers::DeweDriverOptions dopt;
     if (!cfg.daq.layout.is_null() && !cfg.daq.layout.empty())
         dopt.layout = protocol::DeweCanLayout::from_json(cfg.daq.layout, cfg.source.string() + " $.instruments.daq.layout");
@@ -131,9 +130,13 @@ void BenchDaemon::Impl::connect_drivers() {
             ? drivers::open_can_dgram_listener(io, ep.name, std::chrono::milliseconds(200))
             : drivers::open_can_listener(io, ep);
     dewe = std::make_unique<drivers::DeweDriver>(io, transport, dopt);
-    dewe->on_sample([this](const drivers::DeweReading& r) { on_dewe_sample(r); });
+    daq_instrument = &instruments.add(std::make_unique<instruments::DeweInstrument>(*dewe, dewe_publisher.get()));
+    daq_instrument->set_address((ep.kind == drivers::CanEndpoint::Kind::socketcan ? "can " : "can-dgram ") + ep.name);
+    daq_instrument->on_reading([this](const drivers::DeweReading& r) { on_dewe_sample(r); });
     dewe->on_health([this](const drivers::DeweHealth& h) { on_dewe_health(h); });
-    dewe->start();
+
+    // Started once all are registered: a driver's first callbacks may already look instruments up.
+    instruments.start_all();
 }
 
 }  // namespace cellbench::daemon

@@ -42,12 +42,16 @@
 #include "cellbench/drivers/dewe_driver.hpp"
 #include "cellbench/drivers/neware_client.hpp"
 #include "cellbench/estimator/params.hpp"
+#include "cellbench/instruments/registry.hpp"
 #include "cellbench/sequencer/sequencer.hpp"
 #include "cellbench/sim/chamber_server.hpp"
 #include "cellbench/sim/dewe_publisher.hpp"
 #include "cellbench/sim/neware_server.hpp"
 #include "cellbench/sim/plant.hpp"
 #include "bench_daemon_run_context.hpp"
+#include "chamber/chamber_instrument.hpp"
+#include "dewe/dewe_instrument.hpp"
+#include "neware/neware_instrument.hpp"
 
 namespace cellbench::daemon {
 
@@ -114,8 +118,15 @@ struct BenchDaemon::Impl {
     std::unique_ptr<drivers::NewareClient> neware;
     std::unique_ptr<drivers::ChamberClient> chamber;
     std::unique_ptr<drivers::DeweDriver> dewe;
-    std::string neware_address, chamber_address, daq_address;
     std::filesystem::path step_file_dir;  // real tester: where compiled step files are written
+
+    // The drivers behind the Instrument interface (instruments/): state, address, data age, reconnects, faults
+    // and lost frames of each, for GET /status, GET /metrics and /health. One line each in connect_drivers();
+    // the typed pointers are for the readings' paths, which are instrument-specific anyway.
+    instruments::InstrumentRegistry instruments;
+    instruments::NewareInstrument* cycler_instrument = nullptr;
+    instruments::ChamberInstrument* chamber_instrument = nullptr;
+    instruments::DeweInstrument* daq_instrument = nullptr;
 
     std::unique_ptr<HttpServer> http;
     std::uint16_t bound_port = 0;
@@ -129,15 +140,6 @@ struct BenchDaemon::Impl {
     // POST /runs (503 with the reason); cleared when a write commits again. Guarded by live_m.
     std::string db_fault;
     std::uint64_t db_fault_batches = 0;  // samples committed when the fault was seen
-    std::string neware_state = "connecting", chamber_state = "connecting", daq_state = "connecting";
-    std::string neware_detail, chamber_detail, daq_detail;
-    // /metrics: returns to "connected" after having been connected, per instrument (live_m).
-    std::map<std::string, std::uint64_t> reconnects;
-    std::set<std::string> was_connected;
-    void note_state(const std::string& instrument, const std::string& old_state, const std::string& new_state) {
-        if (new_state != "connected" || old_state == "connected") return;
-        if (!was_connected.insert(instrument).second) ++reconnects[instrument];
-    }
     std::optional<CyclerSample> live_cycler;
     std::optional<DaqSample> live_daq;
     std::optional<ChamberSample> live_chamber;
@@ -214,9 +216,7 @@ struct BenchDaemon::Impl {
     };
     std::mutex fault_m;  // leaf
     std::map<std::string, FaultEpisode> episodes;
-    // /metrics: every fault occurrence per instrument, and the cycler's lost or malformed answers (fault_m).
-    std::map<std::string, std::uint64_t> fault_count, lost_answers;
-
+    // (Fault occurrences and lost answers are counted on the instrument: Instrument::count_fault.)
     static std::string instrument_of(const std::string& key) { return key.substr(0, key.find(':')); }
 
     // Grace in bench time, never below what the host can promise in wall time (3 s; see limits_for).

@@ -135,10 +135,8 @@ json BenchDaemon::Impl::start_run(const StartRequest& req) {
         throw BadRequest(std::string(e.what()) + " (programs and cells are looked up in " +
                          (cfg.config_dir / "programs").string() + " and " + (cfg.config_dir / "cells").string() + ")");
     }
-    {
-        std::lock_guard l(live_m);
-        if (neware_state != "connected") throw Unavailable("the cycler is not connected (" + neware_detail + ")");
-    }
+    if (cycler_instrument->state() != instruments::InstrumentState::connected)
+        throw Unavailable("the cycler is not connected (" + cycler_instrument->detail() + ")");
     sequencer::SequencerOptions so;
     so.limits = limits_for(cell);
     so.capacity_ah = cell.nominal_capacity_ah;

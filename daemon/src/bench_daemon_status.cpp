@@ -20,21 +20,20 @@ json BenchDaemon::status() {
     double t_rel = kNaN;
     {
         std::lock_guard l(d.live_m);
-        auto mode = [](bool simulated) { return simulated ? "simulated" : "real"; };
-        j["instruments"] = json::array({
-            {{"name", "neware"}, {"kind", "cycler"}, {"state", d.neware_state}, {"address", d.neware_address},
-             {"detail", d.neware_detail}, {"mode", mode(d.neware_server != nullptr)}},
-            {{"name", "chamber"}, {"kind", "chamber"}, {"state", d.chamber_state}, {"address", d.chamber_address},
-             {"detail", d.chamber_detail}, {"mode", mode(d.chamber_server != nullptr)}},
-            {{"name", "dewe"}, {"kind", "daq"}, {"state", d.daq_state}, {"address", d.daq_address},
-             {"detail", d.daq_detail}, {"mode", mode(d.dewe_publisher != nullptr)}},
-        });
-        // Data age: wall seconds since the instrument's newest reading (null before the first).
+        // Every registered instrument, in registry order. Data age: wall seconds since the instrument's newest
+        // reading (null before the first).
         const double now_unix = unix_now_s();
-        auto age = [&](const auto& row) { return row ? json(std::max(0.0, now_unix - row->unix_s)) : json(nullptr); };
-        j["instruments"][0]["data_age_s"] = age(d.live_cycler);
-        j["instruments"][1]["data_age_s"] = age(d.live_chamber);
-        j["instruments"][2]["data_age_s"] = age(d.live_daq);
+        j["instruments"] = json::array();
+        for (const auto& inst : d.instruments) {
+            const auto st = inst->status(now_unix);
+            j["instruments"].push_back({{"name", st.name},
+                                        {"kind", st.kind},
+                                        {"state", instruments::to_string(st.state)},
+                                        {"address", st.address},
+                                        {"detail", st.detail},
+                                        {"mode", st.simulated ? "simulated" : "real"},
+                                        {"data_age_s", st.data_age_s ? json(*st.data_age_s) : json(nullptr)}});
+        }
         json live = {{"time_unix_s", unix_now_s()}, {"test_time_s", nullptr}, {"voltage_v", nullptr},
                      {"current_a", nullptr}, {"soc", nullptr}, {"surface_c", nullptr}, {"ambient_c", nullptr},
                      {"t1_c", nullptr}, {"t2_c", nullptr}, {"heat_flux_w_per_m2", nullptr}};
@@ -84,28 +83,17 @@ std::string BenchDaemon::metrics_text() {
     const bool run_active = d.active() != nullptr;
     {
         std::lock_guard l(d.live_m);
-        s.instruments = {{"neware", "cycler", d.neware_state, d.neware_server != nullptr, std::nullopt, 0, 0, std::nullopt},
-                         {"chamber", "chamber", d.chamber_state, d.chamber_server != nullptr, std::nullopt, 0, 0, std::nullopt},
-                         {"dewe", "daq", d.daq_state, d.dewe_publisher != nullptr, std::nullopt, 0, 0, std::nullopt}};
         if (d.live_cycler) s.voltage_v = d.live_cycler->voltage_v, s.current_a = d.live_cycler->current_a;
         if (d.live_daq) s.surface_c = d.live_daq->surface_c;
         if (d.live_chamber) s.ambient_c = d.live_chamber->ambient_c;
         if (run_active) s.soc = d.live_soc;
-        for (auto& i : s.instruments) i.reconnects = d.reconnects.contains(i.name) ? d.reconnects.at(i.name) : 0;
     }
-    {
-        std::lock_guard l(d.fault_m);
-        for (auto& i : s.instruments) {
-            if (const auto it = d.fault_count.find(i.name); it != d.fault_count.end()) i.faults = it->second;
-            if (i.name == "neware") i.lost_frames = d.lost_answers.contains("neware") ? d.lost_answers.at("neware") : 0;
-        }
+    for (const auto& inst : d.instruments) {
+        const auto st = inst->status(unix_now_s());
+        s.instruments.push_back({st.name, st.kind, std::string(instruments::to_string(st.state)), st.simulated,
+                                 st.sim_requests, st.faults, st.reconnects, st.lost_frames});
     }
-    if (d.neware_server) s.instruments[0].sim_requests = d.neware_server->stats().requests;
-    if (d.chamber_server) s.instruments[1].sim_requests = d.chamber_server->stats().requests;
-    if (d.dewe) {
-        s.daq_stream = d.dewe->health().stats;
-        s.instruments[2].lost_frames = s.daq_stream->lost_frames;
-    }
+    if (d.dewe) s.daq_stream = d.dewe->health().stats;
     if (d.store) s.store = d.store->stats();
     if (auto c = d.current()) {
         metrics::RunSnapshot r;

@@ -249,6 +249,7 @@ int main(int argc, char** argv) {
     std::vector<Fault> faults;
     std::vector<RunRecord> runs;
     std::vector<std::pair<double, long>> rss;  // (wall s, KiB)
+    long rss_after_first_run = -1;             // KiB, when the first run had ended
     std::vector<std::string> problems;
     std::uniform_real_distribution<double> gap(o.fault_min_s, o.fault_max_s), unit(0.0, 1.0);
     std::vector<std::string> kinds = {"neware_drop",      "neware_refuse",  "neware_stall",  "neware_malformed",
@@ -300,6 +301,7 @@ int main(int argc, char** argv) {
         }
         for (auto& rr : runs)
             if (rr.id == id) r.bench_start = rr.bench_start, rr = r;
+        if (rss_after_first_run < 0) rss_after_first_run = rss_kib(pid);
     };
 
     auto inject = [&](const std::string& kind, bool long_loss, double dur) {
@@ -552,6 +554,17 @@ int main(int argc, char** argv) {
        << slope * 3600.0 / o.time_scale << " KiB per bench hour\n- samples (wall s: MiB):";
     for (std::size_t k = 0; k < rss.size(); k += std::max<std::size_t>(1, rss.size() / 12))
         md << " " << static_cast<int>(rss[k].first) << ":" << rss[k].second / 1024.0;
+    // Acceptance (issue 14): RSS at the end within 10 % of RSS after the first run; no sample lost by the store.
+    const long rss_end = rss.empty() ? -1 : rss.back().second;
+    if (rss_after_first_run > 0 && rss_end > 0) {
+        const double growth = static_cast<double>(rss_end - rss_after_first_run) / static_cast<double>(rss_after_first_run);
+        md << "\n- after the first run " << rss_after_first_run / 1024.0 << " MiB, at the end " << rss_end / 1024.0
+           << " MiB (" << (growth >= 0 ? "+" : "") << 100.0 * growth << " %; limit +10 %)";
+        if (growth > 0.10)
+            problems.push_back("RSS grew " + std::to_string(100.0 * growth) + " % after the first run (limit 10 %)");
+    }
+    if (metric("cellbench_store_samples_lost_total") > 0 || metric("cellbench_store_samples_dropped_total") > 0)
+        problems.push_back("the run store lost or dropped samples");
     md << "\n\n## Verdict\n\n";
     if (problems.empty()) md << "PASS: no crash, every run ended in a defined state with its events, every abort left the bench safe, the database is sound.\n";
     else

@@ -1,7 +1,7 @@
 // GET /api/v1/openapi.json (INTERFACES.md): an OpenAPI 3.1 document that describes every route cellbenchd
 // answers, and no route it does not. The routes are probed through the server's own router
 // (handle_http_request): every path built from the words the router compares path segments with (read from
-// daemon/src/http_server.cpp, so a new route cannot hide from this test), with every method. A route "is
+// daemon/src/http_router.cpp, so a new route cannot hide from this test), with every method. A route "is
 // answered" unless the router says there is no such endpoint (404 "no such endpoint") or refuses the method
 // (405).
 #include <gtest/gtest.h>
@@ -99,8 +99,8 @@ TEST(OpenApi, DescribesEveryRouteTheServerAnswersAndNoOther) {
             documented.emplace(m, fill_ids(path));
         }
 
-    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/daemon/src/http_server.cpp");
-    ASSERT_TRUE(in) << "daemon/src/http_server.cpp";
+    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/daemon/src/http_router.cpp");
+    ASSERT_TRUE(in) << "daemon/src/http_router.cpp";
     std::stringstream ss;
     ss << in.rdbuf();
     const auto firsts = words_compared_with(ss.str(), R"(seg\[0\])");

@@ -1,6 +1,6 @@
 #pragma once
 // The run store: every run of the bench in one SQLite file (sqlite3 C API, WAL, synchronous=NORMAL, SQL only
-// through prepared statements). Schema: see the top of run_store.cpp.
+// through prepared statements). Schema: see the top of run_store_schema.cpp.
 //
 // Writes never touch the disk on the caller's thread. push()/record_*() append to a bounded in-memory queue;
 // one writer thread commits the queue in a transaction at least every flush_period (200 ms by default) or as
@@ -319,7 +319,7 @@ public:
     // "ok", or SQLite's list of problems.
     [[nodiscard]] std::string integrity_check() const;
 
-    struct Impl;  // run_store.cpp
+    struct Impl;  // run_store_impl.hpp
 
 private:
     explicit RunStore(std::unique_ptr<Impl> impl);

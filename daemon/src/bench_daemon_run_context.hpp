@@ -22,6 +22,7 @@
 #include "cellbench/estimator/params.hpp"
 #include "cellbench/protocol/json_input.hpp"
 #include "cellbench/sequencer/sequencer.hpp"
+#include "sequencer_program.hpp"
 
 namespace cellbench::daemon {
 
@@ -58,32 +59,6 @@ inline estimator::ParameterSet load_param_file(const std::filesystem::path& path
     std::stringstream text;
     text << in.rdbuf();
     return estimator::ParameterSet::from_json(protocol::parse_json_input(text.str(), path.string()), path.string());
-}
-
-inline sequencer::Program to_sequencer_program(const Program& p) {
-    sequencer::Program out;
-    out.name = p.name;
-    for (const auto& seg : p.segments) {
-        sequencer::Segment s;
-        if (const auto* c = std::get_if<CyclerSegment>(&seg)) {
-            s.kind = sequencer::Segment::Kind::Cycler;
-            s.program = c->program;
-            s.name = c->program.name;
-        } else if (const auto* sp = std::get_if<ChamberSetpointSegment>(&seg)) {
-            s.kind = sequencer::Segment::Kind::ChamberSetpoint;
-            s.setpoint_c = sp->setpoint_c;
-            s.name = "chamber set point";
-        } else if (const auto* w = std::get_if<WaitEquilibriumSegment>(&seg)) {
-            s.kind = sequencer::Segment::Kind::WaitEquilibrium;
-            s.tolerance_c = w->tolerance_c;
-            s.hold_s = w->hold_s;
-            s.timeout_s = w->timeout_s;
-            s.abort_on_timeout = w->abort_on_timeout;
-            s.name = "wait for thermal equilibrium";
-        }
-        out.segments.push_back(std::move(s));
-    }
-    return out;
 }
 
 inline RunState store_state(sequencer::RunState s) {

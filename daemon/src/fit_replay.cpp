@@ -10,6 +10,7 @@
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/estimator/fit.hpp"
 #include "cellbench/sequencer/sequencer.hpp"
+#include "sequencer_program.hpp"
 
 namespace cellbench::daemon {
 
@@ -74,28 +75,16 @@ private:
     std::vector<std::string> warnings_;
 };
 
+// The run's program as the daemon gave it to its sequencer, with every equilibrium wait made to pass as soon as
+// the recorded temperatures allow (a replay has no chamber to wait for).
 sequencer::Program replay_program(const Program& p) {
-    sequencer::Program out;
-    out.name = p.name;
-    for (const auto& seg : p.segments) {
-        sequencer::Segment s;
-        if (const auto* c = std::get_if<CyclerSegment>(&seg)) {
-            s.kind = sequencer::Segment::Kind::Cycler;
-            s.program = c->program;
-            s.name = c->program.name;
-        } else if (const auto* sp = std::get_if<ChamberSetpointSegment>(&seg)) {
-            s.kind = sequencer::Segment::Kind::ChamberSetpoint;
-            s.setpoint_c = sp->setpoint_c;
-            s.name = "chamber set point";
-        } else if (std::get_if<WaitEquilibriumSegment>(&seg)) {
-            s.kind = sequencer::Segment::Kind::WaitEquilibrium;
+    sequencer::Program out = to_sequencer_program(p);
+    for (auto& s : out.segments)
+        if (s.kind == sequencer::Segment::Kind::WaitEquilibrium) {
             s.tolerance_c = kReplayTolerance;
             s.hold_s = 0.0;
             s.timeout_s = kInf;
-            s.name = "wait for thermal equilibrium";
         }
-        out.segments.push_back(std::move(s));
-    }
     return out;
 }
 

@@ -34,11 +34,11 @@ void BenchDaemon::Impl::store_event(const EventRecord& e) {
     }
 }
 
-// Grace in bench time, never below what the host can promise in wall time (3 s; see limits_for).
+// Grace in bench time, never below what the host can promise in wall time (min_grace_s).
 double BenchDaemon::Impl::grace_for(const std::string& instrument) const {
     const auto& f = cfg.faults;
     const double g = instrument == "neware" ? f.cycler.grace_s : instrument == "dewe" ? f.daq.grace_s : f.chamber.grace_s;
-    return std::max(g, scale * 3.0);
+    return std::max(g, min_grace_s());
 }
 
 void BenchDaemon::Impl::record_run_event(std::optional<RunId> run, EventLevel level, const std::string& kind, const std::string& message,

@@ -112,9 +112,9 @@ sequencer::SafetyLimits BenchDaemon::Impl::limits_for(const CellConfig& cell) co
     l.max_voltage_v = s.max_voltage_v;
     l.max_current_a = s.max_current_a;
     l.chamber_deviation_c = s.chamber_deviation_c;
-    // Grace in bench time, but never below what the host can promise in wall time (3 s): at 1000x a 5 s
-    // grace would be 5 ms of wall time, which a loaded machine cannot guarantee.
-    l.instrument_loss_grace_s = std::max(s.instrument_loss_grace_s, scale * 3.0);
+    // Grace in bench time, but never below what the host can promise in wall time (min_grace_s): at 1000x a
+    // 5 s grace would be 5 ms of wall time, which a loaded machine cannot guarantee.
+    l.instrument_loss_grace_s = std::max(s.instrument_loss_grace_s, min_grace_s());
     l.cycler_loss_grace_s = grace_for("neware");
     l.daq_loss_grace_s = grace_for("dewe");
     l.chamber_loss_grace_s = grace_for("chamber");

@@ -195,8 +195,10 @@ int main(int argc, char** argv) {
     hil["database"] = {{"path", (dir / "soak.sqlite").string()}, {"flush_period_ms", 200}};
     std::ofstream(dir / "hil.json") << hil.dump(2);
     const double safe_setpoint_c = hil["instruments"]["chamber"].value("safe_setpoint_c", 25.0);
-    // The daemon's instrument-loss grace in wall seconds: max(config grace in bench s, 3 s of wall).
-    const double grace_wall_s = std::max(hil["safety"].value("instrument_loss_grace_s", 5.0) / o.time_scale, 3.0);
+    // The daemon's instrument-loss grace in wall seconds: max(config grace in bench s, its floor: 10 s of wall
+    // on an accelerated bench, 3 s at scale 1).
+    const double grace_wall_s = std::max(hil["safety"].value("instrument_loss_grace_s", 5.0) / o.time_scale,
+                                         o.time_scale > 1.0 ? 10.0 : 3.0);
 
     // cellbenchd.
     const fs::path log = dir / "cellbenchd.log";

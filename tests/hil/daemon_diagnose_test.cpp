@@ -44,9 +44,7 @@ constexpr double kTimeScale = 300.0;
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 const std::string kToken = "hil-token";
 
-bool terminal(const std::string& state) {
-    return state == "completed" || state == "stopped" || state == "aborted" || state == "interrupted";
-}
+bool terminal(const std::string& state) { return cellbench::test::ended_run_state(state); }
 
 // The run is diagnosed against the whole catalogue (as the dashboard asks); the upload, the same recording
 // again, against two candidates only, to keep the test short on a loaded two-core machine.

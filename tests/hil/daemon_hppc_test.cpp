@@ -51,9 +51,7 @@ constexpr double kHppcTimeScale = 400.0;
 
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 
-bool terminal(const std::string& state) {
-    return state == "completed" || state == "stopped" || state == "aborted" || state == "interrupted";
-}
+bool terminal(const std::string& state) { return cellbench::test::ended_run_state(state); }
 
 estimator::ParameterSet thesis_cell() {
     std::ifstream in(kSource / "config/cells/p45b-thesis.json");

@@ -305,8 +305,7 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
     // The Diagnosis page diagnoses the finished run through the daemon (token from localStorage): progress, then
     // findings, the "where" table and the trace charts.
     ASSERT_TRUE(eventually([&] {
-        const auto st = d.get_run(id)["state"].get<std::string>();
-        return st == "completed" || st == "stopped" || st == "aborted" || st == "interrupted";
+        return test::ended_run_state(d.get_run(id)["state"].get<std::string>());
     }, 120s, 500ms));
     wd.script("localStorage.setItem('cellbench.token', 'browser-test'); return null;");
     wd.navigate(base + "/#/diagnosis/" + std::to_string(id));

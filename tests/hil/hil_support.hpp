@@ -70,6 +70,10 @@ inline daemon::BenchConfig sim_bench_config(const std::filesystem::path& file) {
 inline bool live_run_state(const std::string& s) {
     return s == "starting" || s == "waiting_equilibrium" || s == "running" || s == "paused" || s == "stopping";
 }
+// An end state of the API (INTERFACES.md): completed, stopped, aborted or interrupted.
+inline bool ended_run_state(const std::string& s) {
+    return s == "completed" || s == "stopped" || s == "aborted" || s == "interrupted";
+}
 
 inline bool instruments_connected(daemon::BenchDaemon& d) {
     const nlohmann::json s = d.status();  // kept alive while its members are iterated

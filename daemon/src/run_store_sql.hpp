@@ -74,12 +74,17 @@ public:
         return *this;
     }
 
-    // True for a row, false when done; throws SqlError otherwise.
+    // True for a row, false when done; throws SqlError otherwise. A failed step leaves the statement reset:
+    // SQLite refuses to bind a statement that stopped on an error and was never reset (SQLITE_MISUSE), so a
+    // statement that once hit a full disk would otherwise refuse every later record, the run's abort included.
     bool step() {
         const int rc = sqlite3_step(s_);
         if (rc == SQLITE_ROW) return true;
         if (rc == SQLITE_DONE) return false;
-        throw_sql(db_, rc, "step");
+        const int ext = sqlite3_extended_errcode(db_);
+        SqlError err(ext ? ext : rc, sqlite_message(db_, rc));  // before the reset, which may touch the message
+        sqlite3_reset(s_);
+        throw err;
     }
     void run() {
         while (step()) {

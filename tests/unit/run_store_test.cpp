@@ -661,6 +661,54 @@ TEST_F(RunStoreTest, DiskFullIsReportedAndTheFileStaysSound) {
     EXPECT_EQ(store->integrity_check(), "ok");
 }
 
+// The run's abort on a full disk must reach the database or the sidecar, whatever failed before it. A record
+// that failed on the full disk leaves its statement stopped on the error; SQLite refuses to bind such a
+// statement again (SQLITE_MISUSE, "bad parameter or other API misuse"), which once made the abort record that
+// followed a failed event a non-transient fault, dropped. Found by the disk-full HIL test under load in CI.
+TEST_F(RunStoreTest, RecordsAfterAFailedRecordOnAFullDiskAreKeptNotDropped) {
+    std::mutex mu;
+    std::vector<StoreFault> faults;
+    RunStoreOptions opt;
+    opt.max_page_count = 120;
+    opt.on_fault = [&](const StoreFault& f) {
+        std::lock_guard lk(mu);
+        faults.push_back(f);
+    };
+    RunId id = 0;
+    {
+        auto store = RunStore::open(db_, opt);
+        id = store->create_run(new_run());
+        store->set_run_state(id, RunState::running);
+        for (int k = 0; k < 50000 && store->stats().samples_lost == 0; ++k) {
+            store->push(id, cycler(k * 0.01));
+            if (k % 1000 == 0) store->flush();
+        }
+        ASSERT_TRUE(store->flush());
+        ASSERT_GT(store->stats().samples_lost, 0u) << "the size limit was never reached";
+        // An event too large for the full file fails inside its own statement ...
+        EventRecord big{0, id, 0.0, 1.0, EventLevel::warning, "fault", std::nullopt, std::string(400000, 'x'), nullptr};
+        store->record_event(big);
+        ASSERT_TRUE(store->flush());
+        // ... and the next ones must bind that statement again: the abort and its event.
+        store->set_run_state(id, RunState::aborted, "database full");
+        store->record_event(EventRecord{0, id, 0.0, 2.0, EventLevel::error, "abort", std::nullopt, "run aborted: database full", nullptr});
+        ASSERT_TRUE(store->flush());
+        store->close();
+    }
+    {
+        std::lock_guard lk(mu);
+        for (const auto& f : faults)
+            EXPECT_EQ(f.message.find("misuse"), std::string::npos) << f.message;
+    }
+    auto reopened = RunStore::open(db_);  // no size limit: space freed; a sidecar is imported first
+    ASSERT_TRUE(reopened->flush());
+    const auto run = reopened->get_run(id);
+    ASSERT_TRUE(run);
+    EXPECT_EQ(run->state, RunState::aborted);
+    const auto ev = reopened->events(id);
+    EXPECT_TRUE(std::any_of(ev.begin(), ev.end(), [](const EventRecord& e) { return e.kind == "abort"; }));
+}
+
 TEST_F(RunStoreTest, ALockedDatabaseIsReportedAndTheStoreRecovers) {
     std::atomic<int> busy{0};
     RunStoreOptions opt;

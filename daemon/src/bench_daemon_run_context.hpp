@@ -110,6 +110,9 @@ struct RunContext final : sequencer::RunSink {
     std::unique_ptr<sequencer::Sequencer> seq;
 
     std::atomic<bool> live{true};
+    // After the run ended and its fits were delivered, the tick gives memory back in two ticks: the store's page
+    // caches (1), then the freed heap to the system (2). Touched by the tick only.
+    int memory_returned = 0;
     std::atomic<int> seq_state{static_cast<int>(sequencer::RunState::Running)};
 
     // Leaf lock: sink callbacks (under the sequencer's lock) and sample handlers.

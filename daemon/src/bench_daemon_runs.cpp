@@ -140,6 +140,7 @@ json BenchDaemon::Impl::start_run(const StartRequest& req) {
     sequencer::SequencerOptions so;
     so.limits = limits_for(cell);
     so.capacity_ah = cell.nominal_capacity_ah;
+    so.keep_recording_after_end = false;  // the store has every row; no second copy kept between runs
     if (cell.params_path) {
         try {
             auto params = std::make_shared<const estimator::ParameterSet>(load_param_file(*cell.params_path));

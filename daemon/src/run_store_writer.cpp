@@ -490,6 +490,11 @@ void RunStore::Impl::write_batch(Batch& b) {
     if (!fault) fault_episode.reset();
     if (fault) report(*fault);
     if (control_fault) report(*control_fault);
+    if (std::any_of(b.control.begin(), b.control.end(), [](const Control& op) {
+            const auto* f = std::get_if<FlushOp>(&op);
+            return f && f->release_memory;
+        }))
+        sqlite3_db_release_memory(wdb.get());  // after the commit or rollback: no page is pinned
     if (controls_done) fulfil(b.control);
     else if (control_fault) {
         if (transient(control_fault->kind)) retain(b.control);
@@ -737,6 +742,17 @@ bool RunStore::flush(std::chrono::milliseconds timeout) {
         true);
     if (!queued) return true;  // closed: close() already drained everything
     return fut.wait_for(timeout) == std::future_status::ready;
+}
+
+void RunStore::release_memory() {
+    if (impl_->readonly) return;
+    impl_->enqueue_control([] {
+        FlushOp op;
+        op.release_memory = true;
+        return Control(std::move(op));
+    }, false);
+    std::lock_guard lk(impl_->pool_mu);
+    for (sqlite3* db : impl_->idle) sqlite3_db_release_memory(db);
 }
 
 StoreStats RunStore::stats() const {

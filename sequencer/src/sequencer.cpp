@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <utility>
 
 #include "cellbench/estimator/segment.hpp"
 
@@ -19,9 +20,26 @@ const char* to_string(RunState s) {
     return "?";
 }
 
+const char* to_string(RunTrigger t) {
+    switch (t) {
+        case RunTrigger::start: return "start";
+        case RunTrigger::pause: return "pause";
+        case RunTrigger::resume: return "resume";
+        case RunTrigger::program_end: return "program end";
+        case RunTrigger::operator_stop: return "stop";
+        case RunTrigger::abort: return "abort";
+    }
+    return "?";
+}
+
 namespace {
-bool terminal(RunState s) { return s == RunState::Completed || s == RunState::Aborted || s == RunState::Stopped; }
-bool active(RunState s) { return s == RunState::Running || s == RunState::Paused; }
+bool terminal(RunState s) { return is_terminal(s); }
+bool active(RunState s) { return is_active(s); }
+RunTrigger trigger_of_end(RunState end) {
+    return end == RunState::Completed ? RunTrigger::program_end
+           : end == RunState::Stopped ? RunTrigger::operator_stop
+                                      : RunTrigger::abort;
+}
 std::string fmt(const char* f, double x) {
     char b[96];
     std::snprintf(b, sizeof b, f, x);
@@ -31,13 +49,41 @@ std::string fmt(const char* f, double x) {
 
 Sequencer::Sequencer(Cycler& cycler, Chamber& chamber, RunSink& sink, SequencerOptions options)
     : cycler_(cycler), chamber_(chamber), sink_(sink), opt_(std::move(options)),
-      pool_(std::make_unique<OrderedWorkerPool>(opt_.fit_threads)) {}
+      rules_(default_safety_rules(opt_.limits)), pool_(std::make_unique<OrderedWorkerPool>(opt_.fit_threads)) {
+    for (auto& r : opt_.extra_rules)
+        if (r) rules_.push_back(r);
+}
+
+bool Sequencer::fire_locked(RunTrigger trigger) {
+    const auto next = next_state(state_, trigger);
+    if (!next) return false;
+    state_ = *next;
+    return true;
+}
+
+SafetyContext Sequencer::safety_context_locked() const {
+    return SafetyContext{run_start_s_, chamber_target_c_, last_cycler_s_, last_daq_s_, last_chamber_s_};
+}
+
+template <class Check>
+bool Sequencer::check_rules_locked(Check check, double t) {
+    const SafetyContext ctx = safety_context_locked();
+    for (const auto& rule : rules_) {
+        if (AbortReason why = check(*rule, ctx)) {
+            abort_locked(*why, t);
+            return true;
+        }
+    }
+    return false;
+}
 
 Sequencer::~Sequencer() { wait_for_fits(); }
 
 void Sequencer::spawn(std::function<std::function<void()>()> compute) { pool_->submit(std::move(compute)); }
 
 void Sequencer::wait_for_fits() { pool_->wait_idle(); }
+
+bool Sequencer::fits_idle() const { return pool_->idle(); }
 
 void Sequencer::start(const Program& program, double t) {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -58,9 +104,11 @@ void Sequencer::start(const Program& program, double t) {
             program_.segments.push_back(std::move(piece));
         }
     }
-    state_ = RunState::Running;
+    if (!fire_locked(RunTrigger::start)) throw InputError(std::string("cannot start a run while one is ") + to_string(state_));
+    for (auto& r : rules_) r->reset();
     segment_ = 0;
     rec_ = Recording{};
+    elapsed_s_ = kNaN;
     rec_.source = program.name;
     rec_.surface_c.clear();
     fitted_pulse_sets_ = 0;
@@ -79,7 +127,6 @@ void Sequencer::start(const Program& program, double t) {
     run_start_s_ = t;
     last_cycler_s_ = last_daq_s_ = last_chamber_s_ = -1;
     last_step_id_ = last_cycle_id_ = -1;
-    chamber_settled_ = false;
     chamber_target_c_ = kNaN;
     sink_.on_state(RunState::Running, "started program " + program.name);
     start_segment_locked(t);
@@ -97,7 +144,6 @@ void Sequencer::start_segment_locked(double t) {
             chamber_.set_running(true);
             chamber_.set_setpoint(s.setpoint_c);
             chamber_target_c_ = s.setpoint_c;
-            chamber_settled_ = false;
             sink_.on_event(t, "info", "chamber", "chamber set point " + fmt("%.1f degC", s.setpoint_c));
             ++segment_;
             continue;
@@ -139,13 +185,20 @@ void Sequencer::advance_locked(double t) {
 }
 
 void Sequencer::finish_locked(RunState end_state, const std::string& reason, double t) {
-    if (terminal(state_)) return;
-    state_ = end_state;
+    if (!fire_locked(trigger_of_end(end_state))) return;
     end_step_locked(t);
     sink_.on_state(end_state, reason);
-    if (end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10) {
-        Recording rec = rec_;
-        const estimator::CharacterizationOptions co{};
+    const bool fit_now = end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10;
+    // Without keep_recording_after_end the recording goes to the end fit (or is dropped): the store holds every
+    // row, and the pulse-set fits own copies of their windows.
+    Recording rec;
+    if (!opt_.keep_recording_after_end) {
+        rec = std::exchange(rec_, Recording{});
+        std::vector<double>().swap(rec_soc_);
+    } else if (fit_now) {
+        rec = rec_;
+    }
+    if (fit_now) {
         spawn([this, rec = std::move(rec), t]() -> std::function<void()> {
             try {
                 auto c = std::make_shared<estimator::Characterization>(estimator::characterize({rec}));
@@ -179,36 +232,22 @@ void Sequencer::stop(const std::string& reason, double t) {
 
 void Sequencer::pause(double t) {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != RunState::Running) throw InputError(std::string("cannot pause a run that is ") + to_string(state_));
+    if (!next_state(state_, RunTrigger::pause))
+        throw InputError(std::string("cannot pause a run that is ") + to_string(state_));
     cycler_.pause();
-    state_ = RunState::Paused;
+    fire_locked(RunTrigger::pause);
     sink_.on_event(t, "info", "operator", "pause");
     sink_.on_state(state_, "paused by the operator");
 }
 
 void Sequencer::resume(double t) {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != RunState::Paused) throw InputError(std::string("cannot resume a run that is ") + to_string(state_));
+    if (!next_state(state_, RunTrigger::resume))
+        throw InputError(std::string("cannot resume a run that is ") + to_string(state_));
     cycler_.resume();
-    state_ = RunState::Running;
+    fire_locked(RunTrigger::resume);
     sink_.on_event(t, "info", "operator", "resume");
     sink_.on_state(state_, "resumed by the operator");
-}
-
-bool Sequencer::violates_cycler_limits_locked(const CyclerSample& s) {
-    const auto& lim = opt_.limits;
-    if (s.voltage_v < lim.min_voltage_v || s.voltage_v > lim.max_voltage_v) {
-        abort_locked("voltage " + fmt("%.3f V", s.voltage_v) + " outside the safety window " +
-                         fmt("%.2f", lim.min_voltage_v) + fmt("-%.2f V", lim.max_voltage_v),
-                     s.t_mono_s);
-        return true;
-    }
-    if (std::abs(s.current_a) > lim.max_current_a) {
-        abort_locked("current " + fmt("%.2f A", s.current_a) + " over the limit " + fmt("%.1f A", lim.max_current_a),
-                     s.t_mono_s);
-        return true;
-    }
-    return false;
 }
 
 void Sequencer::record_locked(const CyclerSample& s) {
@@ -218,6 +257,7 @@ void Sequencer::record_locked(const CyclerSample& s) {
     if (rec_.time_s.empty() || t_rel > rec_.time_s.back()) {
         rec_soc_.push_back(soc_locked());
         rec_.time_s.push_back(t_rel);
+        elapsed_s_ = t_rel;
         rec_.voltage_v.push_back(s.voltage_v);
         rec_.current_a.push_back(s.current_a);
         rec_.step_count.push_back(1000.0 * static_cast<double>(segment_) + s.step_id);
@@ -250,7 +290,8 @@ void Sequencer::record_locked(const CyclerSample& s) {
 void Sequencer::on_cycler_record(const CyclerSample& s) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!active(state_)) return;
-    if (violates_cycler_limits_locked(s)) return;
+    if (check_rules_locked([&](SafetyRule& r, const SafetyContext& c) { return r.on_cycler(s, true, c); }, s.t_mono_s))
+        return;
     record_locked(s);
 }
 
@@ -259,11 +300,8 @@ void Sequencer::on_cycler(const CyclerSample& s) {
     last_cycler_ = s;
     last_cycler_s_ = s.t_mono_s;
     if (!active(state_)) return;
-    if (violates_cycler_limits_locked(s)) return;
-    if (s.status == "protect") {
-        abort_locked("the cycler went to protect", s.t_mono_s);
+    if (check_rules_locked([&](SafetyRule& r, const SafetyContext& c) { return r.on_cycler(s, false, c); }, s.t_mono_s))
         return;
-    }
     if (!s.covered_by_records) record_locked(s);
     if (program_.segments[std::min(segment_, program_.segments.size() - 1)].kind != Segment::Kind::Cycler) return;
     if (s.status == "working") cycler_seen_working_ = true;
@@ -376,14 +414,7 @@ void Sequencer::on_daq(const DaqSample& s) {
     last_daq_ = s;
     last_daq_s_ = s.t_mono_s;
     if (!active(state_)) return;
-    for (double temp : {s.surface_c, s.t1_c, s.t2_c}) {
-        if (std::isfinite(temp) && temp > opt_.limits.max_temperature_c) {
-            abort_locked("cell temperature " + fmt("%.2f degC", temp) + " over the maximum " +
-                             fmt("%.1f degC", opt_.limits.max_temperature_c),
-                         s.t_mono_s);
-            return;
-        }
-    }
+    if (check_rules_locked([&](SafetyRule& r, const SafetyContext& c) { return r.on_daq(s, c); }, s.t_mono_s)) return;
     // Thermal equilibrium: cell surface and chamber air both at the target within tolerance, for the hold time.
     if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
         state_ == RunState::Running && last_chamber_ && std::isfinite(chamber_target_c_)) {
@@ -413,17 +444,7 @@ void Sequencer::on_chamber(const ChamberSample& s) {
     last_chamber_ = s;
     last_chamber_s_ = s.t_mono_s;
     if (!active(state_)) return;
-    if (s.alarm_bits != 0) {
-        abort_locked("chamber alarm (bits " + std::to_string(s.alarm_bits) + ")", s.t_mono_s);
-        return;
-    }
-    if (!std::isfinite(chamber_target_c_)) return;
-    const double dev = std::abs(s.air_c - chamber_target_c_);
-    if (!chamber_settled_ && dev < 0.5) chamber_settled_ = true;
-    if (chamber_settled_ && dev > opt_.limits.chamber_deviation_c)
-        abort_locked("chamber air " + fmt("%.2f degC", s.air_c) + " off its set point " +
-                         fmt("%.1f degC", chamber_target_c_) + " by more than " + fmt("%.1f K", opt_.limits.chamber_deviation_c),
-                     s.t_mono_s);
+    check_rules_locked([&](SafetyRule& r, const SafetyContext& c) { return r.on_chamber(s, c); }, s.t_mono_s);
 }
 
 void Sequencer::on_fault(const std::string& instrument, const std::string& message, bool safety_data_lost, double t) {
@@ -440,18 +461,7 @@ void Sequencer::abort(const std::string& reason, double t) {
 void Sequencer::tick(double t) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!active(state_)) return;
-    const auto& lim = opt_.limits;
-    auto grace_of = [&](double g) { return g > 0 ? g : lim.instrument_loss_grace_s; };
-    const double since_start = t - run_start_s_;
-    auto silent = [&](double last, double grace) {
-        return (last < 0 && since_start > grace) || (last >= 0 && t - last > grace);
-    };
-    if (const double g = grace_of(lim.cycler_loss_grace_s); silent(last_cycler_s_, g))
-        return abort_locked("no cell voltage: cycler silent for more than " + fmt("%.0f s", g), t);
-    if (const double g = grace_of(lim.daq_loss_grace_s); silent(last_daq_s_, g))
-        return abort_locked("no cell temperature for more than " + fmt("%.0f s", g), t);
-    if (const double g = grace_of(lim.chamber_loss_grace_s); silent(last_chamber_s_, g))
-        return abort_locked("chamber silent for more than " + fmt("%.0f s", g), t);
+    if (check_rules_locked([&](SafetyRule& r, const SafetyContext& c) { return r.on_tick(t, c); }, t)) return;
     if (segment_ < program_.segments.size() && program_.segments[segment_].kind == Segment::Kind::WaitEquilibrium &&
         state_ == RunState::Running && t - segment_start_s_ > program_.segments[segment_].timeout_s) {
         const auto& seg = program_.segments[segment_];
@@ -494,9 +504,9 @@ nlohmann::json Sequencer::status() const {
     if (last_chamber_)
         j["chamber"] = {{"air_c", last_chamber_->air_c}, {"setpoint_c", last_chamber_->setpoint_c},
                         {"running", last_chamber_->running}, {"alarm_bits", last_chamber_->alarm_bits}};
-    if (!rec_.empty()) {
+    if (std::isfinite(elapsed_s_)) {
         j["soc_estimate"] = soc_locked();
-        j["elapsed_s"] = rec_.time_s.back();
+        j["elapsed_s"] = elapsed_s_;
     }
     j["pulse_sets_fitted"] = fitted_pulse_sets_;
     return j;

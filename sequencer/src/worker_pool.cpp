@@ -33,6 +33,11 @@ void OrderedWorkerPool::wait_idle() {
     idle_cv_.wait(lock, [&] { return next_delivery_ == next_serial_; });
 }
 
+bool OrderedWorkerPool::idle() {
+    std::lock_guard lock(mutex_);
+    return next_delivery_ == next_serial_;  // counted after each delivery has returned
+}
+
 // Delivers, in serial order, every computed job whose turn has come; one thread delivers at a time (outside
 // the lock: a delivery may take the sink's locks or submit more jobs).
 void OrderedWorkerPool::deliver_ready_locked(std::unique_lock<std::mutex>& lock) {

@@ -279,6 +279,87 @@ TEST(Sequencer, OperatorPauseResumeAndStop) {
     EXPECT_EQ(cyc.stops, 1);
 }
 
+// The state table: an ended run takes no operator command but a new start; pause and resume only where they
+// mean something; no trigger leads back to Idle; every end state is reachable from Running.
+TEST(RunStates, TheTableRefusesWhatAnOperatorCannotMean) {
+    const RunState all[] = {RunState::Idle,      RunState::Running, RunState::Paused,
+                            RunState::Completed, RunState::Aborted, RunState::Stopped};
+    const RunTrigger triggers[] = {RunTrigger::start,       RunTrigger::pause,         RunTrigger::resume,
+                                   RunTrigger::program_end, RunTrigger::operator_stop, RunTrigger::abort};
+    for (RunState s : all) {
+        for (RunTrigger t : triggers) {
+            const auto next = next_state(s, t);
+            if (is_terminal(s) || s == RunState::Idle)
+                EXPECT_EQ(next.has_value(), t == RunTrigger::start) << to_string(s) << " + " << to_string(t);
+            if (next) EXPECT_NE(*next, RunState::Idle);
+        }
+    }
+    EXPECT_EQ(next_state(RunState::Running, RunTrigger::program_end), RunState::Completed);
+    EXPECT_EQ(next_state(RunState::Paused, RunTrigger::abort), RunState::Aborted);
+    EXPECT_EQ(next_state(RunState::Paused, RunTrigger::operator_stop), RunState::Stopped);
+    EXPECT_FALSE(next_state(RunState::Paused, RunTrigger::program_end));  // a paused program cannot finish
+    EXPECT_FALSE(next_state(RunState::Running, RunTrigger::resume));
+    EXPECT_FALSE(next_state(RunState::Running, RunTrigger::start));
+}
+
+TEST(Sequencer, AnEndedRunRefusesPauseAndResumeAndCanBeFollowedByANewOne) {
+    ModelCell cell(cell_params());
+    FakeCycler cyc;
+    FakeChamber ch;
+    Recorder rec;
+    SequencerOptions opt;
+    opt.fit_online = opt.fit_at_end = false;
+    Sequencer seq(cyc, ch, rec, opt);
+    seq.start({"hppc_short", {{Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}}, 0.0);
+    seq.stop("operator", 1.0);
+    EXPECT_THROW(seq.pause(2.0), InputError);
+    EXPECT_THROW(seq.resume(2.0), InputError);
+    seq.stop("again", 2.0);  // no second end
+    seq.abort("late fault", 2.0);
+    EXPECT_EQ(seq.state(), RunState::Stopped);
+    EXPECT_EQ(std::count_if(rec.states.begin(), rec.states.end(),
+                            [](const auto& st) { return is_terminal(st.first); }),
+              1);
+    seq.start({"again", {{Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}}, 3.0);
+    EXPECT_EQ(seq.state(), RunState::Running);
+}
+
+// A bench's own rule (here: the surface heating faster than 0.5 K per second) is evaluated like the standard
+// ones: the run aborts with its reason, the current stops and the chamber goes to its safe set point.
+TEST(Sequencer, ABenchsOwnSafetyRuleAbortsTheRunLikeTheStandardOnes) {
+    struct HeatingRate final : SafetyRule {
+        double last_t = -1, last_c = 0;
+        const char* name() const override { return "heating_rate"; }
+        void reset() override { last_t = -1; }
+        AbortReason on_daq(const DaqSample& s, const SafetyContext&) override {
+            AbortReason why;
+            if (last_t >= 0 && s.t_mono_s > last_t && (s.surface_c - last_c) / (s.t_mono_s - last_t) > 0.5)
+                why = "surface heating faster than 0.5 K/s";
+            last_t = s.t_mono_s;
+            last_c = s.surface_c;
+            return why;
+        }
+    };
+    ModelCell cell(cell_params());
+    FakeCycler cyc;
+    FakeChamber ch;
+    Recorder rec;
+    SequencerOptions opt;
+    opt.fit_online = opt.fit_at_end = false;
+    opt.limits.chamber_safe_setpoint_c = 22.0;
+    opt.extra_rules.push_back(std::make_shared<HeatingRate>());
+    Sequencer seq(cyc, ch, rec, opt);
+    seq.start({"hppc_short", {{Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}}, 0.0);
+    run_bench(seq, cyc, cell, ch, 600.0, [&](double t) {
+        if (t > 300 && t < 300.15) cell.state.temperature_c += 3.0;  // a 3 K jump within a second: well below 60 degC
+    });
+    EXPECT_EQ(seq.state(), RunState::Aborted);
+    ASSERT_FALSE(rec.states.empty());
+    EXPECT_NE(rec.states.back().second.find("faster than 0.5 K/s"), std::string::npos) << rec.states.back().second;
+    EXPECT_GE(cyc.stops, 1);
+    EXPECT_DOUBLE_EQ(ch.setpoint_c, 22.0);
+}
+
 namespace {
 
 // A program: chamber to 30 degC, wait for equilibrium, then a 10 s rest on the tester.

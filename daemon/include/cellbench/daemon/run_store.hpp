@@ -288,6 +288,9 @@ public:
 
     // Waits until everything queued before the call is committed (or failed). False on timeout.
     bool flush(std::chrono::milliseconds timeout = std::chrono::seconds(30));
+    // Between runs: the connections give back their page caches (the idle readers' now, the writer's once it
+    // has committed what is queued). Never blocks on the writer; the caches refill as they are used.
+    void release_memory();
 
     [[nodiscard]] StoreStats stats() const;
 

@@ -11,10 +11,12 @@
 // full CC-CV charge (a CV step that ended below full_charge_current_a) at 1.0. soc() is the live value, every
 // recorded row carries it, and each pulse-set fit gets the SOC of its rested start.
 //
-// Safety (checked on every reading, and on tick for silence): any temperature over the cell's maximum,
-// voltage outside the window, current over the limit, chamber air off its set point once settled, or an
-// instrument silent beyond its grace period -> the current is stopped, the chamber goes to its safe set
-// point, the reason is recorded and the run ends `aborted`. A run never continues blind.
+// States: run_states.hpp (the transition table; every change of state goes through it).
+// Safety: rule objects (safety_rules.hpp), evaluated on every reading and on tick (silence): any temperature
+// over the cell's maximum, voltage outside the window, current over the limit, chamber air off its set point
+// once settled, an instrument silent beyond its grace period, or a bench's own rule -> the current is stopped,
+// the chamber goes to its safe set point, the reason is recorded and the run ends `aborted`. A run never
+// continues blind.
 #include <functional>
 #include <future>
 #include <map>
@@ -33,6 +35,8 @@
 #include "cellbench/estimator/pulse_fit.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
 #include "cellbench/sequencer/instruments.hpp"
+#include "cellbench/sequencer/run_states.hpp"
+#include "cellbench/sequencer/safety_rules.hpp"
 #include "cellbench/sequencer/worker_pool.hpp"
 
 namespace cellbench::sequencer {
@@ -53,20 +57,6 @@ struct Program {
     std::vector<Segment> segments;
 };
 
-struct SafetyLimits {
-    double max_temperature_c = 60.0;
-    double min_voltage_v = 2.8, max_voltage_v = 4.2;  // the window, with a margin beyond the program's cut-offs
-    double max_current_a = 60.0;
-    double chamber_deviation_c = 5.0;
-    double instrument_loss_grace_s = 10.0;
-    // Per instrument (bench s without a reading before the run aborts); <= 0: instrument_loss_grace_s.
-    double cycler_loss_grace_s = 0.0, daq_loss_grace_s = 0.0, chamber_loss_grace_s = 0.0;
-    double chamber_safe_setpoint_c = 25.0;
-};
-
-enum class RunState { Idle, Running, Paused, Completed, Aborted, Stopped };
-const char* to_string(RunState s);
-
 // Where the sequencer reports (the daemon stores it; tests record it). Called with the sequencer's lock
 // held (except on_pulse_fit / on_parameter_set, called from fit workers): keep them short, never call back.
 class RunSink {
@@ -85,7 +75,8 @@ public:
 };
 
 struct SequencerOptions {
-    SafetyLimits limits;
+    SafetyLimits limits;      // the standard rules (default_safety_rules)
+    SafetyRules extra_rules;  // a bench's own rules, evaluated after the standard ones
     double capacity_ah = 4.5;  // SOC = anchor + tester charge since the anchor / capacity_ah
     double area_m2 = 5.311e-3;
     bool fit_online = true;
@@ -94,6 +85,9 @@ struct SequencerOptions {
     std::function<double(double ocv_v)> soc_from_ocv;
     double full_charge_current_a = 0.1;  // a CV charge step ending at or below this current leaves SOC 1
     std::size_t fit_threads = 2;         // worker threads of the fits (bounded; results delivered in order)
+    // The run's recording stays readable (recording()) after the run ends; false: it is handed to the end fit
+    // and released when the run ends (a daemon that stores every row keeps no second copy between runs).
+    bool keep_recording_after_end = true;
 };
 
 class Sequencer {
@@ -129,9 +123,15 @@ public:
     [[nodiscard]] nlohmann::json status() const;  // segment, step, SOC, live values
     [[nodiscard]] Recording recording() const;    // the run so far (cycler time base, thermal values attached)
     void wait_for_fits();                         // every fit started so far computed and delivered
+    [[nodiscard]] bool fits_idle() const;         // no fit waiting, computing or undelivered (never blocks)
 
 private:
-    bool violates_cycler_limits_locked(const CyclerSample& s);  // aborts and says true when a limit is crossed
+    // Every safety rule in turn; the first reason aborts the run. True when it aborted.
+    template <class Check>
+    bool check_rules_locked(Check check, double t);
+    [[nodiscard]] SafetyContext safety_context_locked() const;
+    // The one place the state changes: the table's next state for this trigger, or false (refused).
+    bool fire_locked(RunTrigger trigger);
     void record_locked(const CyclerSample& s);
     void abort_locked(const std::string& reason, double t);
     void finish_locked(RunState end_state, const std::string& reason, double t);
@@ -162,8 +162,9 @@ private:
     std::optional<DaqSample> last_daq_;
     std::optional<ChamberSample> last_chamber_;
     double chamber_target_c_ = kNaN;
-    bool chamber_settled_ = false;
+    SafetyRules rules_;  // default_safety_rules(limits) + extra_rules
     Recording rec_;
+    double elapsed_s_ = kNaN;  // time of the recording's last row (kept when the recording is released)
     double full_charge_row_ = 0;  // row where SOC = 1 (end of the last CCCV charge before the pulses)
     std::size_t fitted_pulse_sets_ = 0;
     std::map<int, double> step_capacity_ah_;  // |capacity| of each step's latest execution (capacity limits)

@@ -27,6 +27,7 @@ public:
 
     void submit(Job job);
     void wait_idle();  // every job submitted so far computed and delivered
+    [[nodiscard]] bool idle();  // nothing queued, computing or undelivered (never blocks on a job)
     [[nodiscard]] std::size_t threads() const { return workers_.size(); }
 
 private:

@@ -32,11 +32,27 @@ json BenchDaemon::list_runs() {
 
 json BenchDaemon::get_run(RunId id) { return impl_->run_json(id); }
 
+namespace {
+json samples_answer(RunStore& store, RunId id, std::optional<double> from_s, std::optional<double> to_s,
+                    std::size_t max_points);
+}  // namespace
+
 json BenchDaemon::samples(RunId id, const SampleQuery& q) {
-    if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));
     if (q.from_s && q.to_s && *q.from_s > *q.to_s) throw BadRequest("from must not be after to");
     const std::size_t max_points = std::clamp<std::size_t>(q.max_points, 2, kMaxSamplePoints);
-    const auto w = impl_->store->samples(id, q.from_s, q.to_s, max_points);
+    const SampleAnswerCache::Key key{id, q.from_s, q.to_s, max_points};
+    const std::uint64_t version = impl_->store->commit_count();  // before the reads
+    if (auto hit = impl_->sample_answers.find(key, version)) return *hit;
+    auto answer = std::make_shared<const json>(samples_answer(*impl_->store, id, q.from_s, q.to_s, max_points));
+    impl_->sample_answers.put(key, version, answer);
+    return *answer;
+}
+
+namespace {
+json samples_answer(RunStore& store, RunId id, std::optional<double> from_s, std::optional<double> to_s,
+                    std::size_t max_points) {
+    if (!store.get_run(id)) throw NotFound("no run " + std::to_string(id));
+    const auto w = store.samples(id, from_s, to_s, max_points);
     // The API's shape: one time base (the cycler's, or the bucket grid) with every series on it; DAQ and
     // chamber values are the latest at or before each point (raw), or the bucket's min/max (decimated).
     json j = {{"run_id", id}, {"from_s", nullable(w.from_s)}, {"to_s", nullable(w.to_s)},
@@ -103,6 +119,7 @@ json BenchDaemon::samples(RunId id, const SampleQuery& q) {
     j["series"] = std::move(series);
     return j;
 }
+}  // namespace
 
 json BenchDaemon::events(RunId id) {
     if (!impl_->store->get_run(id)) throw NotFound("no run " + std::to_string(id));

@@ -55,6 +55,41 @@
 
 namespace cellbench::daemon {
 
+// Answers of GET /runs/{id}/samples for the last few distinct queries, each valid while the store has committed
+// nothing since it was computed (RunStore::commit_count read before the query): then a fresh read would give
+// the same answer, so fifty dashboards polling one run read the database once per commit, not fifty times.
+class SampleAnswerCache {
+public:
+    struct Key {
+        RunId run = 0;
+        std::optional<double> from_s, to_s;
+        std::size_t max_points = 0;
+        bool operator==(const Key&) const = default;
+    };
+    std::shared_ptr<const nlohmann::json> find(const Key& k, std::uint64_t version) {
+        std::lock_guard lock(m_);
+        for (const auto& e : entries_)
+            if (e.version == version && e.key == k) return e.answer;
+        return nullptr;
+    }
+    void put(const Key& k, std::uint64_t version, std::shared_ptr<const nlohmann::json> answer) {
+        std::lock_guard lock(m_);
+        std::erase_if(entries_, [&](const Entry& e) { return e.key == k || e.version != version; });
+        entries_.push_front({k, version, std::move(answer)});
+        if (entries_.size() > kEntries) entries_.pop_back();
+    }
+
+private:
+    static constexpr std::size_t kEntries = 4;  // a few dashboards' zoom levels; each answer is <= ~1 MB
+    struct Entry {
+        Key key;
+        std::uint64_t version;
+        std::shared_ptr<const nlohmann::json> answer;
+    };
+    std::mutex m_;
+    std::deque<Entry> entries_;
+};
+
 struct BenchDaemon::Impl {
     BenchConfig cfg;
     BenchDaemonOptions opt;
@@ -98,6 +133,7 @@ struct BenchDaemon::Impl {
     void feed_loop();
 
     std::unique_ptr<RunStore> store;
+    SampleAnswerCache sample_answers;
     std::filesystem::path db_path;
 
     // Simulated instruments.

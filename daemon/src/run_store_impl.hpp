@@ -3,6 +3,7 @@
 // reader pool. The writer side is defined in run_store_writer.cpp, the reads in run_store_queries.cpp and
 // run_store_export.cpp. See run_store.hpp for the threading, durability and failure model.
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <cstddef>
@@ -108,6 +109,7 @@ struct RunStore::Impl {
     // Queue (guarded by mu).
     mutable std::mutex mu;
     std::condition_variable cv;
+    std::atomic<std::uint64_t> commits{0};  // transactions committed by the writer (RunStore::commit_count)
     Batch pending;
     std::size_t queued_samples = 0;  // pending + being written
     std::chrono::steady_clock::time_point first_pending{};

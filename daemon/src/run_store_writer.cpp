@@ -214,6 +214,7 @@ bool RunStore::Impl::retry_unsaved() {
         ws->begin.run();
         for (auto& op : unsaved) run_control(op);
         ws->commit.run();
+        commits.fetch_add(1, std::memory_order_release);
     } catch (const std::exception&) {
         rollback_if_open();
         return false;  // reported when it first failed
@@ -453,6 +454,7 @@ void RunStore::Impl::write_batch(Batch& b) {
         write_samples(b);
         for (auto& op : b.control) run_control(op);
         ws->commit.run();
+        commits.fetch_add(1, std::memory_order_release);
         controls_done = true;
     } catch (const SqlError& e) {
         rollback_if_open();
@@ -467,6 +469,7 @@ void RunStore::Impl::write_batch(Batch& b) {
             ws->begin.run();
             for (auto& op : b.control) run_control(op);
             ws->commit.run();
+            commits.fetch_add(1, std::memory_order_release);
             controls_done = true;
         } catch (const std::exception& e) {
             rollback_if_open();
@@ -754,6 +757,8 @@ void RunStore::release_memory() {
     std::lock_guard lk(impl_->pool_mu);
     for (sqlite3* db : impl_->idle) sqlite3_db_release_memory(db);
 }
+
+std::uint64_t RunStore::commit_count() const { return impl_->commits.load(std::memory_order_acquire); }
 
 StoreStats RunStore::stats() const {
     std::lock_guard lk(impl_->mu);

@@ -293,6 +293,9 @@ public:
     void release_memory();
 
     [[nodiscard]] StoreStats stats() const;
+    // Transactions the writer has committed so far. Unchanged between two reads = nothing new is visible to a
+    // reader in between, so an answer computed after the first read is still exact (the API's read cache).
+    [[nodiscard]] std::uint64_t commit_count() const;
 
     // -- reads (thread-safe; never block the writer) ------------------------------------------------------
     [[nodiscard]] std::vector<RunInfo> list_runs(std::size_t limit = 1000) const;  // newest first

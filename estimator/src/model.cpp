@@ -93,6 +93,9 @@ CellOutputs CellModel::step(CellState& s, double current_a, double ambient_c, do
     if (ext.entropic_heat) ehc += ext.entropic_heat->ehc_v_per_k + ext.entropic_heat->ehc_slope_v_per_k * (s.soc - 0.5);
     const double i = current_a;
     const double ohmic_v = ohmic_drop_v(pd, pc, i);
+    // A series resistance outside the cell (harness, contacts) drops voltage at the terminals but dissipates its
+    // heat outside the cell: only the cell's own ohmic drop heats it.
+    const double cell_ohmic_v = ohmic_v - dr0 * i;
     const double capacity = capacity_ah();
 
     CellOutputs out;
@@ -123,7 +126,7 @@ CellOutputs CellModel::step(CellState& s, double current_a, double ambient_c, do
         double transient_heat_j = 0;
         for (int j = 0; j < 5; ++j)
             if (d[j] != 0.0) transient_heat_j += i * d[j] * integral_of_decay(rate[j], dt_s);
-        const double steady_heat_w = i * (ohmic_v + vss_sum + h_mean);
+        const double steady_heat_w = i * (cell_ohmic_v + vss_sum + h_mean);
         out.heat_irreversible_w = steady_heat_w + transient_heat_j / dt_s;
         const double t0 = s.temperature_c, tc0 = t_inner;
 
@@ -159,7 +162,7 @@ CellOutputs CellModel::step(CellState& s, double current_a, double ambient_c, do
         s.soc += i * dt_s / (3600.0 * capacity);
         s.elapsed_s += dt_s;
     } else {
-        out.heat_irreversible_w = i * (ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v);
+        out.heat_irreversible_w = i * (cell_ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v);
         out.heat_reversible_w = i * ehc * (t_inner + kZeroCelsiusK);
     }
     out.ocv_v = params_.ocv_at(s.soc);
@@ -318,6 +321,8 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
 
     const double i = current_a;
     const double ohmic_v = ohmic_drop_v(pd_, pc_, i);
+    const double dr0 = ext.series_resistance_offset ? ext.series_resistance_offset->r_ohm : 0.0;
+    const double cell_ohmic_v = ohmic_v - dr0 * i;  // the harness' heat stays outside the cell (as in CellModel)
     const double capacity = model_.capacity_ah();
     CellOutputs out;
     out.ambient_c = ambient_c;
@@ -354,7 +359,7 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
     if (flowing)
         for (int j = 0; j < 5; ++j)
             if (d[j] != 0.0) transient_heat_j += i * d[j] * iod(rate_[j], tau_[j], m[j]);
-    const double steady_heat_w = i * (ohmic_v + vss_sum + h_mean);
+    const double steady_heat_w = i * (cell_ohmic_v + vss_sum + h_mean);
     out.heat_irreversible_w = steady_heat_w + transient_heat_j / dt_s;
     const double t0 = s.temperature_c, tc0 = t_inner;
     const double ehc = ehc_;

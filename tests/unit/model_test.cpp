@@ -92,6 +92,34 @@ TEST(CellModel, ThermalSteadyStateBalancesJouleHeat) {
     EXPECT_NEAR(out.heat_irreversible_w, q, 1e-9);
 }
 
+TEST(CellModel, AHarnessResistanceDropsTerminalVoltageButDoesNotHeatTheCell) {
+    // A series resistance outside the cell (harness, contacts) is in the voltage the tester measures, but its
+    // Joule heat is dissipated in the cables: the cell's temperature and heat must be those without it. Both the
+    // reference step and the fast stepper.
+    auto harness = flat_params();
+    harness.extensions.series_resistance_offset = SeriesResistanceOffsetExt{3e-3};
+    const CellModel plain(flat_params()), with(harness);
+    CellStepper fast(with);
+    CellState a, b, c;
+    for (auto* s : {&a, &b, &c}) {
+        s->soc = 0.5;
+        s->temperature_c = 25.0;
+    }
+    const double i = -9.0;
+    CellOutputs oa, ob, oc;
+    for (int k = 0; k < 200; ++k) {
+        oa = plain.step(a, i, 25.0, 60.0);
+        ob = with.step(b, i, 25.0, 60.0);
+        oc = fast.step(c, i, 25.0, 60.0);
+    }
+    EXPECT_NEAR(ob.voltage_v, oa.voltage_v + 3e-3 * i, 1e-9);  // 27 mV lower at 9 A
+    EXPECT_NEAR(oc.voltage_v, ob.voltage_v, 1e-9);
+    EXPECT_NEAR(b.temperature_c, a.temperature_c, 1e-9);
+    EXPECT_NEAR(c.temperature_c, a.temperature_c, 1e-9);
+    EXPECT_NEAR(ob.heat_irreversible_w, oa.heat_irreversible_w, 1e-9);
+    EXPECT_NEAR(oc.heat_irreversible_w, oa.heat_irreversible_w, 1e-9);
+}
+
 TEST(CellModel, ReversibleHeatSignFollowsCurrentAndCoefficient) {
     // Positive dU/dT: discharge is endothermic (cools), charge exothermic (thesis sec. 4.1.2).
     const CellModel m(flat_params(3e-4));

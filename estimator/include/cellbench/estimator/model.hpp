@@ -12,7 +12,7 @@
 //  - resistance_temperature: R0, R1, R2 scaled by an Arrhenius factor of the (core) temperature at the start
 //    of each interval (two-way electrothermal coupling); capacitances held, so time constants scale too;
 //  - resistance_current: R1, R2 scaled by asinh(x)/x, x = |I|/(2 I0), relative to the reference current;
-//  - series_resistance_offset: added to R0; extra_rc: a third pair driven by the whole current;
+//  - series_resistance_offset: added to R0 at the terminals (its heat is dissipated outside the cell); extra_rc: a third pair driven by the whole current;
 //  - ocv_hysteresis: V += h, h relaxing towards sign(I)*M exponentially in charge throughput (exact);
 //  - capacity_error: Coulomb counting with the scaled capacity; entropic_heat: dU/dT added to the table;
 //  - ambient_drift: T_amb + offset + rate*t; heat_flux_sensor_gain: the sensor reading is gain * true;

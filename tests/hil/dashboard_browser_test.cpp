@@ -472,6 +472,18 @@ TEST(ReportBrowser, DiagnoseReportRendersAndPrintsToPdf) {
                                 "h: document.documentElement.scrollHeight, cards: document.querySelectorAll('.card').length};");
     EXPECT_LE(size["w"].get<int>(), size["cw"].get<int>()) << "horizontal overflow: " << size.dump();
     EXPECT_GE(size["cards"].get<int>(), 1) << "findings as cards";
+    // Every name, value and unit in a card fits its column on one line per word (a long flag beside a value once
+    // squeezed the name column to one letter per line): the cell is at least as wide as its longest word.
+    const json squeezed = wd.script(
+        "const out = []; for (const td of document.querySelectorAll('.card table td')) {"
+        "  const words = td.textContent.split(/\\s+/); const probe = document.createElement('span');"
+        "  probe.style.visibility = 'hidden'; probe.style.whiteSpace = 'nowrap'; td.appendChild(probe); let widest = 0;"
+        "  for (const w of words) { probe.textContent = w; widest = Math.max(widest, probe.getBoundingClientRect().width); }"
+        "  td.removeChild(probe); const cs = getComputedStyle(td);"
+        "  const inner = td.clientWidth - parseFloat(cs.paddingLeft) - parseFloat(cs.paddingRight);"
+        "  if (inner + 1 < widest) out.push(td.textContent + ': ' + inner.toFixed(0) + ' px < ' + widest.toFixed(0)); }"
+        "return out;");
+    EXPECT_TRUE(squeezed.empty()) << "cells squeezed in the findings' tables: " << squeezed.dump();
     wd.resize(1100, std::min(6000, size["h"].get<int>() + 120));
     std::this_thread::sleep_for(500ms);
     wd.screenshot(shots / "report.png");

@@ -199,6 +199,8 @@ th{font-weight:600;color:#44505c;font-size:12.5px}td.num,th.num{text-align:right
 .badge.sig{background:#dcf3e6;color:#0b6b3a;font-weight:600}.badge.no{background:#eef1f4;color:#6b7580}
 .badge.wrong{background:#fdeedd;color:#8a4b00}
 .card p{margin:6px 0;overflow-wrap:anywhere}.card table td,.card table th{padding:2px 4px;font-size:12.5px}
+.card table td:first-child,.card table th:first-child{overflow-wrap:normal;word-break:normal}.card table td:last-child,.card table th:last-child{white-space:nowrap}
+.flag{display:block;white-space:normal;text-align:left;color:#a3261b;font-size:11.5px;font-weight:600}
 .evidence{font-size:12.5px;color:#44505c}
 .muted{color:#8a939c}.bar{fill:#c2463a}
 figure.chart{margin:8px 0 14px;break-inside:avoid;page-break-inside:avoid}
@@ -327,11 +329,14 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
                 std::string shown = round_sig(value.get<double>(), 3);
                 if (params.contains(name + "_sd") && params[name + "_sd"].is_number())
                     shown += " ± " + round_sig(params[name + "_sd"].get<double>(), 2);
+                // The flag wraps under the value (the value itself never wraps, so a long flag on one line
+                // squeezed the name column to one letter per line).
+                std::string flags;
                 if (params.contains(name + "_flags") && params[name + "_flags"].is_array())
                     for (const auto& flag : params[name + "_flags"])
-                        if (flag == "at_bound") shown += " (at its search bound: not an estimate)";
-                o << "<tr><td>" << html_escape(label) << "</td><td class='num'>" << html_escape(shown) << "</td><td>"
-                  << html_escape(unit) << "</td></tr>";
+                        if (flag == "at_bound") flags += "<span class='flag'>at its search bound: not an estimate</span>";
+                o << "<tr><td>" << html_escape(label) << "</td><td class='num'>" << html_escape(shown) << flags
+                  << "</td><td>" << html_escape(unit) << "</td></tr>";
             }
             o << "</table>";
         }

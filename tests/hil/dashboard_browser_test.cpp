@@ -295,6 +295,12 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
         return wd.script("return document.querySelectorAll('#fits-table tbody tr').length;").get<int>() >= 1 &&
                wd.script("return document.querySelectorAll('.fitcharts canvas').length;").get<int>() == 6;
     }, 15s)) << "run page did not show the fits";
+    // While the run goes on, its page shows progress by expected time (GET /status), not step index / step count.
+    EXPECT_TRUE(eventually([&] {
+        return wd.script("const p = document.getElementById('run-progress'); return p ? p.title : '';")
+                   .get<std::string>().find("of the expected") != std::string::npos ||
+               test::ended_run_state(d.get_run(id)["state"].get<std::string>());
+    }, 15s)) << "the run page's progress bar is not by expected time";
     wd.resize(1440, 2000);
     std::this_thread::sleep_for(1000ms);
     wd.screenshot(shots / "dashboard-run.png");

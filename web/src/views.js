@@ -36,6 +36,12 @@ export function runView(app, id) {
     if (!active) return;
     const [run, ev, fits, st] = await Promise.all([get(`/runs/${id}`), get(`/runs/${id}/events`), get(`/runs/${id}/fits`),
                                                    get(`/runs/${id}/steps`)]);
+    // Progress by expected time (GET /status), as on the live page, while this run is the active one.
+    let progress = null;
+    if (isActive(run)) {
+      const status = await get("/status").catch(() => null);
+      if (status?.run?.id === run.id) progress = status.progress;
+    }
     head.replaceChildren(...[
       h("div.runhead", null, h("h1", null, `Run ${run.id}`), pill(run.state),
         h("span.meta", null, `${run.program} · cell ${run.cell} · created ${dateTime(run.created_unix_s)} · ${run.samples ?? 0} samples`,
@@ -43,7 +49,7 @@ export function runView(app, id) {
         h("span", { style: "margin-left:auto;display:flex;gap:8px" },
           h("a.btn.primary", { href: `${API}/runs/${run.id}/export.bdf.csv`, download: `run-${run.id}.bdf.csv` }, "Export BDF CSV"),
           h("a.btn", { href: `#/diagnosis/${run.id}` }, "Diagnose…"))),
-      isActive(run) ? stepBlock(run) : null,
+      isActive(run) ? stepBlock(run, progress) : null,
       run.error ? h("div.note.warn", { style: "margin:10px 0 0" }, run.error) : null].filter(Boolean));
     // Charts and tables only change while the run records; a finished run is fetched once.
     const s = `${run.samples}|${(ev.events || []).length}|${(fits.fits || []).length}|${(st.steps || []).length}`;

@@ -55,7 +55,7 @@
 
 namespace cellbench::daemon {
 
-// Answers of GET /runs/{id}/samples for the last few distinct queries, each valid while the store has committed
+// Bodies of GET /runs/{id}/samples (serialized answers) for the last few distinct queries, each valid while the store has committed
 // nothing since it was computed (RunStore::commit_count read before the query): then a fresh read would give
 // the same answer, so fifty dashboards polling one run read the database once per commit, not fifty times.
 class SampleAnswerCache {
@@ -66,13 +66,13 @@ public:
         std::size_t max_points = 0;
         bool operator==(const Key&) const = default;
     };
-    std::shared_ptr<const nlohmann::json> find(const Key& k, std::uint64_t version) {
+    std::shared_ptr<const std::string> find(const Key& k, std::uint64_t version) {
         std::lock_guard lock(m_);
         for (const auto& e : entries_)
             if (e.version == version && e.key == k) return e.answer;
         return nullptr;
     }
-    void put(const Key& k, std::uint64_t version, std::shared_ptr<const nlohmann::json> answer) {
+    void put(const Key& k, std::uint64_t version, std::shared_ptr<const std::string> answer) {
         std::lock_guard lock(m_);
         std::erase_if(entries_, [&](const Entry& e) { return e.key == k || e.version != version; });
         entries_.push_front({k, version, std::move(answer)});
@@ -84,7 +84,7 @@ private:
     struct Entry {
         Key key;
         std::uint64_t version;
-        std::shared_ptr<const nlohmann::json> answer;
+        std::shared_ptr<const std::string> answer;
     };
     std::mutex m_;
     std::deque<Entry> entries_;

@@ -1,4 +1,4 @@
-// GET /runs/{id}/samples answers from a cache while the store has committed nothing since the answer was
+// GET /runs/{id}/samples answers (serialized bodies) from a cache while the store has committed nothing since the answer was
 // computed (many dashboards polling one run read the database once per commit). What a user relies on: an
 // answer is never older than what the database holds when it is given, and repeated polls between commits agree.
 #include <gtest/gtest.h>
@@ -36,9 +36,9 @@ TEST(DaemonSamples, AnswersFollowEveryCommitWhileTheRunGoesOn) {
         // Whatever the API answers after a commit is what the database holds at that commit.
         ASSERT_TRUE(d.store().flush());
         const std::uint64_t before = d.store().commit_count();
-        const json answer = d.samples(id, q);
+        const json answer = json::parse(*d.samples_body(id, q));
         const auto fresh = d.store().samples(id, std::nullopt, std::nullopt, 500);
-        const json again = d.samples(id, q);
+        const json again = json::parse(*d.samples_body(id, q));
         if (d.store().commit_count() != before) continue;  // a commit in between: nothing to compare
         ++compared;
         if (!std::isfinite(fresh.to_s)) continue;  // no row yet
@@ -49,6 +49,12 @@ TEST(DaemonSamples, AnswersFollowEveryCommitWhileTheRunGoesOn) {
         EXPECT_GE(answer["to_s"].get<double>(), last_to);  // never goes back
         last_to = answer["to_s"].get<double>();
     }
+    // The body is the API's answer serialized: the same as samples() computed afresh now.
+    ASSERT_TRUE(d.store().flush());
+    const std::uint64_t at = d.store().commit_count();
+    const json body = json::parse(*d.samples_body(id, q));
+    const json direct = d.samples(id, q);
+    if (d.store().commit_count() == at) EXPECT_EQ(body, direct);
     std::printf("%d polls compared without a commit in between, %d identical\n", compared, agreed);
     EXPECT_GT(compared, 0) << "every poll raced a commit: nothing was checked";
     EXPECT_GT(last_to, 0.0) << "the run stored no rows";

@@ -171,6 +171,12 @@ public:
     // {"min": [...], "max": [...]} per bucket (so a plot keeps every peak). Empty buckets are omitted.
     // A series the bench does not measure is absent. NotFound for an unknown id.
     virtual nlohmann::json samples(RunId id, const SampleQuery& query) = 0;
+    // The same answer serialized: the body GET /runs/{id}/samples sends. A backend may keep it while nothing new
+    // is stored (the daemon does); by default it is samples() dumped (invalid UTF-8 replaced).
+    virtual std::shared_ptr<const std::string> samples_body(RunId id, const SampleQuery& query) {
+        return std::make_shared<const std::string>(
+            samples(id, query).dump(-1, ' ', false, nlohmann::json::error_handler_t::replace));
+    }
 
     // GET /api/v1/runs/{id}/events ->
     //   {"run_id": 3, "events": [{"time_unix_s": 1.7e9, "test_time_s": 12.0,

@@ -84,6 +84,7 @@ public:
     nlohmann::json list_runs() override;
     nlohmann::json get_run(RunId id) override;
     nlohmann::json samples(RunId id, const SampleQuery& query) override;
+    std::shared_ptr<const std::string> samples_body(RunId id, const SampleQuery& query) override;
     nlohmann::json events(RunId id) override;
     nlohmann::json fits(RunId id) override;
     nlohmann::json steps(RunId id) override;

@@ -719,16 +719,25 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             for (std::size_t k = 0; k < std::min<std::size_t>(3, combined.size()); ++k) u.where.push_back(combined[k]);
             u.voltage = sparse_residual_model(rec_full, d.improved_trace, current, false);
             if (rec_full.has_surface()) u.temperature = sparse_residual_model(rec_full, d.improved_trace, current, true);
-            std::string q;
-            for (const auto& a : u.above_noise) q += (q.empty() ? "" : ", ") + a;
+            // Each quantity above the noise with its own numbers (the summary once named temperature and heat flux
+            // and then quoted only the voltage's, which was below the bar).
+            std::string q, numbers;
+            auto quote = [&](const std::string& name, const std::optional<double>& r, const std::optional<double>& sg,
+                             double scale, const char* unit, const char* fmt_r, const char* fmt_n) {
+                if (std::find(u.above_noise.begin(), u.above_noise.end(), name) == u.above_noise.end()) return;
+                q += (q.empty() ? "" : ", ") + (name == "heat_flux" ? std::string("heat flux") : name);
+                numbers += (numbers.empty() ? "" : "; ") + (name == "heat_flux" ? std::string("heat flux") : name) + " " +
+                           num(fmt_r, *r * scale) + " " + unit + " RMS against " + num(fmt_n, *sg * scale) + " " + unit +
+                           " noise";
+            };
+            quote("voltage", u.rms.voltage_v, u.noise.voltage_v, 1e3, "mV", "%.2f", "%.2g");
+            quote("temperature", u.rms.temperature_c, u.noise.temperature_c, 1.0, "degC", "%.3f", "%.2g");
+            quote("heat_flux", u.rms.heat_flux_w, u.noise.heat_flux_w, 1.0, "W", "%.4f", "%.2g");
             u.summary = "after the findings the " + q + " error stays above " + num("%.0f", options.noise_factor) +
-                        "x the measurement noise estimated from the recording's rests";
-            if (u.rms.voltage_v && u.noise.voltage_v)
-                u.summary += " (voltage " + num("%.1f", *u.rms.voltage_v * 1e3) + " mV RMS against " +
-                             num("%.2f", *u.noise.voltage_v * 1e3) + " mV noise)";
+                        "x the measurement noise estimated from the recording's rests (" + numbers + ")";
             if (!u.where.empty())
-                u.summary += "; most of it in " + u.where.front().condition + " (" +
-                             pct(u.where.front().share_of_voltage_error) + " of the squared voltage error, bias " +
+                u.summary += "; the voltage error sits most in " + u.where.front().condition + " (" +
+                             pct(u.where.front().share_of_voltage_error) + " of it squared, bias " +
                              num("%+.1f", u.where.front().voltage_bias_v * 1e3) + " mV)";
             if (!u.voltage.terms.empty() && u.voltage.explained >= 0.2) {
                 u.summary += "; a sparse model of the voltage residual explains " + pct(u.voltage.explained) + " with";

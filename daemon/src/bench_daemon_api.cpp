@@ -35,21 +35,25 @@ json BenchDaemon::get_run(RunId id) { return impl_->run_json(id); }
 namespace {
 json samples_answer(RunStore& store, RunId id, std::optional<double> from_s, std::optional<double> to_s,
                     std::size_t max_points);
+
+// The query as the store reads it: a range in order, max_points within the API's bounds.
+std::size_t checked_max_points(const SampleQuery& q) {
+    if (q.from_s && q.to_s && *q.from_s > *q.to_s) throw BadRequest("from must not be after to");
+    return std::clamp<std::size_t>(q.max_points, 2, kMaxSamplePoints);
+}
 }  // namespace
 
 json BenchDaemon::samples(RunId id, const SampleQuery& q) {
-    if (q.from_s && q.to_s && *q.from_s > *q.to_s) throw BadRequest("from must not be after to");
-    return samples_answer(*impl_->store, id, q.from_s, q.to_s, std::clamp<std::size_t>(q.max_points, 2, kMaxSamplePoints));
+    return samples_answer(*impl_->store, id, q.from_s, q.to_s, checked_max_points(q));
 }
 
 std::shared_ptr<const std::string> BenchDaemon::samples_body(RunId id, const SampleQuery& q) {
-    if (q.from_s && q.to_s && *q.from_s > *q.to_s) throw BadRequest("from must not be after to");
-    const std::size_t max_points = std::clamp<std::size_t>(q.max_points, 2, kMaxSamplePoints);
+    const std::size_t max_points = checked_max_points(q);
     const SampleAnswerCache::Key key{id, q.from_s, q.to_s, max_points};
     const std::uint64_t version = impl_->store->commit_count();  // before the reads
     if (auto hit = impl_->sample_answers.find(key, version)) return hit;
-    auto body = std::make_shared<const std::string>(samples_answer(*impl_->store, id, q.from_s, q.to_s, max_points)
-                                                        .dump(-1, ' ', false, json::error_handler_t::replace));
+    auto body = std::make_shared<const std::string>(
+        api_json_text(samples_answer(*impl_->store, id, q.from_s, q.to_s, max_points)));
     impl_->sample_answers.put(key, version, body);
     return body;
 }

@@ -113,13 +113,7 @@ Reply Router::samples(RunId id, std::string_view query) {
         r.res.set(http::field::retry_after, "1");
         return r;
     }
-    return call([&] {
-        Reply r;
-        r.res.result(http::status::ok);
-        r.res.set(http::field::content_type, kJson);
-        r.res.body() = *st_.backend.samples_body(id, sq);
-        return r;
-    });
+    return call([&] { return json_text(http::status::ok, *st_.backend.samples_body(id, sq)); });
 }
 
 Reply Router::export_csv(RunId id) {

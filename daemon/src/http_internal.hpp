@@ -202,11 +202,12 @@ private:
     bool is_post() const { return req_.method() == http::verb::post; }
     std::string method_text() const { return std::string(req_.method_string()); }
 
-    static Reply json(http::status status, const nlohmann::json& body) {
+    static Reply json(http::status status, const nlohmann::json& body) { return json_text(status, dump(body)); }
+    static Reply json_text(http::status status, std::string body) {
         Reply r;
         r.res.result(status);
         r.res.set(http::field::content_type, kJson);
-        r.res.body() = dump(body);
+        r.res.body() = std::move(body);
         return r;
     }
 

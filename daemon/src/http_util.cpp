@@ -7,10 +7,7 @@ namespace cellbench::daemon {
 
 namespace http_detail {
 
-std::string dump(const nlohmann::json& j) {
-    // Backend strings may carry invalid UTF-8 (instrument text); replace rather than fail the response.
-    return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
-}
+std::string dump(const nlohmann::json& j) { return api_json_text(j); }
 
 bool iequals(std::string_view a, std::string_view b) {
     return a.size() == b.size() && std::equal(a.begin(), a.end(), b.begin(), [](char x, char y) {

@@ -725,10 +725,10 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             auto quote = [&](const std::string& name, const std::optional<double>& r, const std::optional<double>& sg,
                              double scale, const char* unit, const char* fmt_r, const char* fmt_n) {
                 if (std::find(u.above_noise.begin(), u.above_noise.end(), name) == u.above_noise.end()) return;
-                q += (q.empty() ? "" : ", ") + (name == "heat_flux" ? std::string("heat flux") : name);
-                numbers += (numbers.empty() ? "" : "; ") + (name == "heat_flux" ? std::string("heat flux") : name) + " " +
-                           num(fmt_r, *r * scale) + " " + unit + " RMS against " + num(fmt_n, *sg * scale) + " " + unit +
-                           " noise";
+                const std::string words = name == "heat_flux" ? "heat flux" : name;
+                q += (q.empty() ? "" : ", ") + words;
+                numbers += (numbers.empty() ? "" : "; ") + words + " " + num(fmt_r, *r * scale) + " " + unit +
+                           " RMS against " + num(fmt_n, *sg * scale) + " " + unit + " noise";
             };
             quote("voltage", u.rms.voltage_v, u.noise.voltage_v, 1e3, "mV", "%.2f", "%.2g");
             quote("temperature", u.rms.temperature_c, u.noise.temperature_c, 1.0, "degC", "%.3f", "%.2g");

@@ -49,6 +49,12 @@
 
 namespace cellbench::daemon {
 
+// The text of an API answer: compact JSON; backend strings may carry invalid UTF-8 (instrument text), which is
+// replaced rather than failing the response.
+inline std::string api_json_text(const nlohmann::json& j) {
+    return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
 // Base of the errors the server maps to a status; what() is the message shown to the client.
 class ApiError : public std::runtime_error {
 public:
@@ -172,10 +178,9 @@ public:
     // A series the bench does not measure is absent. NotFound for an unknown id.
     virtual nlohmann::json samples(RunId id, const SampleQuery& query) = 0;
     // The same answer serialized: the body GET /runs/{id}/samples sends. A backend may keep it while nothing new
-    // is stored (the daemon does); by default it is samples() dumped (invalid UTF-8 replaced).
+    // is stored (the daemon does); by default it is api_json_text(samples()).
     virtual std::shared_ptr<const std::string> samples_body(RunId id, const SampleQuery& query) {
-        return std::make_shared<const std::string>(
-            samples(id, query).dump(-1, ' ', false, nlohmann::json::error_handler_t::replace));
+        return std::make_shared<const std::string>(api_json_text(samples(id, query)));
     }
 
     // GET /api/v1/runs/{id}/events ->

@@ -53,7 +53,9 @@ struct WindowData {
     int knot_lo = 0, knot_hi = 0;  // table indices the window touches
     bool fit_offset = false;
     bool low_rate = false;  // mean |I| of its current below C/5
-    std::size_t residuals = 0;
+    std::size_t residuals = 0;       // one per tick with a measured voltage: (V_model - V) / sigma_v
+    std::size_t step_residuals = 0;  // one per current step between two measured voltages (see simulate_window)
+    double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
 };
 
 // The knot grid and the model options shared by every cost function.
@@ -116,6 +118,8 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
     const T off = offset ? offset[0] : T(0.0);
     const T gain = offset ? exp(offset[1]) : T(1.0);
     const double s_first = w.ticks.empty() ? 0.0 : w.ticks.front().soc_start;
+    T v_prev(0.0);
+    std::size_t rs = w.residuals;  // the step residuals follow the tick residuals
     for (std::size_t k = 0; k < w.ticks.size(); ++k) {
         const Tick& tk = w.ticks[k];
         const double i = tk.current_a;
@@ -164,6 +168,14 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
         if (model_v) model_v[k] = scalar(v);
         if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
+        // The voltage's jump across a current step, over one sample interval: R0 times the step plus the pairs'
+        // movement in that interval. It is measured to the logger's noise, while the tick residuals above also
+        // carry the model's structural error (slow diffusion, heating, hysteresis), which is smooth in time and
+        // large on long discharges. Weighted by its own noise, the jump keeps R0 what the steps say (thesis
+        // eq. 3.2 less the pairs' movement), instead of a compromise R0 that absorbs the slow errors of other windows.
+        if (tk.step && k > 0 && std::isfinite(tk.voltage_v) && std::isfinite(w.ticks[k - 1].voltage_v))
+            residuals[rs++] = ((v - v_prev) - (tk.voltage_v - w.ticks[k - 1].voltage_v)) / w.step_sigma_v;
+        v_prev = v;
     }
 }
 
@@ -223,7 +235,7 @@ struct Builder {
             c->AddParameterBlock(1);
             c->AddParameterBlock(1);
             if (windows[w].fit_offset) c->AddParameterBlock(2);
-            c->SetNumResiduals(static_cast<int>(windows[w].residuals));
+            c->SetNumResiduals(static_cast<int>(windows[w].residuals + windows[w].step_residuals));
             window_costs.emplace_back(c);
         }
     }
@@ -308,16 +320,22 @@ struct Builder {
         return s.final_cost;
     }
 
-    // Sum of squared normalized residuals and count over the windows in `which`.
+    // The tick residuals of window w (normalized by sigma_v; the step residuals left out).
+    std::vector<double> tick_residuals(std::size_t w) {
+        auto blocks = blocks_of(w);
+        std::vector<double> res(windows[w].residuals + windows[w].step_residuals);
+        window_costs[w]->Evaluate(blocks.data(), res.data(), nullptr);
+        res.resize(windows[w].residuals);
+        return res;
+    }
+
+    // Sum of squared normalized tick residuals and count over the windows in `which`.
     std::pair<double, std::size_t> window_sse(const std::vector<std::size_t>& which) {
         double sse = 0;
         std::size_t n = 0;
         for (std::size_t w : which) {
-            auto blocks = blocks_of(w);
-            std::vector<double> res(windows[w].residuals);
-            window_costs[w]->Evaluate(blocks.data(), res.data(), nullptr);
-            for (double r : res) sse += r * r;
-            n += res.size();
+            for (double r : tick_residuals(w)) sse += r * r;
+            n += windows[w].residuals;
         }
         return {sse, n};
     }
@@ -383,6 +401,20 @@ std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_
         k = j;
     }
     return ticks;
+}
+
+// Standard deviation of the voltage's measurement noise, from the second differences of the rows in long rests
+// (the relaxation's slow curve cancels in them): MAD-based, NaN where no rest has enough rows.
+double voltage_noise_in_rests(const Recording& rec, const std::vector<std::pair<std::size_t, std::size_t>>& rests) {
+    std::vector<double> d2;
+    for (const auto& [b, e] : rests)
+        for (std::size_t k = b + 1; k + 1 < std::min(e, rec.size()); ++k) {
+            const double x = rec.voltage_v[k + 1] - 2 * rec.voltage_v[k] + rec.voltage_v[k - 1];
+            if (std::isfinite(x)) d2.push_back(std::abs(x));
+        }
+    if (d2.size() < 20) return kNaN;
+    std::nth_element(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(d2.size() / 2), d2.end());
+    return 1.4826 * d2[d2.size() / 2] / std::sqrt(6.0);
 }
 
 std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& initial, double capacity_ah) {
@@ -519,6 +551,14 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         }
         if (start + 2 < rec.size()) raw.push_back({r, start, rec.size(), rested});
     }
+    // The noise of a voltage difference across one sample interval, per recording, from its long rests.
+    std::vector<double> step_sigma(recordings.size());
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        const double noise = voltage_noise_in_rests(*recordings[r], r < long_rest_ranges.size() ? long_rest_ranges[r]
+                                                                     : std::vector<std::pair<std::size_t, std::size_t>>{});
+        step_sigma[r] = std::sqrt(2.0) * (std::isfinite(noise) ? std::max(noise, options.step_noise_floor_v)
+                                                               : options.step_noise_floor_v);
+    }
     double i_min = 1e300, i_max = 0;
     std::vector<double> pulse_currents;
     double charge_as = 0;
@@ -549,6 +589,10 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         }
         wd.ticks = make_ticks(rec, w.begin, w.end, socs[w.r], t_ref_c);
         for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
+        for (std::size_t k = 1; k < wd.ticks.size(); ++k)
+            wd.step_residuals += wd.ticks[k].step && std::isfinite(wd.ticks[k].voltage_v) &&
+                                 std::isfinite(wd.ticks[k - 1].voltage_v);
+        wd.step_sigma_v = step_sigma[w.r];
         if (wd.residuals < 5) continue;
         GlobalWindow gw;
         gw.recording = w.r;
@@ -699,9 +743,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         out.windows[w].soc_offset = b.offsets[w][0];
         out.windows[w].capacity_scale = std::exp(b.offsets[w][1]);
         sse += s, n_res += m;
-        auto blocks = b.blocks_of(w);
-        std::vector<double> res(b.windows[w].residuals);
-        b.window_costs[w]->Evaluate(blocks.data(), res.data(), nullptr);
+        const auto res = b.tick_residuals(w);
         for (std::size_t i = 1; i < res.size(); ++i) lag += res[i] * res[i - 1], var += res[i] * res[i];
     }
     out.rms_v = std::sqrt(sse / std::max<std::size_t>(n_res, 1)) * b.grid.sigma_v;

@@ -42,6 +42,10 @@ struct GlobalFitOptions {
     double smoothness = kNaN;                // given: no cross-validation
     double ocv_smoothness = 0.05;            // relative weight of the OCV's second-difference penalty
     double voltage_noise_v = 1e-3;           // residual scale (only the relative weights depend on it)
+    // The voltage jump across every current step is a residual of its own, weighted by the noise of a difference
+    // of two samples (estimated per recording from its rests), not below this floor (quantization, a logger's
+    // rounding that shows no noise in the rests).
+    double step_noise_floor_v = 0.1e-3;
     bool temperature_dependence = true;
     bool current_dependence = true;
     double min_temperature_span_k = 5.0;

@@ -16,8 +16,7 @@ namespace cellbench::estimator {
 namespace {
 
 constexpr double kGasConstantJPerMolK = 8.314462618;
-constexpr int kKnotSize = 11;        // 5 log-parameters per direction + OCV
-constexpr int kOcv = 10;
+constexpr int kKnotSize = 10;        // 5 log-parameters per direction (the OCV has its own finer grid)
 constexpr double kEaScale = 1e4;
 constexpr double kOcvCurvatureScaleV = 0.01;
 
@@ -51,6 +50,7 @@ struct Tick {
 struct WindowData {
     std::vector<Tick> ticks;
     int knot_lo = 0, knot_hi = 0;  // table indices the window touches
+    int ocv_lo = 0, ocv_hi = 0;    // OCV-grid indices the window touches
     bool fit_offset = false;
     bool low_rate = false;  // mean |I| of its current below C/5
     std::size_t residuals = 0;       // one per tick with a measured voltage: (V_model - V) / sigma_v
@@ -62,16 +62,20 @@ struct WindowData {
 struct Grid {
     double s0 = 0, ds = 0.05;
     int n = 0;  // knots
+    int m = 1;  // OCV knots per knot interval: the OCV grid is s0 + j ds / m, j in [0, (n - 1) m]
     double t_ref_k = 298.15;
     double i_ref_a = 1.0;
     bool temperature = false, current = false;
     double sigma_v = 1e-3;
     [[nodiscard]] double soc(int j) const { return s0 + ds * j; }
+    [[nodiscard]] int ocv_n() const { return (n - 1) * m + 1; }
+    [[nodiscard]] double ocv_ds() const { return ds / m; }
+    [[nodiscard]] double ocv_soc(int j) const { return s0 + ocv_ds() * j; }
 };
 
 template <typename T>
 struct KnotValues {
-    T r0d, r1d, c1d, r2d, c2d, r0c, r1c, c1c, r2c, c2c, ocv;
+    T r0d, r1d, c1d, r2d, c2d, r0c, r1c, c1c, r2c, c2c;
 };
 
 template <typename T>
@@ -80,7 +84,7 @@ KnotValues<T> knot_values(const T* p) {
     const T t1d = exp(p[2]), t2d = t1d * (1.0 + exp(p[4]));
     const T t1c = exp(p[7]), t2c = t1c * (1.0 + exp(p[9]));
     const T r1d = exp(p[1]), r2d = exp(p[3]), r1c = exp(p[6]), r2c = exp(p[8]);
-    return {exp(p[0]), r1d, t1d / r1d, r2d, t2d / r2d, exp(p[5]), r1c, t1c / r1c, r2c, t2c / r2c, p[kOcv]};
+    return {exp(p[0]), r1d, t1d / r1d, r2d, t2d / r2d, exp(p[5]), r1c, t1c / r1c, r2c, t2c / r2c};
 }
 
 // One exact ZOH step of an RC pair over a span that may itself be a parameter.
@@ -92,9 +96,10 @@ T rc_step(const T& v, const T& r_ohm, const T& tau_s, const T& current_a, const 
 }
 
 // Simulates one window; writes (V_model - V_measured) / sigma for every tick with a measured voltage.
-// knots[j] for j in [knot_lo, knot_hi] (absolute table indices), global = {Ea/1e4, log I0}.
+// knots[j] for j in [knot_lo, knot_hi] (absolute table indices), ocv[j] the OCV knots [ocv_lo, ocv_hi],
+// global = {Ea/1e4, log I0}.
 template <typename T>
-void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv, const T* ea_scaled,
+void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv, T const* const* ocv_knots, const T* ea_scaled,
                      const T* log_i0, const T* step_lag, const T* offset,
                      T* residuals, double* model_v = nullptr) {
     using std::exp;
@@ -160,11 +165,14 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         } else if (tk.dt_s > 0) {
             advance(i, T(tk.dt_s));
         }
-        int jo;
-        T wo;
-        locate(soc1, jo, wo);
-        if (lo == hi) wo = T(0.0);
-        const T ocv = kv[jo - lo].ocv + wo * (kv[std::min(jo + 1, hi) - lo].ocv - kv[jo - lo].ocv);
+        // OCV on its own grid, linear with linear extrapolation past the window's first and last OCV knots.
+        const int olo = w.ocv_lo, ohi = w.ocv_hi;
+        const double ods = g.ocv_ds();
+        const int jo = std::clamp(static_cast<int>(std::floor((scalar(soc1) - g.s0) / ods)), olo, std::max(olo, ohi - 1));
+        T wo = (soc1 - g.ocv_soc(jo)) / ods;
+        if (olo == ohi) wo = T(0.0);
+        const T& oa = *ocv_knots[jo - olo];
+        const T ocv = oa + wo * (*ocv_knots[std::min(jo + 1, ohi) - olo] - oa);
         const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
         if (model_v) model_v[k] = scalar(v);
         if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
@@ -184,25 +192,35 @@ struct WindowCost {
     const WindowData* w;
     template <typename T>
     bool operator()(T const* const* p, T* residuals) const {
-        const int nk = w->knot_hi - w->knot_lo + 1;
+        const int nk = w->knot_hi - w->knot_lo + 1, no = w->ocv_hi - w->ocv_lo + 1;
         std::vector<KnotValues<T>> kv;
         kv.reserve(nk);
         for (int j = 0; j < nk; ++j) kv.push_back(knot_values(p[j]));
-        simulate_window(*grid, *w, kv.data(), p[nk], p[nk + 1], p[nk + 2], w->fit_offset ? p[nk + 3] : nullptr,
+        const int g = nk + no;
+        simulate_window(*grid, *w, kv.data(), p + nk, p[g], p[g + 1], p[g + 2], w->fit_offset ? p[g + 3] : nullptr,
                         residuals);
         return true;
     }
 };
 
-// Second differences of the ten log-parameters (and the OCV) over three neighbouring knots, plus a weak first
-// difference that flattens knots no data reach.
+// Second differences of the ten log-parameters over three neighbouring knots, plus a weak first difference that
+// flattens knots no data reach.
 struct SmoothCost {
-    double weight, ocv_weight;
+    double weight;
     template <typename T>
     bool operator()(const T* a, const T* b, const T* c, T* r) const {
         for (int q = 0; q < 10; ++q) r[q] = weight * (a[q] - 2.0 * b[q] + c[q]);
-        r[10] = ocv_weight * (a[kOcv] - 2.0 * b[kOcv] + c[kOcv]) / kOcvCurvatureScaleV;
-        for (int q = 0; q < 10; ++q) r[11 + q] = 0.1 * weight * (c[q] - a[q]);
+        for (int q = 0; q < 10; ++q) r[10 + q] = 0.1 * weight * (c[q] - a[q]);
+        return true;
+    }
+};
+
+// A weak second difference of the OCV over three neighbouring OCV knots.
+struct OcvSmoothCost {
+    double weight;
+    template <typename T>
+    bool operator()(const T* a, const T* b, const T* c, T* r) const {
+        r[0] = weight * (a[0] - 2.0 * b[0] + c[0]) / kOcvCurvatureScaleV;
         return true;
     }
 };
@@ -211,15 +229,20 @@ struct Builder {
     Grid grid;
     std::vector<WindowData> windows;
     std::vector<std::array<double, kKnotSize>> knots;
+    std::vector<double> ocv;  // on the OCV grid (Grid::ocv_soc)
+    // Per OCV knot between two knots: low-rate data (below C/5) pass it, so it is fitted; elsewhere it stays on the
+    // line between its neighbours (a stretch at 1C would otherwise bend the OCV to absorb the model's slow errors).
+    std::vector<bool> ocv_free;
     double ea = 0.0, log_i0 = 0.0;  // Ea / 1e4 J/mol, log I0 (each its own block, held when not identified)
     double step_lag = 0.0;          // fraction of a step's sample interval the new current flows before its row
     std::vector<std::array<double, 2>> offsets;  // per window (used when fit_offset): SOC offset, log capacity scale
     std::vector<std::unique_ptr<ceres::CostFunction>> window_costs;
-    std::vector<std::unique_ptr<ceres::CostFunction>> smooth_costs;
+    std::vector<std::unique_ptr<ceres::CostFunction>> smooth_costs, ocv_smooth_costs;
 
     std::vector<double*> blocks_of(std::size_t w) {
         std::vector<double*> b;
         for (int j = windows[w].knot_lo; j <= windows[w].knot_hi; ++j) b.push_back(knots[j].data());
+        for (int j = windows[w].ocv_lo; j <= windows[w].ocv_hi; ++j) b.push_back(&ocv[j]);
         b.push_back(&ea);
         b.push_back(&log_i0);
         b.push_back(&step_lag);
@@ -231,6 +254,7 @@ struct Builder {
         for (std::size_t w = 0; w < windows.size(); ++w) {
             auto* c = new ceres::DynamicAutoDiffCostFunction<WindowCost, 12>(new WindowCost{&grid, &windows[w]});
             for (int j = windows[w].knot_lo; j <= windows[w].knot_hi; ++j) c->AddParameterBlock(kKnotSize);
+            for (int j = windows[w].ocv_lo; j <= windows[w].ocv_hi; ++j) c->AddParameterBlock(1);
             c->AddParameterBlock(1);
             c->AddParameterBlock(1);
             c->AddParameterBlock(1);
@@ -242,9 +266,18 @@ struct Builder {
 
     void make_smooth(double weight, double ocv_rel) {
         smooth_costs.clear();
+        ocv_smooth_costs.clear();
         for (int j = 1; j + 1 < grid.n; ++j)
-            smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<SmoothCost, 21, kKnotSize, kKnotSize, kKnotSize>(
-                new SmoothCost{std::sqrt(weight), std::sqrt(weight * ocv_rel)}));
+            smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<SmoothCost, 20, kKnotSize, kKnotSize, kKnotSize>(
+                new SmoothCost{std::sqrt(weight)}));
+        // The same curvature prior per unit SOC as on the knot grid: integral of f''^2 over the spacing ds / m
+        // weighs each squared second difference m^3 times.
+        const double m = grid.m;
+        for (int j = 1; j + 1 < grid.ocv_n(); ++j) {
+            const bool pinned = j % grid.m != 0 && !(j < static_cast<int>(ocv_free.size()) && ocv_free[j]);
+            ocv_smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<OcvSmoothCost, 1, 1, 1, 1>(
+                new OcvSmoothCost{std::sqrt(weight * ocv_rel * m * m * m) * (pinned ? 1e3 : 1.0)}));
+        }
     }
 
     // A problem over the windows in `use` (+ smoothness), parameters in this builder's arrays.
@@ -253,6 +286,11 @@ struct Builder {
         po.cost_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
         auto p = std::make_unique<ceres::Problem>(po);
         for (auto& k : knots) p->AddParameterBlock(k.data(), kKnotSize);
+        for (auto& o : ocv) {
+            p->AddParameterBlock(&o, 1);
+            p->SetParameterLowerBound(&o, 0, 0.5);
+            p->SetParameterUpperBound(&o, 0, 6.0);
+        }
         p->AddParameterBlock(&ea, 1);
         p->AddParameterBlock(&log_i0, 1);
         p->AddParameterBlock(&step_lag, 1);
@@ -263,6 +301,8 @@ struct Builder {
         for (int j = 1; j + 1 < grid.n; ++j)
             p->AddResidualBlock(smooth_costs[j - 1].get(), nullptr, knots[j - 1].data(), knots[j].data(),
                                 knots[j + 1].data());
+        for (int j = 1; j + 1 < grid.ocv_n(); ++j)
+            p->AddResidualBlock(ocv_smooth_costs[j - 1].get(), nullptr, &ocv[j - 1], &ocv[j], &ocv[j + 1]);
         for (auto& k : knots) {
             for (int q : {0, 1, 3, 5, 6, 8}) {
                 p->SetParameterLowerBound(k.data(), q, std::log(kRMinOhm * 0.5));
@@ -276,8 +316,6 @@ struct Builder {
                 p->SetParameterLowerBound(k.data(), q, std::log(0.5));
                 p->SetParameterUpperBound(k.data(), q, std::log(5000.0));
             }
-            p->SetParameterLowerBound(k.data(), kOcv, 0.5);
-            p->SetParameterUpperBound(k.data(), kOcv, 6.0);
         }
         if (grid.temperature) {
             p->SetParameterLowerBound(&ea, 0, 0.0);
@@ -632,6 +670,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     b.grid.s0 = j_lo * ds;
     b.grid.ds = ds;
     b.grid.n = j_hi - j_lo + 1;
+    b.grid.m = std::max(1, options.ocv_knots_per_interval);
     b.grid.t_ref_k = t_ref_c + kZeroCelsiusK;
     b.grid.sigma_v = options.voltage_noise_v;
     b.grid.i_ref_a = pulse_currents.empty() ? 1.0 : median(pulse_currents);
@@ -645,11 +684,15 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     out.reference_current_a = b.grid.i_ref_a;
     for (std::size_t w = 0; w < b.windows.size(); ++w) {
         auto& wd = b.windows[w];
+        const double ods = b.grid.ocv_ds();
         if (wd.fit_offset) {
             wd.knot_lo = 0, wd.knot_hi = b.grid.n - 1;
+            wd.ocv_lo = 0, wd.ocv_hi = b.grid.ocv_n() - 1;
         } else {
             wd.knot_lo = std::clamp(static_cast<int>(std::floor((out.windows[w].soc_min - b.grid.s0) / ds)), 0, b.grid.n - 1);
             wd.knot_hi = std::clamp(static_cast<int>(std::ceil((out.windows[w].soc_max - b.grid.s0) / ds)), 0, b.grid.n - 1);
+            wd.ocv_lo = std::clamp(static_cast<int>(std::floor((out.windows[w].soc_min - b.grid.s0) / ods)), 0, b.grid.ocv_n() - 1);
+            wd.ocv_hi = std::clamp(static_cast<int>(std::ceil((out.windows[w].soc_max - b.grid.s0) / ods)), 0, b.grid.ocv_n() - 1);
         }
     }
 
@@ -668,13 +711,22 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             a[0] = std::log(r0), a[1] = std::log(r1), a[2] = std::log(t1), a[3] = std::log(r2),
             a[4] = std::log(t2 / t1 - 1.0);
         }
-        k[kOcv] = initial.ocv_at(s);
     }
+    b.ocv.resize(b.grid.ocv_n());
+    for (int j = 0; j < b.grid.ocv_n(); ++j) b.ocv[j] = initial.ocv_at(b.grid.ocv_soc(j));
+    b.ocv_free.assign(b.grid.ocv_n(), false);
+    for (const auto& wd : b.windows)
+        if (wd.low_rate)
+            for (const auto& t : wd.ticks) {
+                const int j = static_cast<int>(std::round((t.soc_end - b.grid.s0) / b.grid.ocv_ds()));
+                if (j >= 0 && j < b.grid.ocv_n()) b.ocv_free[j] = true;
+            }
     b.ea = b.grid.temperature ? 3.0 : 0.0;
     b.log_i0 = std::log(b.grid.current ? 2.0 * b.grid.i_ref_a : 1e6);
     b.offsets.assign(b.windows.size(), {0.0, 0.0});
     b.make_costs();
     const auto start_knots = b.knots;
+    const auto start_ocv = b.ocv;
     const double start_ea = b.ea, start_log_i0 = b.log_i0;
     // Where a row shows a new current, the step happened at the row (a cycler's record at a step's start: 0) or
     // up to a sample earlier (a DAQ sampling asynchronously). Fitted; it trades against R0 only where the sample
@@ -706,6 +758,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                     for (std::size_t i = 0; i < cv_windows.size(); ++i)
                         if (static_cast<int>(i % 2) == fold) use[cv_windows[i]] = false, held.push_back(cv_windows[i]);
                     b.knots = start_knots;
+                    b.ocv = start_ocv;
                     b.ea = start_ea, b.log_i0 = start_log_i0, b.step_lag = options.step_lag;
                     std::fill(b.offsets.begin(), b.offsets.end(), std::array<double, 2>{0.0, 0.0});
                     auto p = b.problem(use);
@@ -728,6 +781,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     progress(0.7, "global fit: all windows");
     b.make_smooth(chosen, options.ocv_smoothness);
     b.knots = start_knots;
+    b.ocv = start_ocv;
     b.ea = start_ea, b.log_i0 = start_log_i0, b.step_lag = options.step_lag;
     std::fill(b.offsets.begin(), b.offsets.end(), std::array<double, 2>{0.0, 0.0});
     std::vector<bool> all(b.windows.size(), true);
@@ -753,12 +807,14 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
 
     // Uncertainty: (J'J)^-1 of the whole problem (smoothness included, as a prior), scaled by the residual
     // variance and inflated by (1 + rho) / (1 - rho) for correlated residuals.
-    const int n_par = b.grid.n * kKnotSize + 2;
+    const int n_rc = b.grid.n * kKnotSize, n_ocv = b.grid.ocv_n();
+    const int n_par = n_rc + n_ocv + 2;  // knots, OCV knots, Ea, log I0
     Eigen::MatrixXd cov = Eigen::MatrixXd::Constant(n_par, n_par, kNaN);
     if (options.compute_uncertainty) {
         progress(0.9, "global fit: uncertainty");
         ceres::Problem::EvaluateOptions eo;
         for (auto& k : b.knots) eo.parameter_blocks.push_back(k.data());
+        for (auto& o : b.ocv) eo.parameter_blocks.push_back(&o);
         eo.parameter_blocks.push_back(&b.ea);
         eo.parameter_blocks.push_back(&b.log_i0);
         double cost = 0;
@@ -781,12 +837,10 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         if (!b.grid.temperature) cov(n_par - 2, n_par - 2) = kNaN;
         if (!b.grid.current) cov(n_par - 1, n_par - 1) = kNaN;
     }
-    auto var_of = [&](int a, int c, double wa, double wc) {  // variance of wa*x_a + wc*x_c
-        return wa * wa * cov(a, a) + wc * wc * cov(c, c) + 2 * wa * wc * cov(a, c);
-    };
-
-    // Which knots have data of each direction nearby.
+    // Which knots have data of each direction nearby, and which OCV knots have rows near them.
     std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
+    std::vector<std::size_t> ocv_rows(n_ocv, 0);
+    const double ods = b.grid.ocv_ds();
     for (std::size_t w = 0; w < b.windows.size(); ++w)
         for (const auto& t : b.windows[w].ticks) {
             const double s0 = b.windows[w].ticks.front().soc_start;
@@ -797,55 +851,82 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                 support[jj][t.current_a < 0 ? 0 : 1] += std::abs(t.current_a) * t.dt_s;
                 support[jj][2] += 1;
             }
+            const int jo = static_cast<int>(std::round((s - b.grid.s0) / ods));
+            for (int jj : {jo - 1, jo, jo + 1})
+                if (jj >= 0 && jj < n_ocv && std::abs(s - b.grid.ocv_soc(jj)) <= ods) ++ocv_rows[jj];
         }
 
-    // Parameter set and reported values.
+    // A reported value between knots a and b at weight w, as the model computes it (R and C interpolated linearly
+    // between the knots, tau = R C), from one direction's five log-parameters at each knot; its standard deviation
+    // by the delta method over those ten parameters.
+    auto quantity = [](const double* pa, const double* pb, double w, int q) {
+        auto rc5 = [](const double* x, double* v) {
+            const double t1 = std::exp(x[2]), t2 = t1 * (1 + std::exp(x[4]));
+            v[0] = std::exp(x[0]), v[1] = std::exp(x[1]), v[2] = t1 / v[1], v[3] = std::exp(x[3]), v[4] = t2 / v[3];
+        };
+        double va[5], vb[5], v[5];
+        rc5(pa, va), rc5(pb, vb);
+        for (int i = 0; i < 5; ++i) v[i] = va[i] + w * (vb[i] - va[i]);
+        return q < 5 ? v[q] : (q == 5 ? v[1] * v[2] : v[3] * v[4]);
+    };
+    auto quantity_sd = [&](int ka, int kb, int src, double w, int q) {
+        std::array<double, 10> x{};
+        std::copy_n(b.knots[ka].data() + 5 * src, 5, x.begin());
+        std::copy_n(b.knots[kb].data() + 5 * src, 5, x.begin() + 5);
+        const int idx[2] = {ka * kKnotSize + 5 * src, kb * kKnotSize + 5 * src};
+        std::array<double, 10> g{};
+        for (int i = 0; i < 10; ++i) {
+            constexpr double h = 1e-6;
+            auto up = x, down = x;
+            up[i] += h, down[i] -= h;
+            g[i] = (quantity(up.data(), up.data() + 5, w, q) - quantity(down.data(), down.data() + 5, w, q)) / (2 * h);
+        }
+        double var = 0;
+        for (int i = 0; i < 10; ++i)
+            for (int k = 0; k < 10; ++k)
+                if (g[i] != 0 && g[k] != 0) var += g[i] * g[k] * cov(idx[i / 5] + i % 5, idx[k / 5] + k % 5);
+        return std::sqrt(std::max(var, 0.0));  // NaN stays NaN
+    };
+
+    // Parameter set and reported values, on the OCV grid (the knots and the points between them).
     ParameterSet& p = out.params;
     p.capacity_ah = capacity_ah;
     p.reference_temperature_c = t_ref_c;
     const bool no_charge = charge_as < 1.0;
     if (no_charge) out.notes.push_back("no charging current in the recordings: the charge direction is not identified "
                                        "and takes the discharge values");
-    out.discharge.resize(b.grid.n);
-    out.charge.resize(b.grid.n);
-    for (int j = 0; j < b.grid.n; ++j) {
-        const auto& k = b.knots[j];
-        p.soc.push_back(b.grid.soc(j));
-        p.ocv_v.push_back(k[kOcv]);
-        const int base = j * kKnotSize;
-        FittedValue ocv{k[kOcv], std::sqrt(cov(base + kOcv, base + kOcv)), {}};
-        if (support[j][2] == 0) ocv.flags.push_back("unidentified");
+    const int m = b.grid.m;
+    out.discharge.resize(n_ocv);
+    out.charge.resize(n_ocv);
+    for (int j = 0; j < n_ocv; ++j) {
+        const int ka = std::min(j / m, b.grid.n - 1), kb = std::min(ka + 1, b.grid.n - 1);
+        const double w = static_cast<double>(j - ka * m) / m;  // 0 at a knot
+        p.soc.push_back(b.grid.ocv_soc(j));
+        p.ocv_v.push_back(b.ocv[j]);
+        FittedValue ocv{b.ocv[j], std::sqrt(cov(n_rc + j, n_rc + j)), {}};
+        if (ocv_rows[j] == 0) ocv.flags.push_back("unidentified");
         if (!(ocv.value > 1.0 && ocv.value < 5.0)) ocv.flags.push_back("implausible");
         out.ocv.push_back(ocv);
         for (int d = 0; d < 2; ++d) {
             const int src = (d == 1 && no_charge) ? 0 : d;
-            const double* a = k.data() + 5 * src;
-            const int o = base + 5 * src;
-            const double r0 = std::exp(a[0]), r1 = std::exp(a[1]), t1 = std::exp(a[2]), r2 = std::exp(a[3]);
-            const double t2 = t1 * (1 + std::exp(a[4]));
-            const double g4 = std::exp(a[4]) / (1 + std::exp(a[4]));  // d log tau2 / d a4
+            const double* pa = b.knots[ka].data() + 5 * src;
+            const double* pb = b.knots[kb].data() + 5 * src;
             std::vector<FittedValue> v(7);
-            v[0] = {r0, r0 * std::sqrt(cov(o, o)), {}};
-            v[1] = {r1, r1 * std::sqrt(cov(o + 1, o + 1)), {}};
-            v[2] = {t1 / r1, t1 / r1 * std::sqrt(var_of(o + 2, o + 1, 1, -1)), {}};
-            v[3] = {r2, r2 * std::sqrt(cov(o + 3, o + 3)), {}};
-            const double var_lt2 = cov(o + 2, o + 2) + g4 * g4 * cov(o + 4, o + 4) + 2 * g4 * cov(o + 2, o + 4);
-            const double var_lc2 = var_lt2 + cov(o + 3, o + 3) - 2 * (cov(o + 2, o + 3) + g4 * cov(o + 4, o + 3));
-            v[4] = {t2 / r2, t2 / r2 * std::sqrt(std::max(var_lc2, 0.0)), {}};
-            v[5] = {t1, t1 * std::sqrt(cov(o + 2, o + 2)), {}};
-            v[6] = {t2, t2 * std::sqrt(std::max(var_lt2, 0.0)), {}};
-            const bool r_ok[7] = {r0 >= kRMinOhm && r0 <= kRMaxOhm, r1 >= kRMinOhm && r1 <= kRMaxOhm, true,
-                                  r2 >= kRMinOhm && r2 <= kRMaxOhm, true,
-                                  t1 >= kTau1MinS && t1 <= kTau1MaxS, t2 >= kTau2MinS && t2 <= kTau2MaxS};
-            const bool unidentified = (d == 1 && no_charge) || support[j][src] < 1.0;
+            for (int q = 0; q < 7; ++q) v[q] = {quantity(pa, pb, w, q), quantity_sd(ka, kb, src, w, q), {}};
+            auto r_in = [](double r) { return r >= kRMinOhm && r <= kRMaxOhm; };
+            const bool ok[7] = {r_in(v[0].value), r_in(v[1].value), true, r_in(v[3].value), true,
+                                v[5].value >= kTau1MinS && v[5].value <= kTau1MaxS,
+                                v[6].value >= kTau2MinS && v[6].value <= kTau2MaxS};
+            const bool unidentified =
+                (d == 1 && no_charge) || support[ka][src] < 1.0 || (w > 0 && support[kb][src] < 1.0);
             for (int q = 0; q < 7; ++q) {
-                if (!r_ok[q]) v[q].flags.push_back("implausible");
+                if (!ok[q]) v[q].flags.push_back("implausible");
                 if (std::isfinite(v[q].sd) && v[q].sd > v[q].value) v[q].flags.push_back("uncertain");
                 if (unidentified) v[q].flags.push_back("unidentified");
             }
             RcTable& t = d ? p.charge : p.discharge;
-            t.r0_ohm.push_back(r0), t.r1_ohm.push_back(r1), t.c1_f.push_back(t1 / r1), t.r2_ohm.push_back(r2),
-                t.c2_f.push_back(t2 / r2);
+            t.r0_ohm.push_back(v[0].value), t.r1_ohm.push_back(v[1].value), t.c1_f.push_back(v[2].value),
+                t.r2_ohm.push_back(v[3].value), t.c2_f.push_back(v[4].value);
             (d ? out.charge : out.discharge)[j] = std::move(v);
         }
     }

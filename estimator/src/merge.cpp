@@ -98,20 +98,29 @@ CurrentAlignment align_by_current(const Recording& a, const Recording& b, double
 Recording splice_recordings(const Recording& a, const Recording& b, double offset_s) {
     Recording out;
     out.source = a.source + " + " + b.source;
-    const double b_start = b.time_s.front() + offset_s;
+    // b's times on a's clock, rounded to the microsecond: the sum t + offset carries the last-digit error of
+    // both terms (0.1 + 19674.1 is not 19674.2), and a value that differs from what a BDF writer round-trips
+    // would put this splice and `import`'s written file into different resampling bins.
+    auto shifted = [&](double t) { return std::round((t + offset_s) * 1e6) / 1e6; };
+    const double b_start = shifted(b.time_s.front()), b_end = shifted(b.time_s.back());
     std::size_t na = 0;
     while (na < a.size() && a.time_s[na] < b_start) ++na;
-    const std::size_t n = na + b.size();
+    // a's rows after b ends are kept: the cycler's export often runs on past the finer file (a last rest).
+    std::size_t tail = a.size();
+    while (tail > na && a.time_s[tail - 1] > b_end) --tail;
+    const std::size_t nt = a.size() - tail, n = na + b.size() + nt;
 
     auto take = [&](const std::vector<double>& va, const std::vector<double>& vb, std::vector<double>& dst) {
         if (va.empty() && vb.empty()) return;
         dst.assign(n, kNaN);
         for (std::size_t k = 0; k < na && !va.empty(); ++k) dst[k] = va[k];
         for (std::size_t k = 0; k < b.size() && !vb.empty(); ++k) dst[na + k] = vb[k];
+        for (std::size_t k = 0; k < nt && !va.empty(); ++k) dst[na + b.size() + k] = va[tail + k];
     };
     out.time_s.resize(n);
     for (std::size_t k = 0; k < na; ++k) out.time_s[k] = a.time_s[k];
-    for (std::size_t k = 0; k < b.size(); ++k) out.time_s[na + k] = b.time_s[k] + offset_s;
+    for (std::size_t k = 0; k < b.size(); ++k) out.time_s[na + k] = shifted(b.time_s[k]);
+    for (std::size_t k = 0; k < nt; ++k) out.time_s[na + b.size() + k] = a.time_s[tail + k];
     take(a.voltage_v, b.voltage_v, out.voltage_v);
     take(a.current_a, b.current_a, out.current_a);
     take(a.unix_time_s, b.unix_time_s, out.unix_time_s);
@@ -120,12 +129,13 @@ Recording splice_recordings(const Recording& a, const Recording& b, double offse
     take(a.t1_c, b.t1_c, out.t1_c);
     take(a.t2_c, b.t2_c, out.t2_c);
     take(a.heat_flux_w_per_m2, b.heat_flux_w_per_m2, out.heat_flux_w_per_m2);
-    // Step numbering continues from a's steps so that steps stay distinct across the splice.
     if (!a.step_type.empty() || !b.step_type.empty()) {
         out.step_type.assign(n, std::string{});
         for (std::size_t k = 0; k < na && !a.step_type.empty(); ++k) out.step_type[k] = a.step_type[k];
         for (std::size_t k = 0; k < b.size() && !b.step_type.empty(); ++k) out.step_type[na + k] = b.step_type[k];
+        for (std::size_t k = 0; k < nt && !a.step_type.empty(); ++k) out.step_type[na + b.size() + k] = a.step_type[tail + k];
     }
+    // Step numbering continues from a's steps so that steps stay distinct across the splice.
     if (!a.step_count.empty()) {
         out.step_count.assign(n, kNaN);
         double last = 0;
@@ -139,6 +149,13 @@ Recording splice_recordings(const Recording& a, const Recording& b, double offse
                              a.step_type[na - 1] == b.step_type[0]))
                 step += 1;
             out.step_count[na + k] = step;
+        }
+        // a's tail continues from b's last step, by a's own step changes (the first tail row continues b's last
+        // step when a numbers it the same as a's row at b's end).
+        for (std::size_t k = 0; k < nt; ++k) {
+            const std::size_t j = tail + k;
+            if (j > 0 && a.step_count[j] != a.step_count[j - 1]) step += 1;
+            out.step_count[na + b.size() + k] = step;
         }
     }
     return out;

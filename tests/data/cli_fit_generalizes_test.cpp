@@ -84,7 +84,10 @@ TEST(FitGeneralizes, EveryArrangementOfTheP45BFilesGivesTheSameParametersAndPred
         std::printf("arrangement %zu: Random Walk %.2f mV / %.3f degC, 4C discharge %.2f mV\n", a, 1e3 * v, t, 1e3 * v4);
         rw_v.push_back(v);
         EXPECT_LT(t, 1.0) << "Random Walk temperature RMS (issue 11: <= 1.0 degC)";
-        EXPECT_LT(v4, 0.030) << "4C discharge voltage RMS (before the global fit: 150 mV)";
+        // Issue 11: better than the per-pulse-set fit's 150 mV. It was 19 mV while the global fit let R0 absorb the
+        // 4C discharge's slow error (R0 then read 5-9 % above Table 3.2); with R0 held to the steps the error
+        // left sits in the last 150 s of the discharge, below 20 % SOC.
+        EXPECT_LT(v4, 0.050) << "4C discharge voltage RMS (per-pulse-set fit: 150 mV)";
         EXPECT_LT(v, 0.025) << "Random Walk voltage RMS (issue 11: <= 25 mV; before: 40.0 mV)";
     }
     for (std::size_t a = 1; a < params.size(); ++a) {
@@ -94,22 +97,30 @@ TEST(FitGeneralizes, EveryArrangementOfTheP45BFilesGivesTheSameParametersAndPred
             for (const char* q : {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"})
                 for (std::size_t k = 0; k < params[0]["soc"].size(); ++k) {
                     const double x = params[a][dir][q][k], y = params[0][dir][q][k];
-                    // Issue 11 asks 1 %; `import`'s merge and the fit's own splice of the same files differ in
-                    // the last digits the BDF writer keeps, and the weakest-identified values (slow-pair capacitances) move by up to 4 %.
-                    EXPECT_NEAR(x, y, 0.05 * std::abs(y)) << dir << " " << q << " at " << params[0]["soc"][k];
+                    // Issue 11 asks 1 %. The fit splices the files handed in separately exactly as `import` merges
+                    // them (same rows, same microsecond clock), so the arrangements agree far inside it.
+                    EXPECT_NEAR(x, y, 0.01 * std::abs(y)) << dir << " " << q << " at " << params[0]["soc"][k];
                 }
     }
-    // Discharge R0 against the thesis' Table 3.2 (mOhm, 20..90 % SOC).
-    const std::map<double, double> table32 = {{0.2, 7.50}, {0.3, 7.42}, {0.4, 7.36}, {0.5, 7.33},
-                                              {0.6, 7.31}, {0.7, 7.29}, {0.8, 7.28}, {0.9, 7.33}};
-    const auto& p = params[0];
-    for (std::size_t k = 0; k < p["soc"].size(); ++k) {
-        const double s = p["soc"][k];
-        for (const auto& [soc, r0] : table32)
-            if (std::abs(s - soc) < 1e-6)
-                std::printf("R0 discharge at %.0f %%: %.3f mOhm (Table 3.2: %.2f)\n", 100 * s,
-                            1e3 * p["discharge"]["r0_ohm"][k].get<double>(), r0);
+    // Discharge R0 against the thesis' Table 3.2 (row "R0 DA", mOhm, 20..90 % SOC): issue 11 asks 5 %.
+    const std::map<double, double> table32 = {{0.2, 7.37}, {0.3, 7.28}, {0.4, 7.30}, {0.5, 7.34},
+                                              {0.6, 7.38}, {0.7, 7.36}, {0.8, 7.39}, {0.9, 7.50}};
+    std::size_t compared = 0;
+    for (std::size_t a = 0; a < params.size(); ++a) {
+        const auto& p = params[a];
+        for (std::size_t k = 0; k < p["soc"].size(); ++k) {
+            const double s = p["soc"][k];
+            for (const auto& [soc, r0] : table32)
+                if (std::abs(s - soc) < 1e-6) {
+                    const double got = 1e3 * p["discharge"]["r0_ohm"][k].get<double>();
+                    if (a == 0) std::printf("R0 discharge at %.0f %%: %.3f mOhm (Table 3.2: %.2f, %+.1f %%)\n", 100 * s, got, r0,
+                                            100 * (got / r0 - 1));
+                    EXPECT_NEAR(got, r0, 0.05 * r0) << "arrangement " << a << ", SOC " << s;
+                    ++compared;
+                }
+        }
     }
+    EXPECT_EQ(compared, table32.size() * params.size());
     std::error_code ec;
     fs::remove_all(o, ec);
 }

@@ -38,6 +38,10 @@ namespace cellbench::estimator {
 
 struct GlobalFitOptions {
     double knot_spacing = kNaN;  // SOC spacing of the table breakpoints (NaN: characterize() takes the test's SOC levels)
+    // The OCV is fitted on a grid this many times finer than the resistances and capacitances: low-rate stretches
+    // (pilot, SOC-step and CC discharges) pin it between the pulse levels, while a pulse set pins the RC pairs only
+    // at its own level. The tables come out on the finer grid, the RC values interpolated as the model does.
+    int ocv_knots_per_interval = 2;
     std::vector<double> smoothness_candidates = {100.0, 300.0, 1000.0, 3000.0};  // cross-validated
     double smoothness = kNaN;                // given: no cross-validation
     double ocv_smoothness = 0.05;            // relative weight of the OCV's second-difference penalty

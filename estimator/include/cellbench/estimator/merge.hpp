@@ -21,8 +21,8 @@ struct CurrentAlignment {
 // offset exists.
 CurrentAlignment align_by_current(const Recording& a, const Recording& b, double max_offset_s);
 
-// Cycler rows of a before b starts, then b's rows, on a's clock (b shifted by offset_s). Channels present in
-// either are kept; rows without a value hold NaN.
+// Cycler rows of a before b starts, then b's rows on a's clock (b shifted by offset_s, to the microsecond),
+// then a's rows after b ends. Channels present in either are kept; rows without a value hold NaN.
 Recording splice_recordings(const Recording& a, const Recording& b, double offset_s);
 
 // Linear interpolation of (time_s, y) at query times; NaN outside [time_s.front(), time_s.back()].

@@ -9,6 +9,8 @@
 //   run_store_export.cpp   a run as a Recording (BDF export, fit replay)
 #include "cellbench/daemon/run_store.hpp"
 
+#include "cellbench/estimator/plausibility.hpp"
+
 #include <cmath>
 
 namespace cellbench::daemon {
@@ -17,12 +19,35 @@ using nlohmann::json;
 
 namespace {
 
+json nullable(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
+
 json rc_json(const estimator::RcValues& v) {
     if (!std::isfinite(v.r0_ohm) && !std::isfinite(v.r1_ohm) && !std::isfinite(v.r2_ohm)) return nullptr;
     return {{"r0_ohm", v.r0_ohm}, {"r1_ohm", v.r1_ohm}, {"c1_f", v.c1_f}, {"r2_ohm", v.r2_ohm}, {"c2_f", v.c2_f}};
 }
 
-json nullable(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
+json sd_json(const estimator::RcValues& s) {
+    return {{"r0_ohm", nullable(s.r0_ohm)}, {"r1_ohm", nullable(s.r1_ohm)}, {"c1_f", nullable(s.c1_f)},
+            {"r2_ohm", nullable(s.r2_ohm)}, {"c2_f", nullable(s.c2_f)}};
+}
+
+estimator::RcValues sd_from_json(const json& j) {
+    auto get = [&](const char* k) { return j.is_object() && j.contains(k) && j[k].is_number() ? j[k].get<double>() : kNaN; };
+    return {get("r0_ohm"), get("r1_ohm"), get("c1_f"), get("r2_ohm"), get("c2_f")};
+}
+
+// A direction of GET /runs/{id}/fits: the values, "<name>_sd" for each and "flags" for those that are
+// implausible, uncertain or at a bound (estimator/plausibility.hpp), so nothing flagged reads as fine.
+json rc_json(const estimator::RcValues& v, const estimator::RcValues& sd, bool tau_at_bound) {
+    json j = rc_json(v);
+    if (j.is_null()) return j;
+    const json s = sd_json(sd);
+    for (const auto& [k, x] : s.items()) j[k + "_sd"] = x;
+    json flags = json::object();
+    for (auto& [name, f] : estimator::rc_flags(v, sd, tau_at_bound)) flags[name] = std::move(f);
+    j["flags"] = std::move(flags);
+    return j;
+}
 
 }  // namespace
 
@@ -107,7 +132,14 @@ PulseFitRecord pulse_fit_record(RunId run_id, int pulse_set, double t_s, double 
     r.discharge = estimator::to_rc_values(fit.chosen_discharge());
     r.charge = estimator::to_rc_values(fit.chosen_charge());
     r.method = estimator::to_string(fit.chosen);
-    r.rms_v = fit.chosen == estimator::PulseSetFit::Method::Joint ? fit.joint_rms_v : fit.thesis_rms_v;
+    const bool joint = fit.chosen == estimator::PulseSetFit::Method::Joint;
+    r.rms_v = joint ? fit.joint_rms_v : fit.thesis_rms_v;
+    // The per-segment thesis fits give no covariance: their values carry no sigma (null), never a made-up one.
+    if (joint) {
+        r.discharge_sd = estimator::rc_sigma(fit.joint_discharge, fit.joint_discharge_sigma);
+        r.charge_sd = estimator::rc_sigma(fit.joint_charge, fit.joint_charge_sigma);
+    }
+    r.tau_at_bound = joint ? fit.joint_at_bound : fit.thesis_at_bound;
     auto method_json = [](const estimator::Rc2Params<double>& d, const estimator::Rc2Params<double>& c, double rms, bool at_bound) {
         return json{{"discharge", rc_json(estimator::to_rc_values(d))},
                     {"charge", rc_json(estimator::to_rc_values(c))},
@@ -126,8 +158,19 @@ PulseFitRecord pulse_fit_record(RunId run_id, int pulse_set, double t_s, double 
                       {"charge_sampling_corrected_ohm", nullable(fit.r0.charge_corrected_ohm)}}},
         {"rows", {fit.begin, fit.end}},
         {"warnings", fit.warnings},
+        {"chosen_sd", {{"discharge", sd_json(r.discharge_sd)}, {"charge", sd_json(r.charge_sd)}}},
     };
     return r;
+}
+
+void PulseFitRecord::restore_from_detail() {
+    if (!detail.is_object()) return;
+    if (const auto it = detail.find("chosen_sd"); it != detail.end() && it->is_object()) {
+        discharge_sd = sd_from_json(it->value("discharge", json()));
+        charge_sd = sd_from_json(it->value("charge", json()));
+    }
+    if (const auto it = detail.find(method); it != detail.end() && it->is_object())
+        tau_at_bound = it->value("at_bound", false);
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -167,8 +210,8 @@ json to_json(const PulseFitRecord& f) {
             {"soc", nullable(f.soc)},
             {"ocv_v", nullable(f.ocv_v)},
             {"temperature_c", nullable(f.temperature_c)},
-            {"discharge", rc_json(f.discharge)},
-            {"charge", rc_json(f.charge)},
+            {"discharge", rc_json(f.discharge, f.discharge_sd, f.tau_at_bound)},
+            {"charge", rc_json(f.charge, f.charge_sd, f.tau_at_bound)},
             {"method", f.method},
             {"rms_v", nullable(f.rms_v)}};
 }

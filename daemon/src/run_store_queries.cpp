@@ -154,6 +154,7 @@ std::vector<PulseFitRecord> RunStore::pulse_fits(RunId run) const {
             f.method = s.col_text(18);
             f.rms_v = s.col_real(19);
             f.detail = s.col_json(20);
+            f.restore_from_detail();
             out.push_back(std::move(f));
         }
         return out;

@@ -10,6 +10,7 @@
 #include <Eigen/Dense>
 
 #include "cellbench/estimator/electrical.hpp"
+#include "cellbench/estimator/plausibility.hpp"
 
 namespace cellbench::estimator {
 
@@ -20,9 +21,10 @@ constexpr int kKnotSize = 10;        // 5 log-parameters per direction (the OCV 
 constexpr double kEaScale = 1e4;
 constexpr double kOcvCurvatureScaleV = 0.01;
 
-// Physical plausibility (any Li-ion cell from coin to large pouch): outside these a value is flagged.
-constexpr double kRMinOhm = 2e-5, kRMaxOhm = 1.0;
-constexpr double kTau1MinS = 0.05, kTau1MaxS = 60.0, kTau2MinS = 1.0, kTau2MaxS = 5000.0;
+// Physical plausibility (plausibility.hpp): outside these a value is flagged; the search range is twice as wide.
+constexpr double kRMinOhm = kPlausibleRMinOhm, kRMaxOhm = kPlausibleRMaxOhm;
+constexpr double kTau1MinS = kPlausibleTau1MinS, kTau1MaxS = kPlausibleTau1MaxS;
+constexpr double kTau2MinS = kPlausibleTau2MinS, kTau2MaxS = kPlausibleTau2MaxS;
 
 double scalar(double x) { return x; }
 template <typename J>

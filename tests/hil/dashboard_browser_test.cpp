@@ -295,6 +295,20 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
         return wd.script("return document.querySelectorAll('#fits-table tbody tr').length;").get<int>() >= 1 &&
                wd.script("return document.querySelectorAll('.fitcharts canvas').length;").get<int>() == 6;
     }, 15s)) << "run page did not show the fits";
+    // A value the API flags (implausible, uncertain, at a bound) is marked in the table, never shown as fine:
+    // as many marked cells as flagged values in the fits the table shows.
+    {
+        const int shown = wd.script("return document.querySelectorAll('#fits-table tbody tr').length;").get<int>();
+        const int marked = wd.script("return document.querySelectorAll('#fits-table td.flagged').length;").get<int>();
+        const auto fits = d.fits(id)["fits"];
+        int flagged = 0;
+        for (int k = 0; k < shown && k < static_cast<int>(fits.size()); ++k)
+            for (const char* dir : {"discharge", "charge"})
+                if (fits[k][dir].is_object())
+                    for (const auto& [name, f] : fits[k][dir]["flags"].items()) flagged += !f.empty();
+        std::printf("fits shown %d, values flagged by the API %d, marked on the page %d\n", shown, flagged, marked);
+        EXPECT_EQ(marked, flagged);
+    }
     // While the run goes on, its page shows progress by expected time (GET /status), not step index / step count.
     EXPECT_TRUE(eventually([&] {
         return wd.script("const p = document.getElementById('run-progress'); return p ? p.title : '';")

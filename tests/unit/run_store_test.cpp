@@ -835,3 +835,39 @@ TEST(RunStorePulseFit, TheRecordTakesTheChosenMethodWithCapacitancesFromTimeCons
     EXPECT_DOUBLE_EQ(j.at("discharge").at("r1_ohm").get<double>(), 0.0017);
     EXPECT_DOUBLE_EQ(j.at("soc").get<double>(), 0.8);
 }
+
+// Issue 11: an online fit's value that is physically implausible or less certain than itself is flagged in
+// GET /runs/{id}/fits (with its sigma), and the flags survive the store.
+TEST_F(RunStoreTest, PulseFitValuesCarryTheirSigmaAndFlagsThroughTheStore) {
+    estimator::PulseSetFit fit;
+    fit.soc = 0.9;
+    fit.ocv_v = 4.0;
+    // Discharge: the first pulse set of issue 11 (R1 0.002 mOhm: below any cell), R2 known to 10 %.
+    fit.joint_discharge = {0.0075, 2e-6, 1.0, 0.011, 300.0};
+    fit.joint_discharge_sigma = {0.0001, 1e-6, 0.5, 0.0011, 30.0};
+    // Charge: plausible values, but R2's sigma is twice R2 (the slow pair not identified by the pulse).
+    fit.joint_charge = {0.0074, 0.0015, 1.8, 0.010, 280.0};
+    fit.joint_charge_sigma = {0.0001, 0.0001, 0.1, 0.020, 400.0};
+    fit.chosen = estimator::PulseSetFit::Method::Joint;
+    RunId id = 0;
+    {
+        auto store = RunStore::open(db_);
+        id = store->create_run(new_run("hppc"));
+        store->record_pulse_fit(pulse_fit_record(id, 1, 100.0, 1.7e9, fit));
+        ASSERT_TRUE(store->flush());
+    }
+    const auto fits = RunStore::open(db_)->pulse_fits(id);
+    ASSERT_EQ(fits.size(), 1u);
+    const auto j = to_json(fits[0]);
+    const auto& d = j.at("discharge");
+    EXPECT_EQ(d.at("flags").at("r1_ohm"), json::array({"implausible"}));
+    EXPECT_FALSE(d.at("flags").contains("r2_ohm")) << d.dump();
+    EXPECT_FALSE(d.at("flags").contains("r0_ohm")) << d.dump();
+    EXPECT_DOUBLE_EQ(d.at("r2_ohm_sd").get<double>(), 0.0011);
+    // C2 = tau2 / R2: its sigma from both relative sigmas (10 % each).
+    EXPECT_NEAR(d.at("c2_f_sd").get<double>(), 300.0 / 0.011 * std::hypot(0.1, 0.1), 1e-6);
+    const auto& c = j.at("charge");
+    EXPECT_EQ(c.at("flags").at("r2_ohm"), json::array({"uncertain"}));
+    EXPECT_EQ(c.at("flags").at("c2_f"), json::array({"uncertain"}));
+    EXPECT_FALSE(c.at("flags").contains("r0_ohm"));
+}

@@ -151,6 +151,12 @@ export class ChartGroup {
   }
 }
 
+// The flags of one fitted value of a direction of GET /runs/{id}/fits ([] when it is fine).
+export function fitFlags(direction, key) {
+  const f = direction?.flags?.[key];
+  return Array.isArray(f) ? f : [];
+}
+
 // GET /runs/{id}/fits as six small plots against SOC: R0, R1, C1, R2, C2 (discharge and charge) and OCV.
 export const FIT_PARAMS = [
   { key: "r0_ohm", title: "R0", unit: "mΩ", scale: 1e3, digits: 3 },
@@ -169,9 +175,13 @@ export class FitCharts {
       const el = h("div.chart");
       this.root.append(el);
       const isOcv = p.key === "ocv_v";
+      // A value the fit flagged (implausible, uncertain, at a bound: GET /runs/{id}/fits "flags") is never drawn on
+      // the curve of the values that are fine: it goes to its own series, hollow markers and no line.
       const series = isOcv
         ? [{ label: "OCV", stroke: "#0e9384" }]
-        : [{ label: "discharge", stroke: "#d92d20" }, { label: "charge", stroke: "#1f6feb" }];
+        : [{ label: "discharge", stroke: "#d92d20" }, { label: "charge", stroke: "#1f6feb" },
+           { label: "discharge, flagged", stroke: "#d92d20", flagged: true },
+           { label: "charge, flagged", stroke: "#1f6feb", flagged: true }];
       const plot = new uPlot({
         title: `${p.title} (${p.unit}) vs SOC`,
         width: 300, height: 170,
@@ -181,8 +191,10 @@ export class FitCharts {
         cursor: { drag: { x: false, y: false } },
         series: [
           { label: "SOC", value: (u, v) => (v == null ? "–" : v.toFixed(1) + " %") },
-          ...series.map((s) => ({ ...s, width: 1.5, spanGaps: true, points: { show: true, size: 6, fill: s.stroke },
-                                 value: (u, v) => (v == null ? "–" : v.toFixed(p.digits)) })),
+          ...series.map((s) => ({ label: s.label, stroke: s.stroke, width: 1.5, spanGaps: !s.flagged,
+                                 ...(s.flagged ? { paths: () => null, dash: [4, 3] } : {}),
+                                 points: { show: true, size: s.flagged ? 9 : 6, fill: s.flagged ? "#ffffff" : s.stroke, stroke: s.stroke, width: s.flagged ? 2 : 1 },
+                                 value: (u, v) => (v == null ? "–" : v.toFixed(p.digits) + (s.flagged ? " ?" : "")) })),
         ],
         axes: [
           { label: "SOC / %", labelSize: 18, values: (u, splits) => splits.map((v) => v + " %"), grid: { stroke: "#eef1f5" } },
@@ -205,9 +217,12 @@ export class FitCharts {
     const x = sorted.map((f) => +(f.soc * 100).toFixed(2));
     for (const { plot, p, isOcv } of this.plots) {
       const val = (v) => (v == null || !Number.isFinite(v) ? null : v * p.scale);
+      const fine = (d) => (d ? val(fitFlags(d, p.key).length ? null : d[p.key]) : null);
+      const flagged = (d) => (d && fitFlags(d, p.key).length ? val(d[p.key]) : null);
       const cols = isOcv
         ? [x, sorted.map((f) => val(f.ocv_v))]
-        : [x, sorted.map((f) => val(f.discharge?.[p.key])), sorted.map((f) => val(f.charge?.[p.key]))];
+        : [x, sorted.map((f) => fine(f.discharge)), sorted.map((f) => fine(f.charge)),
+           sorted.map((f) => flagged(f.discharge)), sorted.map((f) => flagged(f.charge))];
       plot.setData(cols);
     }
   }

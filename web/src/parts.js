@@ -1,10 +1,19 @@
 // Pieces shared by the pages: fits table, events table, instrument list, live value tiles, run header.
-import { SERIES } from "./charts.js";
+import { SERIES, fitFlags } from "./charts.js";
 import { dateTime, fmt, h, hms, pill, stepWords } from "./util.js";
 
 // One row per completed HPPC pulse set (GET /runs/{id}/fits).
 export function fitsTable(fits) {
-  const side = (d, key, scale, digits) => h("td.num", null, d ? fmt(d[key], digits, scale) : "–");
+  // A flagged value is marked and says why (hover), never shown as fine.
+  const side = (d, key, scale, digits) => {
+    if (!d) return h("td.num", null, "–");
+    const flags = fitFlags(d, key);
+    const sd = d[key + "_sd"];
+    const title = [sd != null ? `± ${fmt(sd, digits, scale)} (1σ)` : "", flags.join(", ")].filter(Boolean).join("; ");
+    return flags.length
+      ? h("td.num.flagged", { title }, fmt(d[key], digits, scale) + " ?")
+      : h("td.num", title ? { title } : null, fmt(d[key], digits, scale));
+  };
   const params = (d) => [
     side(d, "r0_ohm", 1e3, 3), side(d, "r1_ohm", 1e3, 3), side(d, "c1_f", 1, 0), side(d, "r2_ohm", 1e3, 3), side(d, "c2_f", 1, 0),
   ];

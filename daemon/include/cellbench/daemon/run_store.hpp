@@ -141,9 +141,13 @@ struct PulseFitRecord {
     double t_s = kNaN, unix_s = kNaN;  // start of the pulse set
     double soc = kNaN, ocv_v = kNaN, temperature_c = kNaN;
     estimator::RcValues discharge, charge;  // NaN when the fit could not tell
+    estimator::RcValues discharge_sd, charge_sd;  // 1 sigma of the chosen result (NaN: the method gives none)
+    bool tau_at_bound = false;         // the chosen result ended with a time constant on its search bound
     std::string method;                // "thesis" | "joint" (the chosen result)
     double rms_v = kNaN;               // RMS voltage error of the chosen result
-    nlohmann::json detail;             // both methods, R0 steps, warnings
+    nlohmann::json detail;             // both methods, R0 steps, warnings, the chosen result's sigmas
+    // Sets discharge_sd, charge_sd and tau_at_bound from detail (how the store keeps them).
+    void restore_from_detail();
 };
 // From the online fitter's result (chosen method, C = tau / R).
 PulseFitRecord pulse_fit_record(RunId run_id, int pulse_set, double t_s, double unix_s,

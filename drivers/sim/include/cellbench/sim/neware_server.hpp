@@ -28,8 +28,8 @@
 // Fault switches (thread-safe): refuse connections (the listening socket closes: connect is refused), drop
 // every open connection, stall responses (requests are read and carried out, never answered: a lost reply),
 // malformed responses (each answer is cut short), garbage between frames (junk and stray terminators before
-// each answer), and a member's status (protect/stop: that member stops conducting, the others keep their
-// share).
+// each answer), a member's status (protect/stop: that member stops conducting, the others keep their
+// share), and a starved host (the server's thread gets no CPU: see set_starved).
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -104,6 +104,12 @@ public:
     void set_stall_responses(bool stall);
     void set_malformed_responses(bool malformed);
     void set_garbage_between_frames(bool garbage);
+    // The simulated tester's host gets no CPU (what a loaded machine does to this server's thread for a moment):
+    // while starved, nothing of the server runs -- no program tick, no answer (requests wait, connections stay
+    // open) -- while the bench clock and the other simulated instruments go on. set_starved(true) returns once
+    // the server's thread is held (at once when the server is not running); set_starved(false) or stop()
+    // releases it, and the server catches up with the clock.
+    void set_starved(bool starved);
     // Puts one cell channel into protect (or stop); it stops conducting while the others continue.
     // Returns false if chlid is not a cell channel.
     bool inject_member_status(int chlid, protocol::neware::ChannelStatus status);

@@ -145,7 +145,9 @@ struct NewareServer::Impl {
         CellMeasurement drive(double current_a, double until_s) override {
             const std::size_t conducting = self.conducting();
             const double cell_current = current_a * share();
-            self.plant.set_current(cell_current);
+            // This tick's current, and only up to its end: if this thread lags the clock, the chamber and
+            // the DAQ reading the plant meanwhile do not charge the cell on with it (plant.hpp, set_current).
+            self.plant.set_current(cell_current, until_s);
             self.plant.advance_to(until_s);
             const PlantReading r = self.plant.read();
             const double dt = std::max(0.0, until_s - last_until_s);
@@ -876,6 +878,8 @@ void NewareServer::Impl::accept() {
 
 void NewareServer::Impl::close_all() {
     stopping = true;
+    // A tester that is switched off conducts nothing (and holds the plant's time no longer: set_current).
+    if (run_active()) plant.set_current(0.0);
     boost::system::error_code ec;
     acceptor.close(ec);
     timer.cancel();

@@ -217,6 +217,28 @@ TEST(Plant, CopiesShareOnePlantAndConcurrentUseIsSafe) {
     EXPECT_DOUBLE_EQ(plant.now_s(), 250.0);
 }
 
+// A tester executing a program holds each tick's current only up to the tick's end: another instrument reading
+// the plant at a later "now" (the tester's thread lagging the bench clock) does not integrate the cell on with
+// that current; the plant waits for the tester's next tick. A current set without a hold is kept for any time.
+TEST(Plant, CurrentHeldUntilATimeIsNotIntegratedPastIt) {
+    BenchPlant plant(quiet_options());
+    plant.advance_to(10.0);
+    plant.set_current(4.5, 10.1);  // one 0.1 s tick of a 1C charge
+    plant.advance_to(10.1);
+    const double soc_tick = plant.read().soc;
+    EXPECT_DOUBLE_EQ(plant.now_s(), 10.1);
+    plant.advance_to(1000.0);  // the chamber or the DAQ at the clock's "now"
+    EXPECT_DOUBLE_EQ(plant.now_s(), 10.1) << "integrated past the tester's tick";
+    EXPECT_DOUBLE_EQ(plant.read().soc, soc_tick);
+    plant.set_current(4.5, 10.2);  // the tester's next tick
+    plant.advance_to(1000.0);
+    EXPECT_DOUBLE_EQ(plant.now_s(), 10.2);
+    EXPECT_GT(plant.read().soc, soc_tick);
+    plant.set_current(0.0);  // the program ended: 0 A for as long as time goes on
+    plant.advance_to(1000.0);
+    EXPECT_DOUBLE_EQ(plant.now_s(), 1000.0);
+}
+
 TEST(BenchClock, MapsWallTimeByTheTimeScale) {
     const cellbench::sim::BenchClock clock(100.0, 5.0);
     const auto wall = clock.wall_at(15.0);

@@ -225,3 +225,26 @@ TEST(BenchClock, MapsWallTimeByTheTimeScale) {
 }
 
 }  // namespace
+
+// The cycler drives the current: once it has advanced the plant itself, another instrument's advance (the DAQ's,
+// the chamber's, at the clock's "now") stops at the cycler's last tick, so a late tick still finds the cell where
+// the cycler left it, and the cell under the cycler's current is the same whoever advanced it in between.
+TEST(Plant, OtherInstrumentsNeverAdvanceTheCellPastTheCyclersLastTick) {
+    BenchPlant reference(quiet_options()), shared(quiet_options());
+    for (BenchPlant* p : {&reference, &shared}) {
+        p->set_current(-4.5);
+        p->advance_as_driver(10.0);
+    }
+    shared.advance_to(12.0);  // the DAQ, ahead of the cycler's next tick
+    EXPECT_DOUBLE_EQ(shared.now_s(), 10.0);
+    for (BenchPlant* p : {&reference, &shared}) {
+        p->set_current(0.0);  // the cycler's late tick: the pulse ended at 10 s
+        p->advance_as_driver(10.1);
+    }
+    EXPECT_DOUBLE_EQ(shared.now_s(), 10.1);
+    EXPECT_DOUBLE_EQ(shared.read().terminal_voltage_v, reference.read().terminal_voltage_v);
+    // Without a cycler driving it, the plant advances for anyone (a chamber or DAQ simulated alone).
+    BenchPlant alone(quiet_options());
+    alone.advance_to(12.0);
+    EXPECT_DOUBLE_EQ(alone.now_s(), 12.0);
+}

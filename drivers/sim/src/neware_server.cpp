@@ -129,7 +129,7 @@ struct NewareServer::Impl {
             const std::size_t conducting = self.conducting();
             const double cell_current = current_a * share();
             self.plant.set_current(cell_current);
-            self.plant.advance_to(until_s);
+            self.plant.advance_as_driver(until_s);
             const PlantReading r = self.plant.read();
             const double dt = std::max(0.0, until_s - last_until_s);
             last_until_s = until_s;
@@ -269,7 +269,7 @@ struct NewareServer::Impl {
         if (!runner || runner->state() != RunState::working) {
             // Idle (or a partial tick left): the cell rests, the plant still evolves.
             if (!runner || runner->state() != RunState::working) plant.set_current(0.0);
-            plant.advance_to(target_s);
+            plant.advance_as_driver(target_s);
         }
         update_snapshot();
     }

@@ -90,6 +90,9 @@ struct BenchPlant::Impl {
     double setpoint_c = 0.0;
     bool running = true;
     bool heater_failed = false;
+    // A cycler drives the current (advance_as_driver): other advances stop at the time it has reached.
+    bool driven = false;
+    double driver_time_s = 0.0;
 
     double ripple_c(double t_s) const {
         if (!running || options.chamber_ripple_c <= 0 || options.chamber_ripple_period_s <= 0) return 0.0;
@@ -138,6 +141,13 @@ BenchPlant::BenchPlant(PlantOptions options) : impl_(std::make_shared<Impl>(std:
 
 void BenchPlant::advance_to(double bench_time_s) {
     std::lock_guard lock(impl_->mutex);
+    impl_->advance_to(impl_->driven ? std::min(bench_time_s, impl_->driver_time_s) : bench_time_s);
+}
+
+void BenchPlant::advance_as_driver(double bench_time_s) {
+    std::lock_guard lock(impl_->mutex);
+    impl_->driven = true;
+    impl_->driver_time_s = std::max(impl_->driver_time_s, bench_time_s);
     impl_->advance_to(bench_time_s);
 }
 

@@ -17,9 +17,10 @@
 //
 // Time: bench time from the shared BenchClock (its time scale, e.g. 100 or 1000 bench s per wall s). The
 // program advances in ticks of tick_s bench seconds, whatever the scale (see ProgramRunner). The tester runs
-// up to one timer period ahead of the clock, so the plant is always at or beyond the clock's "now": other
-// instruments' advance_to(clock.now) are then no-ops and never integrate past a step boundary with a stale
-// current.
+// up to one timer period ahead of the clock, so the plant is normally at or beyond the clock's "now": other
+// instruments' advance_to(clock.now) are then no-ops. When its timer runs late (a starved thread at a high
+// time scale) they are still held at the tester's last tick (BenchPlant::advance_as_driver), so they never
+// integrate past a step boundary with a stale current.
 //
 // Step files: `start` names a path on the "BTS PC". It is looked up among files registered with
 // add_step_file(), then on disk (relative paths against step_file_dir). devtype 24 (BTS-4008) by default;

@@ -68,8 +68,15 @@ public:
     explicit BenchPlant(PlantOptions options);
 
     // Integrates the plant up to bench time t (no-op if t is not later than the current time). Current is
-    // held between calls (the exact ZOH of the model), ambient = chamber air.
+    // held between calls (the exact ZOH of the model), ambient = chamber air. Once a cycler drives the current
+    // (advance_as_driver), this stops at the last time the cycler has set it: see below.
     void advance_to(double bench_time_s);
+    // The cycler's own advance (its tick: the current it set holds up to t). From the first call on, the other
+    // instruments' advance_to never integrates past the latest t given here: a cycler whose ticks run late
+    // (a starved thread at a high time scale) would otherwise find the cell already moved on under the
+    // previous current by the DAQ's or the chamber's advance, and its rows would not be the cell's under the
+    // current they record (measured: steps of 2-7 mV in the voltage about 1-2 s after a current step at 400x).
+    void advance_as_driver(double bench_time_s);
 
     void set_current(double current_a);          // cycler output (held until changed)
     void set_chamber_setpoint(double setpoint_c);

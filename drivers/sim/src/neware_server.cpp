@@ -146,7 +146,7 @@ struct NewareServer::Impl {
             const std::size_t conducting = self.conducting();
             const double cell_current = current_a * share();
             // This tick's current, and only up to its end: if this thread lags the clock, the chamber and
-            // the DAQ reading the plant meanwhile do not charge the cell on with it (plant.hpp, set_current).
+            // the DAQ reading the plant meanwhile do not move the cell on with it (plant.hpp, set_current).
             self.plant.set_current(cell_current, until_s);
             self.plant.advance_to(until_s);
             const PlantReading r = self.plant.read();

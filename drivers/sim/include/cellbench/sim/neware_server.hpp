@@ -18,10 +18,12 @@
 // Time: bench time from the shared BenchClock (its time scale, e.g. 100 or 1000 bench s per wall s). The
 // program advances in ticks of tick_s bench seconds, whatever the scale (see ProgramRunner). The tester runs
 // up to one timer period ahead of the clock, so the plant is normally at or beyond the clock's "now" and other
-// instruments' advance_to(clock.now) are no-ops. When this server's thread lags the clock (a loaded host gives
-// it no CPU for a while) they still never integrate the cell with a stale current: each tick's current is held
-// only up to the tick's end (BenchPlant::set_current), so the plant waits for the tester, whose CV phase,
-// cut-offs and step changes run as a real tester's hardware would, connected client or not.
+// instruments' advance_to(clock.now) are no-ops. When this server's thread lags the clock (its timer runs late,
+// or a loaded host gives it no CPU for a while) they still never integrate the cell with a stale current: each
+// tick's current is held only up to the tick's end (BenchPlant::set_current), so the plant waits for the
+// tester. Its late tick finds the cell where its previous tick left it (its rows are the cell's under the
+// current they record), and its CV phase, cut-offs and step changes run as a real tester's hardware would,
+// connected client or not. An idle, paused or stopped tester's 0 A is held for any time.
 //
 // Step files: `start` names a path on the "BTS PC". It is looked up among files registered with
 // add_step_file(), then on disk (relative paths against step_file_dir). devtype 24 (BTS-4008) by default;

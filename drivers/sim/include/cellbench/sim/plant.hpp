@@ -69,8 +69,9 @@ public:
     explicit BenchPlant(PlantOptions options);
 
     // Integrates the plant up to bench time t (no-op if t is not later than the current time), but never past
-    // the time the cycler's current is held until (set_current). Current is held between calls (the exact ZOH
-    // of the model), ambient = chamber air.
+    // the time the cycler's current is held until (set_current): that hold is the one limit on how far anyone
+    // -- the cycler itself, the chamber, the DAQ -- may integrate the cell. Current is held between calls (the
+    // exact ZOH of the model), ambient = chamber air.
     void advance_to(double bench_time_s);
 
     // Cycler output. Without hold_until_s it is held until changed (a current the cycler keeps whatever time
@@ -79,7 +80,10 @@ public:
     // the tick is the tester's next decision (CV limit, cut-offs, step changes) -- so no advance_to() integrates
     // the cell beyond it until the cycler sets the next current. A tester whose thread lags the bench clock then
     // holds the other instruments' view of the plant back instead of having its cell charged on with a stale
-    // current past its CV limit or a cut-off.
+    // current past its CV limit or a cut-off, and its late tick finds the cell where its previous tick left it,
+    // so its rows are the cell's under the current they record (without the hold, at 400x: voltage steps of
+    // 2-7 mV 1-2 s after a current step, where the DAQ or the chamber had moved the cell on under the previous
+    // current).
     void set_current(double current_a, double hold_until_s = std::numeric_limits<double>::infinity());
     void set_chamber_setpoint(double setpoint_c);
     void set_chamber_running(bool running);      // a stopped chamber drifts towards the lab at 22 degC

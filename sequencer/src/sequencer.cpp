@@ -113,7 +113,7 @@ void Sequencer::start(const Program& program, double t) {
     rec_.surface_c.clear();
     fitted_pulse_sets_ = 0;
     window_begin_ = 0;
-    last_ocv_v_ = last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
+    pending_fit_.reset();
     full_charge_row_ = 0;
     rec_soc_.clear();
     soc_anchor_ = kNaN;
@@ -187,6 +187,8 @@ void Sequencer::advance_locked(double t) {
 void Sequencer::finish_locked(RunState end_state, const std::string& reason, double t) {
     if (!fire_locked(trigger_of_end(end_state))) return;
     end_step_locked(t);
+    // A pulse set whose fit waited for what follows it is fitted with what there is.
+    if (opt_.fit_online) resolve_pending_fit_locked(true);
     sink_.on_state(end_state, reason);
     const bool fit_now = end_state == RunState::Completed && opt_.fit_at_end && rec_.size() > 10;
     // Without keep_recording_after_end the recording goes to the end fit (or is dropped): the store holds every
@@ -368,35 +370,76 @@ double Sequencer::soc() const {
     return soc_locked();
 }
 
-void Sequencer::check_pulse_sets_locked() {
+void Sequencer::check_pulse_sets_locked(bool run_ending) {
+    resolve_pending_fit_locked(run_ending);
     if (rec_.size() < 100) return;
     const Recording window = rec_.slice(window_begin_, rec_.size());
     const auto ps = estimator::last_complete_pulse_set(window);
     if (!ps) return;
+    // One pending fit at a time: an earlier one still undecided is fitted now with what there is.
+    if (pending_fit_) resolve_pending_fit_locked(true);
     const std::size_t begin = window_begin_;
     window_begin_ += ps->end;  // later windows start after this pulse set's relaxation
     ++fitted_pulse_sets_;
-    // Charge count from the run start (for the OCV chord below) and the SOC of the pulse set's rested start
-    // (the row before its first pulse; the SOC owner's value of that row).
-    double q = 0;
-    for (std::size_t k = 1; k < begin + ps->pulse_begin && k < rec_.size(); ++k)
-        q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;
+    // The SOC of the pulse set's rested start (the row before its first pulse; the SOC owner's value of that
+    // row) and the start of its first pulse.
     const std::size_t rest_row = begin + ps->pulse_begin > 0 ? begin + ps->pulse_begin - 1 : 0;
     const double soc = rest_row < rec_soc_.size() ? rec_soc_[rest_row] : soc_locked();
     const std::size_t pulse_row = std::min(begin + ps->pulse_begin, rec_.size() - 1);
     const double t_pulse = run_start_s_ + rec_.time_s[pulse_row];
-    // OCV slope (V/Ah) for the fit: the chord from the previous pulse set's rested voltage to this one's, when
-    // they are at least 2 % of the capacity apart. The first pulse set has none (the fit says so in a warning);
-    // without it the pairs absorb the OCV's fall during the pulse (tau1 about doubles) and R0 reads ~0.5 % high.
+    pending_fit_ = PendingFit{begin, *ps, soc, t_pulse};
+    resolve_pending_fit_locked(run_ending);
+}
+
+// The OCV slope a pulse set needs is the one over the SOC range it covers: from its rested start down by the
+// discharge pulse's charge. A chord from the previous pulse set's rest (above this SOC) is wrong wherever the
+// slope changes at this SOC (on the simulated cell, whose OCV table has its knots at the pulse sets' SOCs: the
+// discharge R1 x1.4 and R2 +14 % at 90 %, R1 x1.5 at 20 %). The SOC step that follows the pulse set goes down
+// through that range, and the long rest after it gives its OCV: the chord from the pulse set's rest to the end
+// of that long rest. So the fit waits for that rest to end (what follows a pulse set is known only then); when
+// no SOC step and long rest follow (or the run ends first), the fit estimates the slope from the pulse set
+// itself (PulseFitOptions::estimate_unknown_ocv_slope).
+void Sequencer::resolve_pending_fit_locked(bool run_ending) {
+    if (!pending_fit_) return;
+    const PendingFit p = *pending_fit_;
+    const std::size_t after = p.begin + p.ps.end;  // first row after the charge relaxation
+    // R0 of each direction is fitted with the pairs over every row, not held at its eq. 3.2 steps: a step
+    // is the difference of two rows, so the tester's voltage noise goes into the held R0 (0.2 mV -> +-1 % of
+    // R0, the size of R1's share of the first sample) and from there into the fast pair (C1 off by up to 22 %
+    // on the noisy simulated tester); and after a charge pulse that turned CV the step at its end is taken at
+    // the tapered current (at 100 % SOC: the charge C1 -78 %).
     estimator::PulseFitOptions po;
-    const double ocv_v = window.voltage_v[ps->pulse_begin - 1];
-    if (std::isfinite(last_ocv_v_) && std::isfinite(ocv_v) && std::abs(q - last_ocv_q_ah_) > 0.02 * opt_.capacity_ah) {
-        const double slope = (ocv_v - last_ocv_v_) / (q - last_ocv_q_ah_);
-        if (std::isfinite(slope) && slope > 0.0) po.docv_dah_v_per_ah = slope;
+    po.r0_from_steps = false;
+    const Recording window = rec_.slice(p.begin, std::min(after, rec_.size()));
+    auto fit_now = [&] {
+        pending_fit_.reset();
+        dispatch_fit_locked(window, p.ps, p.soc, p.t_pulse, po);
+    };
+    // What followed the pulse set: a discharge (the SOC step), then a long rest, both ended?
+    const auto phases = after < rec_.size() ? estimator::split_phases(rec_.slice(after, rec_.size()))
+                                            : std::vector<estimator::Phase>{};
+    const bool step_ended = !phases.empty() && !phases[0].open_end;
+    if (!step_ended) {
+        if (run_ending) fit_now();
+        return;
     }
-    last_ocv_v_ = ocv_v;
-    last_ocv_q_ah_ = q;
-    spawn([this, window, pset = *ps, soc, po, t = last_cycler_s_, t_pulse]() -> std::function<void()> {
+    if (phases[0].kind != estimator::PhaseKind::Discharge || phases.size() < 2 || !phases[1].is_rest())
+        return fit_now();
+    const estimator::Phase& rest = phases[1];
+    if (rest.open_end && !run_ending) return;  // the rest goes on: its last row is the OCV
+    if (rest.kind != estimator::PhaseKind::LongRest) return fit_now();
+    const std::size_t a = p.begin + p.ps.pulse_begin - 1, rest_last = after + rest.end - 1;
+    double q = 0;
+    for (std::size_t k = a + 1; k <= rest_last; ++k)
+        if (std::isfinite(rec_.current_a[k])) q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;
+    const double slope = (rec_.voltage_v[rest_last] - rec_.voltage_v[a]) / q;
+    if (std::isfinite(slope) && slope > 0.0) po.docv_dah_v_per_ah = slope;
+    fit_now();
+}
+
+void Sequencer::dispatch_fit_locked(const Recording& window, const estimator::PulseSet& pset, double soc,
+                                    double t_pulse, const estimator::PulseFitOptions& po) {
+    spawn([this, window, pset, soc, po, t = last_cycler_s_, t_pulse]() -> std::function<void()> {
         try {
             auto fit = std::make_shared<estimator::PulseSetFit>(estimator::fit_pulse_set(window, pset, po));
             fit->soc = soc;

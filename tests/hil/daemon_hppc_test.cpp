@@ -3,8 +3,9 @@
 // the sequencer into the run store.
 //  - The FULL HPPC (config/programs/hppc.json: pilot discharge, pulse sets 100 % -> 10 % SOC, final discharge
 //    to 0 %): every step and samples stored, one fit per pulse set, fitted discharge R0 within 3 % of the
-//    simulated cell's; R1, C1, R2, C2 of both directions printed against the cell's (issue 11's 15 % goal is
-//    not met yet on the noisy tester: see below), positive, with no flag on them.
+//    simulated cell's; R1, C1, R2, C2 of both directions within 15 % of the cell's (issue 11), with no flag on
+//    them. CELLBENCH_HIL_SEED sets the simulated instruments' noise seed; CELLBENCH_HIL_KEEP_DB=PATH keeps the
+//    run's database (for `cellbench fit --db PATH --run 1`).
 //    Time scale: CELLBENCH_HIL_TIME_SCALE (default kHppcTimeScale); the wall time is printed.
 //    CELLBENCH_HIL_VERBOSE=1 logs at debug level and lists the steps.
 //  - Safety: an over-temperature (a low max_temperature_c, heated by a 40 A discharge) stops the current
@@ -24,6 +25,7 @@
 #include <string>
 #include <utility>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -65,7 +67,22 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     if (const char* env = std::getenv("CELLBENCH_HIL_TIME_SCALE")) scale = std::atof(env);
     TempDir dir("daemon-hppc");
     if (std::getenv("CELLBENCH_HIL_VERBOSE")) spdlog::set_level(spdlog::level::debug);
-    daemon::BenchDaemon d(test::sim_bench_config(kSource / "config/bench.sim.json"), test::daemon_options_in(dir, scale));
+    auto cfg = test::sim_bench_config(kSource / "config/bench.sim.json");
+    ASSERT_TRUE(cfg.simulation.has_value());
+    // CELLBENCH_HIL_SEED: the simulated instruments' noise seed (default: the bench file's).
+    if (const char* env = std::getenv("CELLBENCH_HIL_SEED")) cfg.simulation->seed = static_cast<std::uint32_t>(std::atol(env));
+    std::printf("simulation seed %u\n", static_cast<unsigned>(cfg.simulation->seed));
+    // CELLBENCH_HIL_KEEP_DB=PATH: the run's database is copied there when the daemon has closed it (for
+    // `cellbench fit --db PATH --run 1`).
+    struct KeepDb {
+        fs::path from;
+        ~KeepDb() {
+            const char* to = std::getenv("CELLBENCH_HIL_KEEP_DB");
+            std::error_code ec;
+            if (to && fs::exists(from, ec)) fs::copy_file(from, to, fs::copy_options::overwrite_existing, ec);
+        }
+    } keep_db{dir.path / "bench.sqlite"};
+    daemon::BenchDaemon d(cfg, test::daemon_options_in(dir, scale));
     d.start();
     ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
 
@@ -142,47 +159,97 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
         EXPECT_NEAR(r0, r0_true, 0.03 * r0_true) << "pulse set " << f["pulse_set"] << " at SOC " << soc;
     }
     std::printf("  worst R0 error %.2f %%\n", worst);
-    // Issue 11 (Daemon HIL): the online fits should recover the RC pairs too -- R1, C1, R2, C2 of both directions
-    // within 15 % of the simulated cell's at every SOC level. Measured and printed here, NOT yet asserted: with
-    // the simulated tester's 0.2 mV voltage noise a 30 s + 40 s / 10 s + 40 s pulse set does not pin the fast
-    // pair (C1 off by 15-20 % at several levels, the charge tau1 at 100 % SOC half the truth) and some levels
-    // land in a wrong local optimum (discharge R1 x2 at 90 %, R2 +50 % at 20 %). The noise-free online fit
-    // meets 15 % (Sequencer.RunsAShortHppcAndFitsEveryPulseSetOnline asserts it). Nothing on them is flagged.
-    std::printf("  set   SOC  dir        R1 mOhm (truth)      C1 F (truth)     R2 mOhm (truth)      C2 F (truth)\n");
-    double worst_rc = 0;
-    for (const auto& f : fits) {
+    // Issue 11 (Daemon HIL): the online fits recover the RC pairs too -- R1, C1, R2, C2 of both directions within
+    // 15 % of the simulated cell's at every SOC level, none flagged (Sequencer.RunsAShortHppcAndFitsEveryPulseSetOnline
+    // asserts the same without noise). On the noisy tester they did not (worst 78 %, seed 1), for three reasons:
+    //  - the fit took the OCV slope from a chord above the level while the pulse set runs below it (the cell's OCV
+    //    table has its knots at the levels: discharge R1 +36 % at 90 %, +47 % at 20 %). The fit now waits for the
+    //    SOC step and the long rest after it and takes the chord below (sequencer.cpp);
+    //  - R0 was held at its eq. 3.2 steps, two-row differences that carry the voltage noise into the fast pair
+    //    (C1 up to 22 % off). R0 is now fitted with the pairs;
+    //  - the simulated instruments let the DAQ and the chamber advance the shared cell past a late tester tick
+    //    under the previous current, so the tester's rows showed voltage steps of 2-7 mV 1-2 s after a current
+    //    step (C1 -70 % where that hit). The tester now drives the cell's time: each tick's current is held on
+    //    the plant only up to the tick's end (BenchPlant::set_current), and no one integrates the cell past it.
+    // Not asserted: a direction whose pulse turned CV (the fit says so in its warnings). At 100 % SOC the charge
+    // pulse meets the 4.1 V limit (the full cell's OCV) from its first row and carries 1.2 A falling to 0.5 A
+    // instead of 4.5 A, so the charge pair has a quarter of the signal: its C1 has a 1-sigma of ~15 % from the
+    // fit itself (its worst value 5-37 % off in five runs). It is printed; the test asserts that only the pulse
+    // set at 100 % SOC turns CV.
+    //
+    // The reference is the cell's values at the cell's own SOC at the pulse set's rested start: the SOC its OCV
+    // table gives for that rested voltage (the fit's OCV). The bench's SOC (the fit's "soc") counts from the end of
+    // a CCCV charge as 1.0, which leaves this cell ~0.2 % below its table's 1.0, and the cell's R2 triples between
+    // 30 % and 20 %: taken at the bench's SOC the reference alone would be 4 % off there. Both are printed.
+    const auto records = d.store().pulse_fits(id);
+    ASSERT_EQ(records.size(), fits.size());
+    std::printf("  set   SOC  cell SOC  dir        R1 mOhm (truth)      C1 F (truth)     R2 mOhm (truth)      C2 F (truth)\n");
+    double worst_rc = 0, worst_rc_bench_soc = 0, worst_rc_cv = 0;
+    for (std::size_t k = 0; k < fits.size(); ++k) {
+        const auto& f = fits[k];
         const double soc = f["soc"].get<double>();
+        ASSERT_TRUE(f["ocv_v"].is_number()) << "pulse set " << f["pulse_set"];
+        const double cell_soc = truth.soc_from_ocv(f["ocv_v"].get<double>());
+        EXPECT_NEAR(cell_soc, soc, 0.01) << "pulse set " << f["pulse_set"];
+        bool turned_cv[2] = {false, false};  // discharge, charge
+        for (const auto& w : records[k].detail["warnings"]) {
+            const std::string text = w.get<std::string>();
+            if (text.rfind("the discharge pulse hit the lower voltage limit", 0) == 0) turned_cv[0] = true;
+            if (text.rfind("the charge pulse hit the upper voltage limit", 0) == 0) turned_cv[1] = true;
+        }
+        EXPECT_FALSE(turned_cv[0]) << "pulse set " << f["pulse_set"];
+        EXPECT_EQ(turned_cv[1], k == 0) << "pulse set " << f["pulse_set"] << " at SOC " << soc;
         for (const char* dir : {"discharge", "charge"}) {
             const json& got = f[dir];
             ASSERT_TRUE(got.is_object()) << dir << " values missing, pulse set " << f["pulse_set"];
-            const auto truth_rc = estimator::to_rc_values(truth.rc_at(soc, std::string(dir) == "charge" ? +1 : -1));
-            const std::pair<const char*, double> want[] = {{"r1_ohm", truth_rc.r1_ohm}, {"c1_f", truth_rc.c1_f},
-                                                           {"r2_ohm", truth_rc.r2_ohm}, {"c2_f", truth_rc.c2_f}};
-            std::printf("  %3d  %5.3f  %-9s", f["pulse_set"].get<int>(), soc, dir);
-            for (const auto& [name, value] : want) {
+            const int sign = std::string(dir) == "charge" ? +1 : -1;
+            const bool cv = turned_cv[sign > 0 ? 1 : 0];
+            const auto truth_rc = estimator::to_rc_values(truth.rc_at(cell_soc, sign));
+            const auto bench_rc = estimator::to_rc_values(truth.rc_at(soc, sign));
+            const std::tuple<const char*, double, double> want[] = {{"r1_ohm", truth_rc.r1_ohm, bench_rc.r1_ohm},
+                                                                    {"c1_f", truth_rc.c1_f, bench_rc.c1_f},
+                                                                    {"r2_ohm", truth_rc.r2_ohm, bench_rc.r2_ohm},
+                                                                    {"c2_f", truth_rc.c2_f, bench_rc.c2_f}};
+            std::printf("  %3d  %5.3f  %6.4f  %-9s", f["pulse_set"].get<int>(), soc, cell_soc, dir);
+            for (const auto& [name, value, value_at_bench_soc] : want) {
                 const double v = got.contains(name) && got[name].is_number() ? got[name].get<double>() : NAN;
                 const double scale_v = name[0] == 'r' ? 1e3 : 1.0;
                 std::printf(" %8.3f (%8.3f)", v * scale_v, value * scale_v);
-                worst_rc = std::max(worst_rc, std::abs(v - value) / value);
+                const double err = std::isfinite(v) ? std::abs(v - value) / value : INFINITY;
+                const double err_bench = std::isfinite(v) ? std::abs(v - value_at_bench_soc) / value_at_bench_soc : INFINITY;
+                if (cv) {
+                    worst_rc_cv = std::max(worst_rc_cv, err);
+                } else {
+                    worst_rc = std::max(worst_rc, err);
+                    worst_rc_bench_soc = std::max(worst_rc_bench_soc, err_bench);
+                }
                 EXPECT_TRUE(std::isfinite(v) && v > 0.0) << dir << " " << name << ", pulse set " << f["pulse_set"];
+                if (!cv)
+                    EXPECT_NEAR(v, value, 0.15 * value) << dir << " " << name << ", pulse set " << f["pulse_set"]
+                                                        << " at SOC " << soc << " (cell SOC " << cell_soc << ")";
             }
-            std::printf("\n");
+            std::printf("%s\n", cv ? "  (pulse turned CV: not asserted)" : "");
             if (got.contains("flags")) EXPECT_TRUE(got["flags"].empty()) << dir << " flags " << got["flags"].dump();
         }
         if (f.contains("flags")) EXPECT_TRUE(f["flags"].empty()) << "flags " << f["flags"].dump();
     }
-    std::printf("  worst R1/C1/R2/C2 error %.1f %%\n", 100.0 * worst_rc);
+    std::printf("  worst R1/C1/R2/C2 error %.1f %% (against the cell at the bench's SOC: %.1f %%); the pair whose pulse "
+                "turned CV: %.1f %%\n",
+                100.0 * worst_rc, 100.0 * worst_rc_bench_soc, 100.0 * worst_rc_cv);
+    RecordProperty("worst_rc_error_cv_pulse_percent", std::to_string(100.0 * worst_rc_cv));
+    RecordProperty("worst_rc_error_at_bench_soc_percent", std::to_string(100.0 * worst_rc_bench_soc));
     RecordProperty("worst_rc_error_percent", std::to_string(100.0 * worst_rc));
-    // A pulse set ends with the rest after its charge pulse; the detector sees that end when the next step (the
-    // SOC step, id 12) begins. Latency in wall time = bench seconds / time scale (+- one 100 ms poll).
-    std::vector<double> soc_step_t_s;
+    // A pulse set's fit waits for the SOC step (id 12) and the long rest after it (id 13): the sequencer sees
+    // that rest end when the next step begins. Latency in wall time = bench seconds / time scale (+- one 100 ms
+    // poll) after that.
+    std::vector<double> rest_end_t_s;
     for (const auto& st : steps)
-        if (st.step_id == 12) soc_step_t_s.push_back(st.started_t_s);
+        if (st.step_id == 13 && st.ended_t_s) rest_end_t_s.push_back(*st.ended_t_s);
     double worst_latency_ms = 0;
-    for (std::size_t k = 0; k < fit_seen_t_s.size() && k < soc_step_t_s.size(); ++k) {
-        const double ms = 1e3 * (fit_seen_t_s[k] - soc_step_t_s[k]) / scale;
+    for (std::size_t k = 0; k < fit_seen_t_s.size() && k < rest_end_t_s.size(); ++k) {
+        const double ms = 1e3 * (fit_seen_t_s[k] - rest_end_t_s[k]) / scale;
         worst_latency_ms = std::max(worst_latency_ms, ms);
-        std::printf("  pulse set %2zu: fit in the API %.0f ms (wall) after the pulse set ended\n", k + 1, ms);
+        std::printf("  pulse set %2zu: fit in the API %.0f ms (wall) after the rest after its SOC step ended\n", k + 1, ms);
     }
     RecordProperty("worst_fit_latency_ms", std::to_string(worst_latency_ms));
     RecordProperty("time_scale", std::to_string(scale));
@@ -232,8 +299,9 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     d.shutdown();
     // The wall time (goal: under 3 minutes) is printed, not asserted: timing lives in benchmarks. The fits do
     // not depend on the time scale: they use the rows the tester recorded at 0.1 s (download), not the polls.
-    // R0 by eq. 3.2 reads the first row 0.1 s after the step, so it carries that much of the RC relaxation
-    // (about +1 to +2.6 % on this cell): the thesis' own definition, kept for comparability with Table 3.2.
+    // R0 is the joint fit's (fitted with the pairs over every row; eq. 3.2's steps are in the fit's detail):
+    // eq. 3.2 reads the first row 0.1 s after the step, so it carries that much of the RC relaxation (about +1 to
+    // +2.6 % on this cell), and its two-row differences carry the tester's voltage noise.
 }
 
 TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {

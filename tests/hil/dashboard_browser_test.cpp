@@ -59,7 +59,8 @@ bool eventually(const std::function<bool()>& pred, std::chrono::seconds limit, s
 
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 const fs::path kBuild = fs::path(CELLBENCH_BIN_DIR).parent_path();
-// hppc_short is ~4000 bench seconds: ~20 s of wall time here, the first fit after ~9 s.
+// hppc_short is ~4000 bench seconds: ~20 s of wall time here, the first fit after ~14 s (it waits for the SOC
+// step and the 10 min rest after it).
 constexpr double kTimeScale = 200.0;
 
 std::string find_program(const std::vector<std::string>& names) {

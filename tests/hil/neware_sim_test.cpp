@@ -1,12 +1,15 @@
 // The Neware driver against the simulated BTS over real loopback sockets, with the real BenchPlant (the
 // thesis' P45B parameter set): status and live values, garbage between frames, malformed and stalled answers,
 // dropped and refused connections, the three-channel parallel group as one 60 A channel and its fault on a
-// member dropout, and a CC program at a high time scale running to its voltage cut-off.
+// member dropout, a CC program at a high time scale running to its voltage cut-off, and a CCCV charge that holds
+// its voltage limit while the tester's host is starved (the client times out and reconnects meanwhile).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <condition_variable>
 #include <fstream>
 #include <functional>
@@ -83,6 +86,8 @@ public:
 
     sim::NewareServer& server() { return *server_; }
     drivers::NewareClient& client() { return *client_; }
+    sim::BenchPlant& plant() { return *plant_; }
+    const sim::BenchClock& clock() const { return *clock_; }
 
     // Waits (at most `limit`, a safety net, not a timing claim) until pred holds over what was recorded.
     bool wait(const std::function<bool(const std::vector<NewareSample>&, const std::vector<NewareEvent>&)>& pred,
@@ -166,6 +171,14 @@ protocol::Step cc_discharge(double current_a, double cutoff_v, std::optional<dou
     x.current_a = current_a;
     x.cutoff_voltage_v = cutoff_v;
     x.time_s = time_s;
+    return x;
+}
+protocol::Step cccv_charge(double current_a, double voltage_v, double cutoff_current_a) {
+    protocol::Step x;
+    x.type = protocol::StepType::cccv_charge;
+    x.current_a = current_a;
+    x.voltage_v = voltage_v;
+    x.cutoff_current_a = cutoff_current_a;
     return x;
 }
 protocol::StepProgram make_program(std::string name, std::vector<protocol::Step> steps) {
@@ -428,4 +441,84 @@ TEST(NewareSim, RecordedRowsAreCompleteAtTheTestersIntervalWhateverThePolling) {
     EXPECT_EQ(rows[399].step_type, "dc");
     EXPECT_EQ(rows[400].step_type, "rest");
     EXPECT_GT(rows[400].voltage_v, rows[399].voltage_v + 0.02);  // the IR jump back at the pulse's end
+}
+
+// The incident of `make test-loaded` (DaemonHil.FullHppc aborted on "voltage 4.239 V outside the safety window
+// 2.80-4.20 V" after a download timeout and a reconnect): the simulated tester's thread got no CPU for a moment
+// in the CC phase of a CCCV charge to 4.1 V, while the bench clock and the other simulated instruments (the
+// chamber and the DAQ advance the shared plant to the clock's "now" before each reading) went on. A real
+// tester's current is its own hardware's, CV limit included, whatever its PC and the client do; the simulated
+// cell must never be charged on with the tester's last CC current past the point where the tester would have
+// switched to CV.
+TEST(NewareSim, CccvChargeHoldsItsVoltageLimitWhileTheTestersHostIsStarved) {
+    constexpr double kCvV = 4.1;
+    // 500 bench s per wall s; from 60 % SOC the CC phase of a 1C charge lasts about 1000 bench s.
+    Bench bench(500.0, 0.6);
+    ASSERT_TRUE(bench.wait_samples(1));
+    const auto program = make_program("cccv", {rest(2.0), cccv_charge(4.5, kCvV, 0.05), rest(60.0)});
+    ASSERT_TRUE(bench.start(program).ok);
+    // The tester's own view (not the client's polls): its CC phase has begun.
+    const auto in_cc = [&] {
+        const auto s = bench.server().snapshot();
+        return s.state == sim::RunState::working && s.step_id == 2 && s.step_type == "cc";
+    };
+    for (int k = 0; k < 20000 && !in_cc(); ++k) std::this_thread::sleep_for(1ms);  // bounded: a broken test ends
+    ASSERT_TRUE(in_cc()) << "the charge's CC phase was not seen";
+
+    bench.server().set_starved(true);
+    const auto at_freeze = bench.server().snapshot();
+    ASSERT_EQ(at_freeze.step_id, 2);
+    ASSERT_EQ(at_freeze.step_type, "cc") << "starved after the CC phase: the test needs it in CC";
+    ASSERT_LT(at_freeze.voltage_v, kCvV);
+    // Unanswered, the client declares its request lost and reconnects (as in the incident).
+    const std::size_t timeouts = bench.event_count(NewareEventKind::timeout);
+    ASSERT_TRUE(bench.wait_event(NewareEventKind::timeout, timeouts + 1));
+    // Meanwhile the other instruments read the plant at the clock's "now", as the chamber and the DAQ do, for
+    // 2000 bench s: more than the whole CC phase from 60 % SOC at 4.5 A.
+    const double until_s = at_freeze.bench_time_s + 2000.0;
+    while (bench.clock().now_s() < until_s) {
+        bench.plant().advance_to(bench.clock().now_s());
+        std::this_thread::sleep_for(5ms);
+    }
+    bench.plant().advance_to(until_s);
+    bench.server().set_starved(false);
+    const auto released_at = std::chrono::steady_clock::now();
+
+    // The tester catches up and runs its program to the end (a poll sent after the release says so; the last
+    // one before the freeze may still show the idle channels of before the start) ...
+    ASSERT_TRUE(bench.wait([&](const auto& s, const auto&) {
+        return !s.empty() && s.back().request_time > released_at && s.back().group.status == ChannelStatus::finish;
+    }, 60s));
+    const auto snap = bench.server().snapshot();
+    ASSERT_EQ(snap.state, sim::RunState::finished);
+    // ... and the client has every row the tester recorded, up to its last (rows come after the live status).
+    ASSERT_TRUE(bench.wait([&](const auto& s, const auto&) {
+        for (auto it = s.rbegin(); it != s.rend(); ++it)
+            if (!it->records.empty()) return it->records.back().test_time_s >= snap.total_time_s - 1e-6;
+        return false;
+    }, 120s)) << "the recorded rows never arrived";
+    ASSERT_EQ(snap.history.size(), 3u);
+    const auto& charge = snap.history[1];
+    EXPECT_EQ(charge.end_reason, "current") << "the charge ends in its CV phase, on the cut-off current";
+    EXPECT_LE(charge.end_voltage_v, kCvV + 0.002);
+    // A CCCV charge to 4.1 V leaves the cell at or below the SOC whose OCV is 4.1 V (100 % of this cell).
+    EXPECT_LE(bench.plant().read().soc, 1.0 + 1e-3);
+    // No reading above the CV limit (beyond the 0.2 mV of sensor noise and one 0.1 s tick of CC), neither the
+    // tester's recorded rows nor the live values.
+    double max_record_v = 0, max_live_v = 0;
+    std::size_t rows = 0;
+    for (const auto& s : bench.samples()) {
+        max_live_v = std::max(max_live_v, s.group.voltage_v);
+        for (const auto& r : s.records) {
+            max_record_v = std::max(max_record_v, r.voltage_v);
+            ++rows;
+        }
+    }
+    EXPECT_GT(rows, 0u);
+    EXPECT_LE(max_record_v, kCvV + 0.005) << "recorded rows above the CV limit";
+    EXPECT_LE(max_live_v, kCvV + 0.005) << "live readings above the CV limit";
+    std::printf("starved in CC at bench %.1f s (%.3f V); charge ended on %s at %.4f V; max recorded %.4f V, live "
+                "%.4f V; SOC after %.4f\n",
+                at_freeze.bench_time_s, at_freeze.voltage_v, charge.end_reason.c_str(), charge.end_voltage_v,
+                max_record_v, max_live_v, bench.plant().read().soc);
 }

@@ -217,6 +217,52 @@ TEST(Plant, CopiesShareOnePlantAndConcurrentUseIsSafe) {
     EXPECT_DOUBLE_EQ(plant.now_s(), 250.0);
 }
 
+// A tester executing a program holds each tick's current only up to the tick's end: another instrument reading
+// the plant at a later "now" (the tester's thread lagging the bench clock) does not integrate the cell on with
+// that current; the plant waits for the tester's next tick. A current set without a hold is kept for any time.
+TEST(Plant, CurrentHeldUntilATimeIsNotIntegratedPastIt) {
+    BenchPlant plant(quiet_options());
+    plant.advance_to(10.0);
+    plant.set_current(4.5, 10.1);  // one 0.1 s tick of a 1C charge
+    plant.advance_to(10.1);
+    const double soc_tick = plant.read().soc;
+    EXPECT_DOUBLE_EQ(plant.now_s(), 10.1);
+    plant.advance_to(1000.0);  // the chamber or the DAQ at the clock's "now"
+    EXPECT_DOUBLE_EQ(plant.now_s(), 10.1) << "integrated past the tester's tick";
+    EXPECT_DOUBLE_EQ(plant.read().soc, soc_tick);
+    plant.set_current(4.5, 10.2);  // the tester's next tick
+    plant.advance_to(1000.0);
+    EXPECT_DOUBLE_EQ(plant.now_s(), 10.2);
+    EXPECT_GT(plant.read().soc, soc_tick);
+    plant.set_current(0.0);  // the program ended: 0 A for as long as time goes on
+    plant.advance_to(1000.0);
+    EXPECT_DOUBLE_EQ(plant.now_s(), 1000.0);
+}
+
+// The cycler drives the cell's time: each tick's current is held up to the tick's end (set_current), so
+// another instrument's advance (the DAQ's, the chamber's, at the clock's "now") stops at the cycler's last tick;
+// a late tick still finds the cell where the cycler left it, and the cell under the cycler's current is the
+// same whoever advanced it in between.
+TEST(Plant, OtherInstrumentsNeverAdvanceTheCellPastTheCyclersLastTick) {
+    BenchPlant reference(quiet_options()), shared(quiet_options());
+    for (BenchPlant* p : {&reference, &shared}) {
+        p->set_current(-4.5, 10.0);  // the cycler's tick up to 10 s
+        p->advance_to(10.0);
+    }
+    shared.advance_to(12.0);  // the DAQ, ahead of the cycler's next tick
+    EXPECT_DOUBLE_EQ(shared.now_s(), 10.0);
+    for (BenchPlant* p : {&reference, &shared}) {
+        p->set_current(0.0, 10.1);  // the cycler's late tick: the pulse ended at 10 s
+        p->advance_to(10.1);
+    }
+    EXPECT_DOUBLE_EQ(shared.now_s(), 10.1);
+    EXPECT_DOUBLE_EQ(shared.read().terminal_voltage_v, reference.read().terminal_voltage_v);
+    // Without a cycler holding its current, the plant advances for anyone (a chamber or DAQ simulated alone).
+    BenchPlant alone(quiet_options());
+    alone.advance_to(12.0);
+    EXPECT_DOUBLE_EQ(alone.now_s(), 12.0);
+}
+
 TEST(BenchClock, MapsWallTimeByTheTimeScale) {
     const cellbench::sim::BenchClock clock(100.0, 5.0);
     const auto wall = clock.wall_at(15.0);

@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <cstring>
 #include <ctime>
 #include <deque>
@@ -106,6 +107,22 @@ struct NewareServer::Impl {
 
     std::atomic<bool> stall{false}, malformed{false}, garbage{false};
 
+    // Starved host (set_starved): the io thread waits in hold_while_starved() until released.
+    std::mutex starve_mutex;  // any thread
+    std::condition_variable starve_cv;
+    bool starved = false;
+    bool held = false;      // the io thread is inside hold_while_starved()
+    bool io_ended = false;  // the io thread has left io.run(): nothing will hold it
+
+    void hold_while_starved() {
+        std::unique_lock lock(starve_mutex);
+        held = true;
+        starve_cv.notify_all();
+        starve_cv.wait(lock, [&] { return !starved; });
+        held = false;
+        starve_cv.notify_all();
+    }
+
     mutable std::mutex files_mutex;  // any thread
     std::map<std::string, std::string> files;
 
@@ -128,7 +145,9 @@ struct NewareServer::Impl {
         CellMeasurement drive(double current_a, double until_s) override {
             const std::size_t conducting = self.conducting();
             const double cell_current = current_a * share();
-            self.plant.set_current(cell_current);
+            // This tick's current, and only up to its end: if this thread lags the clock, the chamber and
+            // the DAQ reading the plant meanwhile do not move the cell on with it (plant.hpp, set_current).
+            self.plant.set_current(cell_current, until_s);
             self.plant.advance_to(until_s);
             const PlantReading r = self.plant.read();
             const double dt = std::max(0.0, until_s - last_until_s);
@@ -859,6 +878,8 @@ void NewareServer::Impl::accept() {
 
 void NewareServer::Impl::close_all() {
     stopping = true;
+    // A tester that is switched off conducts nothing (and holds the plant's time no longer: set_current).
+    if (run_active()) plant.set_current(0.0);
     boost::system::error_code ec;
     acceptor.close(ec);
     timer.cancel();
@@ -889,18 +910,26 @@ void NewareServer::start() {
     impl_->guard.emplace(impl_->io.get_executor());
     impl_->timer.expires_after(std::chrono::milliseconds(0));
     impl_->timer.async_wait([impl = impl_.get()](const boost::system::error_code& e) { impl->on_timer(e); });
+    {
+        std::lock_guard lock(impl_->starve_mutex);
+        impl_->io_ended = false;
+    }
     impl_->thread = std::thread([impl = impl_.get()] {
         try {
             impl->io.run();
         } catch (const std::exception& e) {
             spdlog::error("neware sim: io thread ended: {}", e.what());
         }
+        std::lock_guard lock(impl->starve_mutex);
+        impl->io_ended = true;
+        impl->starve_cv.notify_all();
     });
     spdlog::info("neware sim: listening on {}", description());
 }
 
 void NewareServer::stop() {
     if (!impl_ || !impl_->thread.joinable()) return;
+    set_starved(false);  // the io thread must run to close
     asio::post(impl_->io, [impl = impl_.get()] { impl->close_all(); });
     impl_->guard.reset();
     impl_->thread.join();
@@ -935,6 +964,23 @@ void NewareServer::drop_connections() {
             if (auto s = w.lock()) s->close();
         spdlog::info("neware sim: dropped all connections");
     });
+}
+
+void NewareServer::set_starved(bool starved) {
+    Impl& impl = *impl_;
+    std::unique_lock lock(impl.starve_mutex);
+    if (impl.starved == starved) return;
+    impl.starved = starved;
+    if (!starved) {
+        impl.starve_cv.notify_all();
+        spdlog::info("neware sim: the host gets CPU again");
+        return;
+    }
+    spdlog::info("neware sim: the host gets no CPU (starved)");
+    if (!impl.thread.joinable()) return;  // not running: nothing to hold
+    asio::post(impl.io, [impl = impl_.get()] { impl->hold_while_starved(); });
+    // Returns once the io thread is held (or released again by another thread).
+    impl.starve_cv.wait(lock, [&] { return impl.held || !impl.starved || impl.io_ended; });
 }
 
 void NewareServer::set_stall_responses(bool stall) { impl_->stall = stall; }

@@ -84,6 +84,7 @@ struct BenchPlant::Impl {
 
     double now_s = 0.0;
     double current_a = 0.0;
+    double hold_until_s = std::numeric_limits<double>::infinity();  // current_a is the cycler's up to here
     double cell_voltage_v = 0.0;  // model terminal voltage (no harness) at now_s and current_a
     double charge_ah = 0.0, energy_wh = 0.0;
     double air_base_c = 0.0;      // chamber air without the control ripple
@@ -117,6 +118,7 @@ struct BenchPlant::Impl {
     }
 
     void advance_to(double t_s) {
+        t_s = std::min(t_s, hold_until_s);  // what the cell gets after that is the cycler's next decision
         while (now_s < t_s) {
             const double remaining_s = t_s - now_s;
             const double dt_s = std::min(kMaxTickS, remaining_s);
@@ -141,9 +143,10 @@ void BenchPlant::advance_to(double bench_time_s) {
     impl_->advance_to(bench_time_s);
 }
 
-void BenchPlant::set_current(double current_a) {
+void BenchPlant::set_current(double current_a, double hold_until_s) {
     std::lock_guard lock(impl_->mutex);
     impl_->current_a = current_a;
+    impl_->hold_until_s = std::isnan(hold_until_s) ? std::numeric_limits<double>::infinity() : hold_until_s;
     impl_->cell_voltage_v = impl_->cell_voltage_at(current_a);  // the ohmic step is immediate
 }
 

@@ -1,6 +1,8 @@
 #pragma once
 // Runs one program (config: cycler segments, chamber set points, waits for thermal equilibrium) against the
-// instruments' interfaces, supervises the cell on every reading, and fits each HPPC pulse set as it ends.
+// instruments' interfaces, supervises the cell on every reading, and fits each HPPC pulse set online: when the
+// SOC step and the long rest after it have ended (they give the OCV slope over the pulse set's SOC range), or as
+// soon as it is clear that none follow (check_pulse_sets_locked).
 //
 // Threading: every on_* / tick / command call may come from any thread; they are serialised by one mutex.
 // Fits run on a bounded worker pool (SequencerOptions::fit_threads) and report through the sink in the
@@ -138,7 +140,14 @@ private:
     void advance_locked(double t);
     void start_segment_locked(double t);
     void check_safety_locked(double t);
-    void check_pulse_sets_locked();
+    // Online pulse-set fits. A complete pulse set waits (pending_fit_) for what follows it: a SOC step and a
+    // long rest give the OCV slope over the pulse set's SOC range, so its fit is dispatched when that rest has
+    // ended (see resolve_pending_fit_locked); otherwise as soon as that is clear. run_ending: the run ends now,
+    // so what is there decides.
+    void check_pulse_sets_locked(bool run_ending = false);
+    void resolve_pending_fit_locked(bool run_ending);
+    void dispatch_fit_locked(const Recording& window, const estimator::PulseSet& ps, double soc, double t_pulse,
+                             const estimator::PulseFitOptions& po);
     void update_soc_locked(const CyclerSample& s);
     void end_step_locked(double t);
     [[nodiscard]] double soc_locked() const;
@@ -169,10 +178,13 @@ private:
     std::size_t fitted_pulse_sets_ = 0;
     std::map<int, double> step_capacity_ah_;  // |capacity| of each step's latest execution (capacity limits)
     std::size_t window_begin_ = 0;
-    // The last fitted pulse set's rested voltage V_A and charge count (Ah from the run start) at A: with this
-    // pulse set's they give the OCV slope the fit needs (a chord over one SOC step).
-    double last_ocv_v_ = std::numeric_limits<double>::quiet_NaN();
-    double last_ocv_q_ah_ = std::numeric_limits<double>::quiet_NaN();
+    // A complete pulse set whose fit waits for the SOC step and the long rest after it.
+    struct PendingFit {
+        std::size_t begin = 0;          // recording row of the pulse set's window row 0
+        estimator::PulseSet ps;         // rows relative to begin
+        double soc = kNaN, t_pulse = kNaN;
+    };
+    std::optional<PendingFit> pending_fit_;
     // The open step's tester totals (on_step_end).
     double step_capacity_now_ah_ = kNaN, step_energy_now_wh_ = kNaN;
     bool step_open_ = false;  // on_step sent, on_step_end not yet

@@ -17,9 +17,13 @@
 //
 // Time: bench time from the shared BenchClock (its time scale, e.g. 100 or 1000 bench s per wall s). The
 // program advances in ticks of tick_s bench seconds, whatever the scale (see ProgramRunner). The tester runs
-// up to one timer period ahead of the clock, so the plant is always at or beyond the clock's "now": other
-// instruments' advance_to(clock.now) are then no-ops and never integrate past a step boundary with a stale
-// current.
+// up to one timer period ahead of the clock, so the plant is normally at or beyond the clock's "now" and other
+// instruments' advance_to(clock.now) are no-ops. When this server's thread lags the clock (its timer runs late,
+// or a loaded host gives it no CPU for a while) they still never integrate the cell with a stale current: each
+// tick's current is held only up to the tick's end (BenchPlant::set_current), so the plant waits for the
+// tester. Its late tick finds the cell where its previous tick left it (its rows are the cell's under the
+// current they record), and its CV phase, cut-offs and step changes run as a real tester's hardware would,
+// connected client or not. An idle, paused or stopped tester's 0 A is held for any time.
 //
 // Step files: `start` names a path on the "BTS PC". It is looked up among files registered with
 // add_step_file(), then on disk (relative paths against step_file_dir). devtype 24 (BTS-4008) by default;
@@ -28,8 +32,8 @@
 // Fault switches (thread-safe): refuse connections (the listening socket closes: connect is refused), drop
 // every open connection, stall responses (requests are read and carried out, never answered: a lost reply),
 // malformed responses (each answer is cut short), garbage between frames (junk and stray terminators before
-// each answer), and a member's status (protect/stop: that member stops conducting, the others keep their
-// share).
+// each answer), a member's status (protect/stop: that member stops conducting, the others keep their
+// share), and a starved host (the server's thread gets no CPU: see set_starved).
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -104,6 +108,12 @@ public:
     void set_stall_responses(bool stall);
     void set_malformed_responses(bool malformed);
     void set_garbage_between_frames(bool garbage);
+    // The simulated tester's host gets no CPU (what a loaded machine does to this server's thread for a moment):
+    // while starved, nothing of the server runs -- no program tick, no answer (requests wait, connections stay
+    // open) -- while the bench clock and the other simulated instruments go on. set_starved(true) returns once
+    // the server's thread is held (at once when the server is not running); set_starved(false) or stop()
+    // releases it, and the server catches up with the clock.
+    void set_starved(bool starved);
     // Puts one cell channel into protect (or stop); it stops conducting while the others continue.
     // Returns false if chlid is not a cell channel.
     bool inject_member_status(int chlid, protocol::neware::ChannelStatus status);

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdint>
 #include <deque>
+#include <limits>
 #include <utility>
 #include <memory>
 #include <mutex>
@@ -67,11 +68,23 @@ class BenchPlant {
 public:
     explicit BenchPlant(PlantOptions options);
 
-    // Integrates the plant up to bench time t (no-op if t is not later than the current time). Current is
-    // held between calls (the exact ZOH of the model), ambient = chamber air.
+    // Integrates the plant up to bench time t (no-op if t is not later than the current time), but never past
+    // the time the cycler's current is held until (set_current): that hold is the one limit on how far anyone
+    // -- the cycler itself, the chamber, the DAQ -- may integrate the cell. Current is held between calls (the
+    // exact ZOH of the model), ambient = chamber air.
     void advance_to(double bench_time_s);
 
-    void set_current(double current_a);          // cycler output (held until changed)
+    // Cycler output. Without hold_until_s it is held until changed (a current the cycler keeps whatever time
+    // does: 0 A from an idle, paused or stopped tester). With it, the cycler vouches for this current only up
+    // to that bench time -- a tester executing a program sets each tick's current, and what the cell gets after
+    // the tick is the tester's next decision (CV limit, cut-offs, step changes) -- so no advance_to() integrates
+    // the cell beyond it until the cycler sets the next current. A tester whose thread lags the bench clock then
+    // holds the other instruments' view of the plant back instead of having its cell charged on with a stale
+    // current past its CV limit or a cut-off, and its late tick finds the cell where its previous tick left it,
+    // so its rows are the cell's under the current they record (without the hold, at 400x: voltage steps of
+    // 2-7 mV 1-2 s after a current step, where the DAQ or the chamber had moved the cell on under the previous
+    // current).
+    void set_current(double current_a, double hold_until_s = std::numeric_limits<double>::infinity());
     void set_chamber_setpoint(double setpoint_c);
     void set_chamber_running(bool running);      // a stopped chamber drifts towards the lab at 22 degC
     // Fault of the simulated chamber: the heater no longer heats, so the air cannot rise above the lab
@@ -91,7 +104,8 @@ private:
 };
 
 // Bench time of the simulated instruments. One clock is shared by all simulated instruments of a bench so
-// they agree on "now" (each one calls BenchPlant::advance_to(clock.now_s()) before reading).
+// they agree on "now" (each one calls BenchPlant::advance_to(clock.now_s()) before reading; the plant may stay
+// behind that while the cycler's current is held only until an earlier time, see set_current).
 //
 // Two modes:
 //  - free (the default): bench = start + time_scale * (wall - wall at construction). A pure function of wall

@@ -428,7 +428,20 @@ void Sequencer::resolve_pending_fit_locked(bool run_ending) {
     const estimator::Phase& rest = phases[1];
     if (rest.open_end && !run_ending) return;  // the rest goes on: its last row is the OCV
     if (rest.kind != estimator::PhaseKind::LongRest) return fit_now();
-    const std::size_t a = p.begin + p.ps.pulse_begin - 1, rest_last = after + rest.end - 1;
+    // The rest's last row is its OCV. A rest the run ended in has no last row of its own: how many of its rows
+    // a live daemon holds at the end depends on when the tester's last rows arrived, so the OCV is read where the
+    // rest became long (the first row past the long-rest duration), which every replay of the run also has.
+    std::size_t rest_last = after + rest.end - 1;
+    if (rest.open_end) {
+        const double long_rest_s = 0.99 * estimator::SegmentOptions{}.long_rest_s;
+        const double t0 = rec_.time_s[after + rest.begin > 0 ? after + rest.begin - 1 : 0];
+        for (std::size_t k = after + rest.begin; k <= rest_last; ++k)
+            if (rec_.time_s[k] - t0 >= long_rest_s) {
+                rest_last = k;
+                break;
+            }
+    }
+    const std::size_t a = p.begin + p.ps.pulse_begin - 1;
     double q = 0;
     for (std::size_t k = a + 1; k <= rest_last; ++k)
         if (std::isfinite(rec_.current_a[k])) q += rec_.current_a[k] * (rec_.time_s[k] - rec_.time_s[k - 1]) / 3600.0;

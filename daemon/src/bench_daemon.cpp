@@ -157,10 +157,15 @@ void BenchDaemon::Impl::schedule_tick() {
         // their arrival times, so a feed thread behind by a second never reads as instrument silence.
         if (auto c = active()) feed([c, t = now_s()] { c->seq->tick(t); });
         else if (auto last = current(); last && last->memory_returned < 2 && last->seq->fits_idle()) {
-            // Once per run, after its end fit was delivered: the store's caches, then (next tick, once the writer
-            // has released its cache) the freed heap.
-            if (last->memory_returned++ == 0) store->release_memory();
-            else return_free_memory();
+            // Once per run, after its end fit was delivered: the store's caches, then (a later tick, once the
+            // writer has released its cache: it does so at its next commit) the freed heap.
+            if (last->memory_returned == 0) {
+                last->store_released = store->release_memory();
+                last->memory_returned = 1;
+            } else if (last->store_released.wait_for(std::chrono::seconds(0)) == std::future_status::ready) {
+                return_free_memory();
+                last->memory_returned = 2;
+            }
         }
         schedule_tick();
     });

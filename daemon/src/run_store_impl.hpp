@@ -59,7 +59,7 @@ struct MarkInterruptedOp {
 };
 struct FlushOp {
     std::promise<void> done;
-    bool release_memory = false;  // the writer then frees its connection's page cache (RunStore::release_memory)
+    bool release_memory = false;  // the writer then frees its connection's page cache, before `done` (RunStore::release_memory)
 };
 using Control = std::variant<CreateRunOp, SetStateOp, StepOp, EventOp, FitOp, ParamsOp, MarkInterruptedOp, FlushOp>;
 

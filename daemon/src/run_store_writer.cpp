@@ -747,15 +747,25 @@ bool RunStore::flush(std::chrono::milliseconds timeout) {
     return fut.wait_for(timeout) == std::future_status::ready;
 }
 
-void RunStore::release_memory() {
-    if (impl_->readonly) return;
-    impl_->enqueue_control([] {
-        FlushOp op;
-        op.release_memory = true;
-        return Control(std::move(op));
-    }, false);
-    std::lock_guard lk(impl_->pool_mu);
-    for (sqlite3* db : impl_->idle) sqlite3_db_release_memory(db);
+std::future<void> RunStore::release_memory() {
+    std::future<void> writer_done;
+    if (!impl_->readonly)
+        impl_->enqueue_control([&] {
+            FlushOp op;
+            op.release_memory = true;
+            writer_done = op.done.get_future();
+            return Control(std::move(op));
+        }, false);
+    {
+        std::lock_guard lk(impl_->pool_mu);
+        for (sqlite3* db : impl_->idle) sqlite3_db_release_memory(db);
+    }
+    if (!writer_done.valid()) {  // read-only or closed: no writer cache to wait for
+        std::promise<void> now;
+        now.set_value();
+        writer_done = now.get_future();
+    }
+    return writer_done;
 }
 
 std::uint64_t RunStore::commit_count() const { return impl_->commits.load(std::memory_order_acquire); }

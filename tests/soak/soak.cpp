@@ -16,8 +16,9 @@
 // Checks (exit status 1 when one fails): the daemon never dies; every run ends completed, stopped or failed
 // with its events, and an aborted run has an abort event, no current on the simulated cell and the chamber at
 // its safe set point; the database passes `pragma integrity_check`. Measured: faults by kind, survived, runs
-// aborted, samples lost by the run store, cellbenchd's RSS over time (min, max, slope). Report: markdown on
-// stdout and in --report.
+// aborted, samples lost by the run store, cellbenchd's RSS over time (min, max, slope) and settled after each
+// run (anonymous + file-backed). Report: markdown on stdout and in --report. CELLBENCH_SOAK_WRAP="heaptrack -o
+// F" (or any command prefix) runs the daemon under a profiler; the memory figures are then cellbenchd's own.
 #include <utility>  // before Boost.Asio (Boost 1.74 + g++ 12, C++20)
 
 #include <signal.h>
@@ -29,6 +30,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <functional>
@@ -88,12 +90,41 @@ std::string slurp(const fs::path& p) {
     return ss.str();
 }
 
-long rss_kib(pid_t pid) {
+// A field of /proc/PID/status in KiB (VmRSS, and its parts RssAnon, RssFile, RssShmem), -1 when unreadable.
+long status_kib(pid_t pid, const std::string& field) {
     std::ifstream in("/proc/" + std::to_string(pid) + "/status");
     std::string line;
     while (std::getline(in, line))
-        if (line.rfind("VmRSS:", 0) == 0) return std::stol(line.substr(6));
+        if (line.rfind(field + ":", 0) == 0) return std::stol(line.substr(field.size() + 1));
     return -1;
+}
+long rss_kib(pid_t pid) { return status_kib(pid, "VmRSS"); }
+
+// The cellbenchd process under `pid`: `pid` itself, or (CELLBENCH_SOAK_WRAP, e.g. heaptrack, which runs its
+// client as a child) the first descendant whose command name is cellbenchd.
+pid_t daemon_process(pid_t pid) {
+    std::map<pid_t, std::vector<pid_t>> children;
+    std::map<pid_t, std::string> comm;
+    for (const auto& e : fs::directory_iterator("/proc")) {
+        const std::string name = e.path().filename().string();
+        if (name.empty() || !std::all_of(name.begin(), name.end(), ::isdigit)) continue;
+        const std::string stat = slurp(e.path() / "stat");
+        const auto open = stat.find('('), close = stat.rfind(')');
+        if (open == std::string::npos || close == std::string::npos) continue;
+        std::istringstream rest(stat.substr(close + 2));
+        char state = 0;
+        pid_t ppid = 0;
+        rest >> state >> ppid;
+        const pid_t p = static_cast<pid_t>(std::stol(name));
+        comm[p] = stat.substr(open + 1, close - open - 1);
+        children[ppid].push_back(p);
+    }
+    std::vector<pid_t> todo{pid};
+    for (std::size_t k = 0; k < todo.size(); ++k) {
+        if (comm[todo[k]] == "cellbenchd") return todo[k];
+        for (pid_t c : children[todo[k]]) todo.push_back(c);
+    }
+    return pid;
 }
 
 struct Fault {
@@ -111,6 +142,8 @@ struct RunRecord {
     std::size_t events = 0;
     bool abort_event = false, safe_after_abort = true;
     std::string safe_detail;
+    long rss_settled_kib = -1, anon_kib = -1, file_kib = -1;  // cellbenchd settled after the run's end
+    std::size_t fits = 0;                                      // pulse-set fits the run delivered (GET .../fits)
 };
 
 }  // namespace
@@ -214,6 +247,14 @@ int main(int argc, char** argv) {
         ::close_range(3, ~0U, 0);
         const std::string bin = (kBinDir / "cellbenchd").string(), cfg = (dir / "hil.json").string(),
                           scale = std::to_string(o.time_scale);
+        // CELLBENCH_SOAK_WRAP: a command the daemon runs under (a profiler: "heaptrack -o /tmp/hp", "valgrind
+        // --tool=massif"); the memory figures are then those of the cellbenchd process below it.
+        if (const char* wrap = std::getenv("CELLBENCH_SOAK_WRAP"); wrap && *wrap) {
+            const std::string cmd = std::string("exec ") + wrap + " \"$@\"";
+            ::execl("/bin/sh", "sh", "-c", cmd.c_str(), "sh", bin.c_str(), "--config", cfg.c_str(), "--listen",
+                    "127.0.0.1:0", "--token", kToken, "--time-scale", scale.c_str(), nullptr);
+            ::_exit(127);
+        }
         ::execl(bin.c_str(), bin.c_str(), "--config", cfg.c_str(), "--listen", "127.0.0.1:0", "--token", kToken,
                 "--time-scale", scale.c_str(), nullptr);
         ::_exit(127);
@@ -236,6 +277,7 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "cellbenchd did not start:\n%s\n", slurp(log).c_str());
         return 1;
     }
+    const pid_t mem_pid = daemon_process(pid);  // whose memory is measured (pid unless wrapped)
     auto api = [&](http::verb verb, const std::string& target, const std::string& body = {}) -> std::pair<int, json> {
         try {
             cellbench::testing::Headers h;
@@ -283,6 +325,9 @@ int main(int argc, char** argv) {
                 ++r.events;
                 if (e.value("kind", "") == "abort") r.abort_event = true;
             }
+        if (const auto [fc, fj] = api(http::verb::get, "/runs/" + std::to_string(id) + "/fits");
+            fj.contains("fits") && fj["fits"].is_array())
+            r.fits = fj["fits"].size();
         if (r.state != "completed" && r.state != "stopped" && r.state != "aborted" && r.state != "interrupted")
             problems.push_back("run " + std::to_string(id) + " ended in an undefined state '" + r.state + "'");
         if (r.events == 0) problems.push_back("run " + std::to_string(id) + " has no events");
@@ -306,12 +351,15 @@ int main(int argc, char** argv) {
             if (rr.id == id) r.bench_start = rr.bench_start, rr = r;
         // RSS once the daemon has settled after the run: it hands the recording to the end fit, then gives the
         // store's caches and the freed heap back; the lowest of 5 s of samples (each run measured the same way).
-        long settled = rss_kib(pid);
+        long settled = rss_kib(mem_pid), anon = status_kib(mem_pid, "RssAnon"), file = status_kib(mem_pid, "RssFile");
         for (int k = 0; k < 10; ++k) {
             std::this_thread::sleep_for(500ms);
-            const long v = rss_kib(pid);
-            if (v > 0 && (settled <= 0 || v < settled)) settled = v;
+            const long v = rss_kib(mem_pid);
+            if (v > 0 && (settled <= 0 || v < settled))
+                settled = v, anon = status_kib(mem_pid, "RssAnon"), file = status_kib(mem_pid, "RssFile");
         }
+        for (auto& rr : runs)
+            if (rr.id == id) rr.rss_settled_kib = settled, rr.anon_kib = anon, rr.file_kib = file;
         rss_after_last_run = settled;
         if (rss_after_first_run < 0) rss_after_first_run = rss_after_last_run;
     };
@@ -369,7 +417,7 @@ int main(int argc, char** argv) {
         }
         const double now = wall_s();
         if (now >= next_rss) {
-            rss.emplace_back(now - t_wall0, rss_kib(pid));
+            rss.emplace_back(now - t_wall0, rss_kib(mem_pid));
             next_rss = now + 5.0;
         }
         // Release a held fault; judge faults whose observation window (end + 2 grace periods) is over.
@@ -459,7 +507,7 @@ int main(int argc, char** argv) {
     const bool crashed = !alive();
     int exit_code = -1;
     if (!crashed) {
-        ::kill(pid, SIGTERM);
+        ::kill(mem_pid, SIGTERM);  // the daemon itself (a wrapper need not pass the signal on)
         ::waitpid(pid, &daemon_status, 0);
         exit_code = WIFEXITED(daemon_status) ? WEXITSTATUS(daemon_status) : -WTERMSIG(daemon_status);
         if (exit_code != 0) problems.push_back("cellbenchd exited with " + std::to_string(exit_code) + " on SIGTERM");
@@ -527,9 +575,13 @@ int main(int argc, char** argv) {
     }
     md << "## Runs\n\n" << runs.size() << " runs: " << completed << " completed, " << stopped << " stopped, " << aborted
        << " aborted (" << safe_ok << " of them correctly: abort event, current 0, chamber at " << safe_setpoint_c
-       << " degC), " << interrupted << " interrupted.\n\n| run | program | outcome | events | why |\n|---|---|---|---|---|\n";
-    for (const auto& r : runs)
-        md << "| " << r.id << " | " << r.program << " | " << r.outcome << " | " << r.events << " | " << r.error << " |\n";
+       << " degC), " << interrupted << " interrupted.\n\n| run | program | outcome | events | RSS settled after, MiB (anon + file) | why |\n|---|---|---|---|---|---|\n";
+    for (const auto& r : runs) {
+        char mem[96] = "-";
+        if (r.rss_settled_kib > 0)
+            std::snprintf(mem, sizeof mem, "%.1f (%.1f + %.1f)", r.rss_settled_kib / 1024.0, r.anon_kib / 1024.0, r.file_kib / 1024.0);
+        md << "| " << r.id << " | " << r.program << " | " << r.outcome << " | " << r.events << " | " << mem << " | " << r.error << " |\n";
+    }
     md << "\n## Samples\n\n";
     md.precision(0);
     md << "- ingested by the run store: cycler " << metric("cellbench_samples_ingested_total{source=\"cycler\"")
@@ -577,6 +629,37 @@ int main(int argc, char** argv) {
            << " MiB (" << (growth >= 0 ? "+" : "") << 100.0 * growth << " %; limit +10 %)";
         if (growth > 0.10)
             problems.push_back("RSS grew " + std::to_string(100.0 * growth) + " % after the first run (limit 10 %)");
+    }
+    // What the two settled figures are made of (information; the acceptance above is on VmRSS): anonymous memory
+    // (heap, thread stacks) and file-backed pages (the program's code, paged in as it is first used: a first run
+    // that ended before any fit has not yet touched the estimator's).
+    {
+        const RunRecord* first = nullptr;
+        const RunRecord* last = nullptr;
+        for (const auto& r : runs)
+            if (r.rss_settled_kib > 0 && r.anon_kib >= 0 && r.file_kib >= 0) {
+                if (!first) first = &r;
+                last = &r;
+            }
+        // The first run may end before any fit (seed 6: aborted 54 s in), so its figure holds none of the fits'
+        // working set; the same comparison from the first run that delivered a fit, for information.
+        const RunRecord* fitted = nullptr;
+        for (const auto& r : runs)
+            if (r.rss_settled_kib > 0 && r.fits > 0) {
+                fitted = &r;
+                break;
+            }
+        if (fitted && last && fitted != first)
+            md << "\n- (information, not the acceptance) from the first run that delivered a fit (run " << fitted->id << ", "
+               << fitted->rss_settled_kib / 1024.0 << " MiB) to the last: "
+               << (last->rss_settled_kib >= fitted->rss_settled_kib ? "+" : "")
+               << 100.0 * static_cast<double>(last->rss_settled_kib - fitted->rss_settled_kib) / static_cast<double>(fitted->rss_settled_kib)
+               << " %";
+        if (first && last && first->anon_kib > 0)
+            md << "\n- of which anonymous (heap, stacks) " << first->anon_kib / 1024.0 << " -> " << last->anon_kib / 1024.0
+               << " MiB (" << (last->anon_kib >= first->anon_kib ? "+" : "")
+               << 100.0 * static_cast<double>(last->anon_kib - first->anon_kib) / static_cast<double>(first->anon_kib)
+               << " %), file-backed (code) " << first->file_kib / 1024.0 << " -> " << last->file_kib / 1024.0 << " MiB";
     }
     if (metric("cellbench_store_samples_lost_total") > 0 || metric("cellbench_store_samples_dropped_total") > 0)
         problems.push_back("the run store lost or dropped samples");

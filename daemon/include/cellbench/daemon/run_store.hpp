@@ -26,6 +26,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <future>
 #include <memory>
 #include <optional>
 #include <span>
@@ -293,8 +294,10 @@ public:
     // Waits until everything queued before the call is committed (or failed). False on timeout.
     bool flush(std::chrono::milliseconds timeout = std::chrono::seconds(30));
     // Between runs: the connections give back their page caches (the idle readers' now, the writer's once it
-    // has committed what is queued). Never blocks on the writer; the caches refill as they are used.
-    void release_memory();
+    // has committed what is queued). Never blocks on the writer; the caches refill as they are used. The future
+    // is ready once the writer has freed its cache (up to cache_size, 16 MiB): only then is that memory free
+    // heap a malloc_trim can return to the system (it may hold a StoreError; nothing to do with it).
+    [[nodiscard]] std::future<void> release_memory();
 
     [[nodiscard]] StoreStats stats() const;
     // Transactions the writer has committed so far. Unchanged between two reads = nothing new is visible to a

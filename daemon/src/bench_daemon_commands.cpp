@@ -8,9 +8,9 @@
 
 namespace cellbench::daemon {
 
-void BenchDaemon::Impl::retry_later(int attempt, std::function<void()> fn) {
+void BenchDaemon::Impl::retry_later(int attempt, std::function<void()> fn, std::chrono::milliseconds cap) {
     auto timer = std::make_shared<asio::steady_timer>(io);
-    timer->expires_after(std::chrono::milliseconds(std::min<std::int64_t>(5000, 250LL << std::min(attempt, 5))));
+    timer->expires_after(std::min(cap, std::chrono::milliseconds(250LL << std::min(attempt, 5))));
     timer->async_wait([this, timer, fn = std::move(fn)](const boost::system::error_code& ec) {
         if (!ec && !stopping) fn();
     });
@@ -86,12 +86,32 @@ void BenchDaemon::Impl::cycler_stop(const std::string& why, int attempt, std::op
     const std::uint64_t gen = run_generation;
     neware->stop_program([this, t_cmd, why, attempt, gen](const drivers::NewareCommandResult& r) {
         if (!r.ok) {
-            if (attempt == 0) command_result("stop", r);
+            if (attempt == 0) {
+                command_result("stop", r);
+                // Said plainly in the run's record: until the stop gets through, the tester keeps running its
+                // step file, guarded only by the file's own protection limits.
+                if (auto c = current()) {
+                    EventRecord e;
+                    e.run_id = c->id;
+                    e.unix_s = unix_now_s();
+                    e.t_s = c->rel(now_s());
+                    e.level = EventLevel::error;
+                    e.kind = "cycler";
+                    e.message = "stop not acknowledged (" + r.error +
+                                "): the tester may still be running its step file, guarded by the file's own "
+                                "protection limits; sending the stop again every second until it is acknowledged";
+                    e.detail = {{"commanded_t_s", c->rel(t_cmd)}, {"why", why}, {"error", r.error},
+                                {"never_sent", r.never_sent}};
+                    store->record_event(e);
+                }
+            }
             if (stopping || gen != run_generation) return;
             spdlog::warn("neware: stop not acknowledged ({}); sending it again", r.error);
+            // A safety command: retried at least every second (a stop that cannot leave costs nothing on the
+            // wire), so it goes out within a second of the tester becoming reachable again.
             return retry_later(attempt, [this, why, attempt, t_cmd, gen] {
                 if (gen == run_generation) cycler_stop(why, attempt + 1, t_cmd);
-            });
+            }, std::chrono::milliseconds(1000));
         }
         // When the tester confirmed: recorded so the reaction time of a safety stop is visible.
         const double t_ack = now_s();

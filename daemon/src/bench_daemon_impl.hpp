@@ -280,7 +280,10 @@ struct BenchDaemon::Impl {
     std::atomic<std::uint64_t> run_generation{0};
     std::atomic<std::uint64_t> stop_serial{0};  // cycler stops sent (cycler_start)
 
-    void retry_later(int attempt, std::function<void()> fn);
+    // Between runs, the freed heap is given back to the system at most this often (see schedule_tick).
+    static constexpr std::chrono::seconds kIdleTrimPeriod{2};
+    std::chrono::steady_clock::time_point last_idle_trim{};
+    void retry_later(int attempt, std::function<void()> fn, std::chrono::milliseconds cap = std::chrono::milliseconds(5000));
 
     void chamber_setpoint(double c, std::uint64_t gen, int attempt);
 

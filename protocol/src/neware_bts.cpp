@@ -361,8 +361,13 @@ Command command_or_throw(std::string_view name) {
 FrameSplitter::FrameSplitter(std::size_t max_frame_bytes) : max_frame_bytes_(std::max<std::size_t>(max_frame_bytes, 64)) {}
 
 void FrameSplitter::feed(std::string_view bytes) {
-    // Compact before growing: consumed bytes at the front are dead weight.
-    if (head_ > 0 && (head_ >= buffer_.size() / 2 || head_ > (1u << 16))) {
+    // Compact before growing: consumed bytes at the front are dead weight. Once everything is consumed, a
+    // buffer a large frame or a burst of garbage grew (up to max_frame_bytes) is given back rather than kept for
+    // the life of the connection.
+    if (head_ > 0 && head_ == buffer_.size() && buffer_.capacity() > kKeptCapacity) {
+        std::string().swap(buffer_);
+        head_ = 0;
+    } else if (head_ > 0 && (head_ >= buffer_.size() / 2 || head_ > (1u << 16))) {
         buffer_.erase(0, head_);
         head_ = 0;
     }
@@ -370,7 +375,7 @@ void FrameSplitter::feed(std::string_view bytes) {
 }
 
 void FrameSplitter::clear() {
-    buffer_.clear();
+    std::string().swap(buffer_);
     head_ = 0;
     scanned_ = 0;
     skipping_ = false;

@@ -218,7 +218,9 @@ void Sequencer::abort_locked(const std::string& reason, double t) {
     if (!active(state_)) return;
     cycler_.stop();
     chamber_.set_setpoint(opt_.limits.chamber_safe_setpoint_c);
-    sink_.on_event(t, "alarm", "abort", reason + "; current stopped, chamber to its safe set point " +
+    // The stop is sent, not yet confirmed: the tester acknowledges it in a "cycler" event ("current off"), or,
+    // unreachable, keeps running its step file until the stop gets through (see the daemon's cycler_stop).
+    sink_.on_event(t, "alarm", "abort", reason + "; stop sent to the cycler, chamber to its safe set point " +
                                              fmt("%.1f degC", opt_.limits.chamber_safe_setpoint_c));
     finish_locked(RunState::Aborted, reason, t);
 }

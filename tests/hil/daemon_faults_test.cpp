@@ -242,6 +242,18 @@ TEST(DaemonFaults, NewareRefusedBeyondGraceAbortsAndTheStopReachesTheTesterWhenI
     // Unreachable for longer than a request's timeout: the first stop fails, the cell still discharges.
     std::this_thread::sleep_for(1500ms);
     EXPECT_LT(b.plant_current_a(), -1.5) << "the simulated tester should still run its program";
+    // The record says so while it is true: the abort does not claim the current is off, and an error event
+    // says the stop has not reached the tester yet.
+    const auto aborts = b.find("abort");
+    ASSERT_FALSE(aborts.empty()) << DUMP(b);
+    EXPECT_EQ(aborts.front()["message"].get<std::string>().find("current stopped"), std::string::npos)
+        << aborts.front().dump();
+    EXPECT_TRUE(eventually([&] {
+        for (const auto& e : b.find("cycler"))
+            if (e["level"] == "error" && e["message"].get<std::string>().find("stop not acknowledged") != std::string::npos)
+                return true;
+        return false;
+    }, 20s)) << "no event says the stop did not reach the tester: " << DUMP(b);
     b.neware().set_refuse_connections(false);
     EXPECT_TRUE(b.wait_current_off()) << b.plant_current_a() << " A; " << DUMP(b);
     json ack;

@@ -6,7 +6,8 @@
 // switches, and it runs `cellbenchd --config <config/bench.hil.json pointed at them>` as a child, driving it over
 // the REST API like an operator's script. The campaign cycles CC, short HPPC and Random Walk at two chamber
 // temperatures (program copies with temperature_c set, in a temp config dir) until --hours of bench time
-// have passed, then stops the active run and the daemon (SIGTERM).
+// have passed, then stops the active run and the daemon (SIGTERM). The first run (a short HPPC) runs without
+// faults: it is the baseline of the memory check (RSS after the last run within 10 % of RSS after the first).
 //
 // Faults, one every 15-45 s of wall time (seeded): Neware connection drop / refused connections / stalled
 // responses / malformed responses / garbage between frames, DEWE silence / dropped samples / garbage frames,
@@ -28,6 +29,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <limits>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -142,6 +144,7 @@ struct RunRecord {
     std::size_t events = 0;
     bool abort_event = false, safe_after_abort = true;
     std::string safe_detail;
+    std::string stop_note;  // the stop was delayed by a fault the soak held (tester unreachable)
     long rss_settled_kib = -1, anon_kib = -1, file_kib = -1;  // cellbenchd settled after the run's end
     std::size_t fits = 0;                                      // pulse-set fits the run delivered (GET .../fits)
 };
@@ -186,7 +189,7 @@ int main(int argc, char** argv) {
     const std::vector<double> temperatures = {25.0, 40.0};
     std::vector<std::string> campaign;
     for (double t : temperatures)
-        for (const char* base : {"cc", "hppc_short", "rw"}) {
+        for (const char* base : {"hppc_short", "rw", "cc"}) {
             json p = json::parse(std::ifstream(kSource / "config/programs" / (std::string(base) + ".json")));
             const std::string name = std::string(base) + "_" + std::to_string(static_cast<int>(t)) + "c";
             p["name"] = name;
@@ -303,7 +306,10 @@ int main(int argc, char** argv) {
     std::erase_if(kinds, [&](const std::string& k) { return std::find(o.skip.begin(), o.skip.end(), k) != o.skip.end(); });
     const double bench_end = o.hours * 3600.0;
     const double t_wall0 = wall_s();
-    double next_fault = wall_s() + gap(rng), next_rss = 0.0;
+    // The first run is the memory baseline: fault-free, and an HPPC (online pulse fits, then the end fit), so it
+    // pages in every code path the campaign uses and holds a complete run's working set. Faults start once it
+    // has ended.
+    double next_fault = std::numeric_limits<double>::infinity(), next_rss = 0.0;
     std::size_t next_program = 0;
     std::optional<long long> active;
     std::optional<std::size_t> open_fault;  // a fault being held (duration not over)
@@ -334,12 +340,38 @@ int main(int argc, char** argv) {
         if (r.outcome == "aborted") {
             // The abort must have left the cell without current and the chamber going to its safe set point:
             // give the commands a moment (they were sent when the run ended; the tester ticks on its own timer).
+            // "No current": below 10x the simulated current noise (2 mA), far below any program's current.
+            constexpr double kNoCurrentA = 0.02;
             bool safe = false;
             sim::PlantReading p;
-            for (int k = 0; k < 50 && !safe; ++k) {
+            auto bench_safe = [&] {
                 p = plant.read();
-                safe = std::abs(p.current_a) < 1e-3 && std::abs(p.chamber_setpoint_c - safe_setpoint_c) < 0.05;
-                if (!safe) std::this_thread::sleep_for(100ms);
+                return std::abs(p.current_a) < kNoCurrentA && std::abs(p.chamber_setpoint_c - safe_setpoint_c) < 0.05;
+            };
+            for (int k = 0; k < 50 && !(safe = bench_safe()); ++k) std::this_thread::sleep_for(100ms);
+            // An instrument the soak itself keeps unreachable (a fault still held: the tester refusing or not
+            // answering, the chamber silent) cannot take the safe command: the tester runs its step file on its
+            // own, the chamber holds its set point. The fault is released at its scheduled end, and the command
+            // must then get through within the reconnect and retry periods (bench.hil.json: reconnect_max 5 s,
+            // stops retried every 1 s; 15 s of wall time allowed); for the tester, the record must say meanwhile
+            // that the stop was not acknowledged. The delay is reported.
+            if (!safe && open_fault) {
+                const std::string held = faults[*open_fault].kind;
+                while (wall_s() < fault_release) std::this_thread::sleep_for(100ms);
+                if (release) release();
+                release = nullptr;
+                open_fault.reset();
+                const double back = wall_s();
+                while (!(safe = bench_safe()) && wall_s() - back < 15.0) std::this_thread::sleep_for(100ms);
+                bool said = held.rfind("neware_", 0) != 0;  // only a stop can be pending
+                if (const auto [ec2, ev2] = api(http::verb::get, "/runs/" + std::to_string(id) + "/events"); ev2.contains("events"))
+                    for (const auto& e : ev2["events"])
+                        said = said || (e.value("kind", "") == "cycler" && e.value("level", "") == "error");
+                char d[200];
+                std::snprintf(d, sizeof d, "%s held at the abort: bench safe %.1f s after it was released%s", held.c_str(),
+                              wall_s() - back, said ? "" : "; NO event said the stop was pending");
+                r.stop_note = d;
+                if (!said) problems.push_back("run " + std::to_string(id) + ": " + d);
             }
             r.safe_after_abort = safe;
             r.safe_detail = "current " + std::to_string(p.current_a) + " A, chamber set point " +
@@ -361,7 +393,10 @@ int main(int argc, char** argv) {
         for (auto& rr : runs)
             if (rr.id == id) rr.rss_settled_kib = settled, rr.anon_kib = anon, rr.file_kib = file;
         rss_after_last_run = settled;
-        if (rss_after_first_run < 0) rss_after_first_run = rss_after_last_run;
+        if (rss_after_first_run < 0) {
+            rss_after_first_run = rss_after_last_run;
+            next_fault = wall_s() + gap(rng);  // the baseline run is over: faults from now on
+        }
     };
 
     auto inject = [&](const std::string& kind, bool long_loss, double dur) {
@@ -542,7 +577,7 @@ int main(int argc, char** argv) {
     md << clock->now_s() / 3600.0 << " h at " << o.time_scale << "x (" << wall_total << " s wall), seed " << o.seed << "\n";
     md << "- campaign: ";
     for (const auto& c : campaign) md << c << " ";
-    md << "(repeated in this order)\n";
+    md << "(repeated in this order; the first run is fault-free: the memory baseline)\n";
     md << "- cellbenchd: " << (crashed ? "CRASHED" : "no crash; exit status " + std::to_string(exit_code) + " on SIGTERM") << "\n";
     md << "- database: integrity_check = " << integrity << "\n\n";
     std::map<std::string, std::map<std::string, int>> by_kind;
@@ -580,7 +615,8 @@ int main(int argc, char** argv) {
         char mem[96] = "-";
         if (r.rss_settled_kib > 0)
             std::snprintf(mem, sizeof mem, "%.1f (%.1f + %.1f)", r.rss_settled_kib / 1024.0, r.anon_kib / 1024.0, r.file_kib / 1024.0);
-        md << "| " << r.id << " | " << r.program << " | " << r.outcome << " | " << r.events << " | " << mem << " | " << r.error << " |\n";
+        md << "| " << r.id << " | " << r.program << " | " << r.outcome << " | " << r.events << " | " << mem << " | " << r.error
+           << (r.stop_note.empty() ? "" : "; " + r.stop_note) << " |\n";
     }
     md << "\n## Samples\n\n";
     md.precision(0);

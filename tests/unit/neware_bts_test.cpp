@@ -347,6 +347,26 @@ TEST(NewareFrameSplitter, GarbageBetweenFramesIsDroppedAndCounted) {
     EXPECT_EQ(s.buffered_bytes(), 4u);  // "junk" waits for a terminator
 }
 
+TEST(NewareFrameSplitter, MemoryABurstOfGarbageGrewIsGivenBackOnceConsumed) {
+    // A daemon running for weeks must not keep, per connection, the largest buffer a burst of junk or one big
+    // frame ever made it grow to (up to max_frame_bytes, 4 MiB).
+    FrameSplitter s;
+    const std::string a = encode_request(InquireRequest{{ch(1)}});
+    s.feed(std::string(2u << 20, 'z') + "#\r\n" + a);
+    std::vector<std::string> frames;
+    while (auto f = s.next()) frames.push_back(*f);
+    ASSERT_EQ(frames.size(), 1u);
+    EXPECT_EQ(frames[0] + kTerm, a);
+    EXPECT_GE(s.capacity_bytes(), 2u << 20);  // not yet: bytes are released on the next feed
+    s.feed(a);
+    ASSERT_TRUE(s.next());
+    EXPECT_LE(s.capacity_bytes(), FrameSplitter::kKeptCapacity) << "the burst's buffer is still held";
+    s.feed(std::string(1u << 20, 'q'));  // garbage still waiting for a terminator is kept (it may be a frame)
+    EXPECT_GE(s.buffered_bytes(), (1u << 20) - 3);
+    s.clear();
+    EXPECT_LE(s.capacity_bytes(), FrameSplitter::kKeptCapacity);
+}
+
 TEST(NewareFrameSplitter, OversizedFrameRaisesThenRecovers) {
     FrameSplitter s(256);
     const std::string ok = encode_request(InquireRequest{{ch(1)}});

@@ -63,7 +63,11 @@ public:
     [[nodiscard]] std::size_t buffered_bytes() const { return buffer_.size() - head_; }
     [[nodiscard]] std::uint64_t garbage_bytes() const { return garbage_bytes_; }  // dropped outside frames
     [[nodiscard]] std::size_t max_frame_bytes() const { return max_frame_bytes_; }
+    [[nodiscard]] std::size_t capacity_bytes() const { return buffer_.capacity(); }  // memory held
     void clear();
+
+    // Buffer capacity kept between frames; beyond it, an emptied buffer is released (see feed()).
+    static constexpr std::size_t kKeptCapacity = 64u << 10;
 
 private:
     std::string buffer_;

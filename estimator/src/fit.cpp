@@ -210,6 +210,76 @@ ParameterSet generic_start(const std::vector<Recording>& recs, const std::vector
     return p;
 }
 
+// Whether a discharge ends on the knee of an emptying cell: over its last tenth of charge its voltage falls at
+// least 5 times as fast per Ah as the rested voltage does from one long rest of the recording to the next
+// (their median). A test stopped part-way (its last SOC step at mid SOC) ends on the OCV's own slope: it does
+// not measure the capacity.
+bool ends_on_knee(const Recording& rec, const std::vector<double>& q, const Phase& d, const std::vector<Phase>& rests) {
+    if (d.end < d.begin + 2) return false;
+    const double q0 = q[d.begin], total = q0 - q[d.end - 1];
+    if (!(total > 0)) return false;
+    std::vector<double> slopes;  // V per Ah between consecutive rests that more than 1 % of the discharge apart
+    for (std::size_t k = 1; k < rests.size(); ++k) {
+        const std::size_t i = rests[k - 1].end - 1, j = rests[k].end - 1;
+        const double dq = q[i] - q[j], dv = rec.voltage_v[i] - rec.voltage_v[j];
+        if (std::abs(dq) > 0.01 * total && std::isfinite(dv)) slopes.push_back(std::abs(dv / dq));
+    }
+    if (slopes.empty()) return true;  // nothing to compare with: as before, the lowest voltage is the cut-off
+    std::nth_element(slopes.begin(), slopes.begin() + static_cast<std::ptrdiff_t>(slopes.size() / 2), slopes.end());
+    const double ocv_slope = slopes[slopes.size() / 2];
+    // The last row at or before 90 % of the discharge's charge (a coarse log may have only its two ends).
+    std::size_t k90 = d.begin;
+    for (std::size_t k = d.begin; k + 1 < d.end; ++k)
+        if (q0 - q[k] <= 0.9 * total && std::isfinite(rec.voltage_v[k])) k90 = k;
+    const double end_slope = (rec.voltage_v[k90] - rec.voltage_v[d.end - 1]) / (q[k90] - q[d.end - 1]);
+    return std::isfinite(end_slope) && end_slope > 5.0 * ocv_slope;
+}
+
+// The test's SOC levels, as the global fit's table breakpoints: in each characterization recording, in time
+// order, the long rests that end more than kLevelStep of SOC away from the previous one (an SOC step between two
+// levels; the rests between the pulses of one level move it less), the first rest included. Levels of several
+// recordings of one test (a cycler export beside the logger's file) closer than kLevelStep are one level. Gaps
+// wider than kMaxGap (a layout with few levels) are divided evenly. Any layout: 5 % steps at the ends and 10 %
+// in the middle (the Panasonic 18650PF's HPPC) give a breakpoint at every level, where a uniform grid would put
+// half of them between levels, where only the SOC-step discharges reach (the resistances then alternate).
+std::vector<double> level_knots(const std::vector<Recording>& recordings, const std::vector<bool>& characterization,
+                                const std::vector<RecordingSegments>& segs,
+                                const std::vector<std::vector<double>>& soc_of_row) {
+    constexpr double kLevelStep = 0.02, kMaxGap = 0.2, kLattice = 0.005;
+    std::vector<double> levels;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        if (!characterization[r] || soc_of_row[r].empty()) continue;
+        double prev = kNaN;
+        for (const auto& lr : segs[r].long_rests) {
+            const double s = std::clamp(soc_of_row[r][lr.end - 1], 0.0, 1.0);
+            if (!(std::abs(s - prev) <= kLevelStep)) levels.push_back(s);
+            prev = s;
+        }
+    }
+    std::sort(levels.begin(), levels.end());
+    std::vector<double> merged;
+    for (std::size_t k = 0; k < levels.size();) {
+        std::size_t e = k;
+        double sum = 0;
+        while (e < levels.size() && levels[e] - levels[k] <= kLevelStep) sum += levels[e++];
+        // On a 0.5 % lattice: the same test handed in another arrangement (its levels a hair apart by Coulomb
+        // counting) gets the same breakpoints.
+        const double level = std::round(sum / static_cast<double>(e - k) / kLattice) * kLattice;
+        if (merged.empty() || level > merged.back()) merged.push_back(level);
+        k = e;
+    }
+    std::vector<double> knots;
+    for (std::size_t k = 0; k < merged.size(); ++k) {
+        if (k > 0) {
+            const double gap = merged[k] - merged[k - 1];
+            const int parts = static_cast<int>(std::ceil(gap / kMaxGap - 1e-9));
+            for (int p = 1; p < parts; ++p) knots.push_back(merged[k - 1] + gap * p / parts);
+        }
+        knots.push_back(merged[k]);
+    }
+    return knots;
+}
+
 }  // namespace
 
 Characterization characterize(const std::vector<Recording>& given, const CharacterizationOptions& options) {
@@ -261,8 +331,12 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
             if (!characterization[r] || segs[r].cc_discharges.empty()) continue;
             const auto& last = segs[r].cc_discharges.back();
             if (last.voltage_end_v > v_floor + 0.1) continue;
-            const std::size_t anchor = anchor_row(segs[r]);
             const auto& q = throughput[r];
+            // The cut-off is where the cell runs empty: the discharge ends on the knee, its voltage falling
+            // faster in its last tenth of charge than over the rest of it. A test stopped part-way (its last SOC
+            // step at mid SOC) ends on a straight stretch: it does not measure the capacity.
+            if (!ends_on_knee(recordings[r], q, last, segs[r].long_rests)) continue;
+            const std::size_t anchor = anchor_row(segs[r]);
             out.capacity = {q[anchor] - q[last.end - 1], "throughput from full charge to the cut-off",
                             recordings[r].source};
             out.warnings.push_back("no pilot discharge found: capacity taken from " + recordings[r].source +
@@ -403,7 +477,9 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
             for (const auto& lr : segs[r].long_rests) rests.back().emplace_back(lr.begin, lr.end);
         }
         GlobalFitOptions go = options.global;
-        if (!std::isfinite(go.knot_spacing)) {
+        if (!std::isfinite(go.knot_spacing) && go.knot_soc.empty()) go.knot_soc = level_knots(recordings, characterization, segs, soc_of_row);
+        if (!std::isfinite(go.knot_spacing) && go.knot_soc.size() < 3) {
+            go.knot_soc.clear();
             // Knots from the spacing of the test's rest points (its SOC levels), between 5 % and 12.5 %.
             std::vector<double> gaps;
             for (std::size_t k = 1; k < ocv_soc.size(); ++k)

@@ -60,19 +60,59 @@ struct WindowData {
     double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
 };
 
-// The knot grid and the model options shared by every cost function.
+// The knot grid and the model options shared by every cost function. Knots at any increasing SOC (the test's
+// levels need not be evenly spaced: 5 % steps at the ends, 10 % in the middle); the OCV grid divides every knot
+// interval into m equal parts.
 struct Grid {
-    double s0 = 0, ds = 0.05;
-    int n = 0;  // knots
-    int m = 1;  // OCV knots per knot interval: the OCV grid is s0 + j ds / m, j in [0, (n - 1) m]
+    std::vector<double> knot;  // knot SOCs, increasing
+    int n = 0;                 // knots
+    int m = 1;                 // OCV knots per knot interval
+    double ref_ds = 0.1;       // the typical knot spacing: the unit of the smoothness penalties
     double t_ref_k = 298.15;
     double i_ref_a = 1.0;
     bool temperature = false, current = false;
     double sigma_v = 1e-3;
-    [[nodiscard]] double soc(int j) const { return s0 + ds * j; }
+    void set_knots(std::vector<double> k) {
+        knot = std::move(k);
+        n = static_cast<int>(knot.size());
+        std::vector<double> gaps;
+        for (int j = 1; j < n; ++j) gaps.push_back(knot[j] - knot[j - 1]);
+        std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
+        ref_ds = gaps[gaps.size() / 2];
+    }
+    [[nodiscard]] double soc(int j) const { return knot[j]; }
+    [[nodiscard]] double width(int k) const { return k + 1 < n ? knot[k + 1] - knot[k] : ref_ds; }
+    // The knot interval [k, k + 1] holding s (clamped to the table: k in [0, n - 2]).
+    [[nodiscard]] int interval(double s) const {
+        const auto it = std::upper_bound(knot.begin(), knot.end(), s);
+        return std::clamp(static_cast<int>(it - knot.begin()) - 1, 0, n - 2);
+    }
+    // The first knot at or above s (n - 1 beyond the table).
+    [[nodiscard]] int knot_at_or_above(double s) const {
+        const auto it = std::lower_bound(knot.begin(), knot.end(), s - 1e-12);
+        return std::min(static_cast<int>(it - knot.begin()), n - 1);
+    }
     [[nodiscard]] int ocv_n() const { return (n - 1) * m + 1; }
-    [[nodiscard]] double ocv_ds() const { return ds / m; }
-    [[nodiscard]] double ocv_soc(int j) const { return s0 + ocv_ds() * j; }
+    [[nodiscard]] double ocv_soc(int j) const {
+        const int k = std::min(j / m, n - 2);
+        return knot[k] + (knot[k + 1] - knot[k]) * static_cast<double>(j - k * m) / m;
+    }
+    [[nodiscard]] double ocv_width(int j) const { return j + 1 < ocv_n() ? ocv_soc(j + 1) - ocv_soc(j) : ref_ds / m; }
+    // The OCV interval [j, j + 1] holding s (clamped: j in [0, ocv_n() - 2]).
+    [[nodiscard]] int ocv_interval(double s) const {
+        const int k = interval(s);
+        const int r = std::clamp(static_cast<int>(std::floor((s - knot[k]) / width(k) * m)), 0, m - 1);
+        return std::clamp(k * m + r, 0, ocv_n() - 2);
+    }
+    [[nodiscard]] int ocv_at_or_above(double s) const {
+        int j = ocv_interval(s);
+        while (j < ocv_n() - 1 && ocv_soc(j) < s - 1e-12) ++j;
+        return j;
+    }
+    [[nodiscard]] int ocv_nearest(double s) const {
+        const int j = ocv_interval(s);
+        return std::abs(s - ocv_soc(j)) <= std::abs(ocv_soc(j + 1) - s) ? j : j + 1;
+    }
 };
 
 template <typename T>
@@ -109,11 +149,9 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
     // Linear interpolation inside [lo, hi] with hold outside (R, C) or linear extrapolation (OCV) at the
     // table's ends, as ParameterSet does (the window's knot range covers its SOC unless it is a table end).
     auto locate = [&](const T& soc, int& i, T& w_) {
-        const double s = scalar(soc);
-        int k = static_cast<int>(std::floor((s - g.s0) / g.ds));
-        k = std::clamp(k, lo, std::max(lo, hi - 1));
+        const int k = std::clamp(g.interval(scalar(soc)), lo, std::max(lo, hi - 1));
         i = k;
-        w_ = (soc - g.soc(k)) / g.ds;
+        w_ = (soc - g.soc(k)) / g.width(k);
     };
     const T ea = *ea_scaled * kEaScale;
     const T i0 = exp(*log_i0);
@@ -169,9 +207,8 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         }
         // OCV on its own grid, linear with linear extrapolation past the window's first and last OCV knots.
         const int olo = w.ocv_lo, ohi = w.ocv_hi;
-        const double ods = g.ocv_ds();
-        const int jo = std::clamp(static_cast<int>(std::floor((scalar(soc1) - g.s0) / ods)), olo, std::max(olo, ohi - 1));
-        T wo = (soc1 - g.ocv_soc(jo)) / ods;
+        const int jo = std::clamp(g.ocv_interval(scalar(soc1)), olo, std::max(olo, ohi - 1));
+        T wo = (soc1 - g.ocv_soc(jo)) / g.ocv_width(jo);
         if (olo == ohi) wo = T(0.0);
         const T& oa = *ocv_knots[jo - olo];
         const T ocv = oa + wo * (*ocv_knots[std::min(jo + 1, ohi) - olo] - oa);
@@ -205,14 +242,29 @@ struct WindowCost {
     }
 };
 
+// The curvature of f over three knots at spacings h1, h2 as a residual whose square approximates the integral
+// of (f'' href^2)^2 / href over the knots' span: for h1 = h2 = href it is the plain second difference a - 2b + c,
+// so the penalty per unit SOC does not depend on where the knots are.
+struct Curvature {
+    double ca = 1, cb = -2, cc = 1;  // the weights of a, b, c
+    double slope = 0;                // the weight of c - a in the flattening term (uniform spacing: 1)
+    Curvature() = default;
+    Curvature(double h1, double h2, double href) {
+        const double f2 = 2.0 / (h1 + h2), span = std::sqrt(0.5 * (h1 + h2)) * std::pow(href, 1.5);
+        ca = f2 / h1 * span, cc = f2 / h2 * span, cb = -(ca + cc);
+        slope = href / (0.5 * (h1 + h2)) * std::sqrt(0.5 * (h1 + h2) / href);
+    }
+};
+
 // Second differences of the ten log-parameters over three neighbouring knots, plus a weak first difference that
 // flattens knots no data reach.
 struct SmoothCost {
     double weight;
+    Curvature k;
     template <typename T>
     bool operator()(const T* a, const T* b, const T* c, T* r) const {
-        for (int q = 0; q < 10; ++q) r[q] = weight * (a[q] - 2.0 * b[q] + c[q]);
-        for (int q = 0; q < 10; ++q) r[10 + q] = 0.1 * weight * (c[q] - a[q]);
+        for (int q = 0; q < 10; ++q) r[q] = weight * (k.ca * a[q] + k.cb * b[q] + k.cc * c[q]);
+        for (int q = 0; q < 10; ++q) r[10 + q] = 0.1 * weight * k.slope * (c[q] - a[q]);
         return true;
     }
 };
@@ -220,9 +272,10 @@ struct SmoothCost {
 // A weak second difference of the OCV over three neighbouring OCV knots.
 struct OcvSmoothCost {
     double weight;
+    Curvature k;
     template <typename T>
     bool operator()(const T* a, const T* b, const T* c, T* r) const {
-        r[0] = weight * (a[0] - 2.0 * b[0] + c[0]) / kOcvCurvatureScaleV;
+        r[0] = weight * (k.ca * a[0] + k.cb * b[0] + k.cc * c[0]) / kOcvCurvatureScaleV;
         return true;
     }
 };
@@ -271,14 +324,14 @@ struct Builder {
         ocv_smooth_costs.clear();
         for (int j = 1; j + 1 < grid.n; ++j)
             smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<SmoothCost, 20, kKnotSize, kKnotSize, kKnotSize>(
-                new SmoothCost{std::sqrt(weight)}));
-        // The same curvature prior per unit SOC as on the knot grid: integral of f''^2 over the spacing ds / m
-        // weighs each squared second difference m^3 times.
-        const double m = grid.m;
+                new SmoothCost{std::sqrt(weight), Curvature(grid.width(j - 1), grid.width(j), grid.ref_ds)}));
+        // The same curvature prior per unit SOC as on the knot grid (Curvature: on a uniform grid of spacing
+        // ref_ds / m, each squared second difference weighs m^3 times).
         for (int j = 1; j + 1 < grid.ocv_n(); ++j) {
             const bool pinned = j % grid.m != 0 && !(j < static_cast<int>(ocv_free.size()) && ocv_free[j]);
             ocv_smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<OcvSmoothCost, 1, 1, 1, 1>(
-                new OcvSmoothCost{std::sqrt(weight * ocv_rel * m * m * m) * (pinned ? 1e3 : 1.0)}));
+                new OcvSmoothCost{std::sqrt(weight * ocv_rel) * (pinned ? 1e3 : 1.0),
+                                  Curvature(grid.ocv_width(j - 1), grid.ocv_width(j), grid.ref_ds)}));
         }
     }
 
@@ -664,14 +717,30 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     double s_lo = 1e9, s_hi = -1e9;
     for (const auto& w : out.windows) s_lo = std::min(s_lo, w.soc_min), s_hi = std::max(s_hi, w.soc_max);
     s_lo = std::clamp(s_lo, 0.0, 1.0), s_hi = std::clamp(s_hi, 0.0, 1.0);
-    const double ds = std::isfinite(options.knot_spacing) ? options.knot_spacing : 0.1;
-    int j_lo = static_cast<int>(std::floor(s_lo / ds + 1e-9)), j_hi = static_cast<int>(std::ceil(s_hi / ds - 1e-9));
-    const int j_max = static_cast<int>(std::floor(1.0 / ds + 1e-9));
-    j_hi = std::min(std::max(j_hi, j_lo + 2), j_max);
-    j_lo = std::max(0, std::min(j_lo, j_hi - 2));
-    b.grid.s0 = j_lo * ds;
-    b.grid.ds = ds;
-    b.grid.n = j_hi - j_lo + 1;
+    if (options.knot_soc.size() >= 3) {
+        for (std::size_t j = 1; j < options.knot_soc.size(); ++j)
+            if (!(options.knot_soc[j] > options.knot_soc[j - 1]))
+                throw InputError("global fit: the table's SOC breakpoints must increase");
+        // The SOC the recordings visit beyond the given breakpoints (a discharge to the cut-off below the lowest
+        // level, a charge above the highest) gets a breakpoint of its own, at most the typical spacing apart.
+        std::vector<double> k = options.knot_soc;
+        std::vector<double> gaps;
+        for (std::size_t j = 1; j < k.size(); ++j) gaps.push_back(k[j] - k[j - 1]);
+        std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
+        const double typical = gaps[gaps.size() / 2];
+        while (s_lo < k.front() - 0.01) k.insert(k.begin(), std::max(s_lo, k.front() - typical));
+        while (s_hi > k.back() + 0.01) k.push_back(std::min(s_hi, k.back() + typical));
+        b.grid.set_knots(std::move(k));
+    } else {
+        const double ds = std::isfinite(options.knot_spacing) ? options.knot_spacing : 0.1;
+        int j_lo = static_cast<int>(std::floor(s_lo / ds + 1e-9)), j_hi = static_cast<int>(std::ceil(s_hi / ds - 1e-9));
+        const int j_max = static_cast<int>(std::floor(1.0 / ds + 1e-9));
+        j_hi = std::min(std::max(j_hi, j_lo + 2), j_max);
+        j_lo = std::max(0, std::min(j_lo, j_hi - 2));
+        std::vector<double> k;
+        for (int j = j_lo; j <= j_hi; ++j) k.push_back(j * ds);
+        b.grid.set_knots(std::move(k));
+    }
     b.grid.m = std::max(1, options.ocv_knots_per_interval);
     b.grid.t_ref_k = t_ref_c + kZeroCelsiusK;
     b.grid.sigma_v = options.voltage_noise_v;
@@ -686,15 +755,15 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     out.reference_current_a = b.grid.i_ref_a;
     for (std::size_t w = 0; w < b.windows.size(); ++w) {
         auto& wd = b.windows[w];
-        const double ods = b.grid.ocv_ds();
         if (wd.fit_offset) {
             wd.knot_lo = 0, wd.knot_hi = b.grid.n - 1;
             wd.ocv_lo = 0, wd.ocv_hi = b.grid.ocv_n() - 1;
         } else {
-            wd.knot_lo = std::clamp(static_cast<int>(std::floor((out.windows[w].soc_min - b.grid.s0) / ds)), 0, b.grid.n - 1);
-            wd.knot_hi = std::clamp(static_cast<int>(std::ceil((out.windows[w].soc_max - b.grid.s0) / ds)), 0, b.grid.n - 1);
-            wd.ocv_lo = std::clamp(static_cast<int>(std::floor((out.windows[w].soc_min - b.grid.s0) / ods)), 0, b.grid.ocv_n() - 1);
-            wd.ocv_hi = std::clamp(static_cast<int>(std::ceil((out.windows[w].soc_max - b.grid.s0) / ods)), 0, b.grid.ocv_n() - 1);
+            const double lo = out.windows[w].soc_min, hi = out.windows[w].soc_max;
+            wd.knot_lo = lo < b.grid.soc(0) ? 0 : b.grid.interval(lo);
+            wd.knot_hi = std::max(wd.knot_lo, b.grid.knot_at_or_above(hi));
+            wd.ocv_lo = lo < b.grid.ocv_soc(0) ? 0 : b.grid.ocv_interval(lo);
+            wd.ocv_hi = std::max(wd.ocv_lo, b.grid.ocv_at_or_above(hi));
         }
     }
 
@@ -720,8 +789,11 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     for (const auto& wd : b.windows)
         if (wd.low_rate)
             for (const auto& t : wd.ticks) {
-                const int j = static_cast<int>(std::round((t.soc_end - b.grid.s0) / b.grid.ocv_ds()));
-                if (j >= 0 && j < b.grid.ocv_n()) b.ocv_free[j] = true;
+                const double se = t.soc_end;
+                const int j = b.grid.ocv_nearest(se);
+                // Within half an interval of the knot (past the table's ends: none).
+                if (std::abs(se - b.grid.ocv_soc(j)) <= 0.5 * b.grid.ocv_width(std::min(j, b.grid.ocv_n() - 2)) + 1e-12)
+                    b.ocv_free[j] = true;
             }
     b.ea = b.grid.temperature ? 3.0 : 0.0;
     b.log_i0 = std::log(b.grid.current ? 2.0 * b.grid.i_ref_a : 1e6);
@@ -842,20 +914,29 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // Which knots have data of each direction nearby, and which OCV knots have rows near them.
     std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
     std::vector<std::size_t> ocv_rows(n_ocv, 0);
-    const double ods = b.grid.ocv_ds();
+    // A knot has the data within its neighbouring intervals (the reach of its hat function; one spacing past the
+    // table's ends).
+    auto reaches = [](double s, double left, double at, double right) { return s >= left && s <= right && std::isfinite(at); };
     for (std::size_t w = 0; w < b.windows.size(); ++w)
         for (const auto& t : b.windows[w].ticks) {
             const double s0 = b.windows[w].ticks.front().soc_start;
             const double s = s0 + b.offsets[w][0] + std::exp(b.offsets[w][1]) * (t.soc_start - s0);
-            const int j = static_cast<int>(std::round((s - b.grid.s0) / ds));
-            for (int jj : {j - 1, j, j + 1}) {
-                if (jj < 0 || jj >= b.grid.n || std::abs(s - b.grid.soc(jj)) > ds) continue;
+            const int j = b.grid.interval(s);
+            for (int jj : {j - 1, j, j + 1, j + 2}) {
+                if (jj < 0 || jj >= b.grid.n) continue;
+                const double left = jj > 0 ? b.grid.soc(jj - 1) : b.grid.soc(0) - b.grid.ref_ds;
+                const double right = jj + 1 < b.grid.n ? b.grid.soc(jj + 1) : b.grid.soc(jj) + b.grid.ref_ds;
+                if (!reaches(s, left, b.grid.soc(jj), right)) continue;
                 support[jj][t.current_a < 0 ? 0 : 1] += std::abs(t.current_a) * t.dt_s;
                 support[jj][2] += 1;
             }
-            const int jo = static_cast<int>(std::round((s - b.grid.s0) / ods));
-            for (int jj : {jo - 1, jo, jo + 1})
-                if (jj >= 0 && jj < n_ocv && std::abs(s - b.grid.ocv_soc(jj)) <= ods) ++ocv_rows[jj];
+            const int jo = b.grid.ocv_interval(s);
+            for (int jj : {jo - 1, jo, jo + 1, jo + 2}) {
+                if (jj < 0 || jj >= n_ocv) continue;
+                const double left = jj > 0 ? b.grid.ocv_soc(jj - 1) : b.grid.ocv_soc(0) - b.grid.ref_ds / b.grid.m;
+                const double right = jj + 1 < n_ocv ? b.grid.ocv_soc(jj + 1) : b.grid.ocv_soc(jj) + b.grid.ref_ds / b.grid.m;
+                if (reaches(s, left, b.grid.ocv_soc(jj), right)) ++ocv_rows[jj];
+            }
         }
 
     // A reported value between knots a and b at weight w, as the model computes it (R and C interpolated linearly

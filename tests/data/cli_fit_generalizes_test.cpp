@@ -126,7 +126,7 @@ TEST(FitGeneralizes, EveryArrangementOfTheP45BFilesGivesTheSameParametersAndPred
 }
 
 void fit_and_predict(const std::string& temperature, const std::vector<std::string>& extra,
-                     const std::vector<std::string>& cycles, double bound_v, bool check_temperature) {
+                     const std::vector<std::pair<std::string, double>>& cycles, bool check_temperature) {
     const fs::path d = kShared / "panasonic-18650pf";
     if (!fs::exists(d / ("hppc_5pulse_" + temperature + ".bdf.csv"))) GTEST_SKIP() << "no Panasonic data in " << d;
     const auto o = temp_dir("panasonic" + temperature);
@@ -138,7 +138,7 @@ void fit_and_predict(const std::string& temperature, const std::vector<std::stri
     const auto s = read_json(o / "s.json");
     std::printf("%s: capacity %.4f Ah (%s)\n", temperature.c_str(), s["capacity"]["capacity_ah"].get<double>(),
                 s["capacity"]["method"].get<std::string>().c_str());
-    for (const auto& c : cycles) {
+    for (const auto& [c, bound_v] : cycles) {
         const auto [v, t] = simulate_rms(o / "p.json", d / (c + "_" + temperature + ".bdf.csv"), o / "m.json");
         std::printf("%s %s: voltage RMS %.2f mV, surface temperature RMS %.3f degC\n", c.c_str(), temperature.c_str(),
                     1e3 * v, t);
@@ -152,16 +152,16 @@ void fit_and_predict(const std::string& temperature, const std::vector<std::stri
 }
 
 TEST(FitGeneralizes, SecondCellAt25degCPredictsEveryDriveCycle) {
-    // Issue 11's target is 25 mV each; hwfet_b misses it today (see the closing note).
+    // Issue 11's target: 25 mV each.
     fit_and_predict("25degC", {"ocv_c20_discharge_25degC.bdf.csv", "discharge_1c_2_25degC.bdf.csv"},
-                    {"us06", "hwfet_a", "hwfet_b", "la92", "nn"}, 0.035, true);
+                    {{"us06", 0.025}, {"hwfet_a", 0.025}, {"hwfet_b", 0.025}, {"la92", 0.025}, {"nn", 0.025}}, true);
 }
 
 TEST(FitGeneralizes, SecondCellAt0degCPredictsEveryDriveCycle) {
-    // Issue 11's target is 40 mV each; us06 misses it today (see the closing note).
+    // Issue 11's target is 40 mV each; us06 misses it today (48 mV, see docs/model.md): held at what it gets.
     // The 0 degC recordings have no ambient column and la92 starts warm (18 degC): simulate's ambient (the first
     // surface reading) is wrong for it, so temperature is printed, not checked, here.
-    fit_and_predict("0degC", {}, {"us06", "hwfet", "la92"}, 0.060, false);
+    fit_and_predict("0degC", {}, {{"us06", 0.052}, {"hwfet", 0.040}, {"la92", 0.040}}, false);
 }
 
 }  // namespace

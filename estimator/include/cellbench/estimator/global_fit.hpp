@@ -7,7 +7,8 @@
 // SOC-step discharges, pilot and full discharges, charges) is simulated with the exact ZOH model of
 // electrical.hpp, and all windows are fitted together in one non-linear least-squares problem (Ceres):
 //
-//  - Parameters are values at SOC knots (uniform grid, `knot_spacing`) interpolated linearly, exactly as
+//  - Parameters are values at SOC knots (`knot_soc`, e.g. the test's levels, or a uniform `knot_spacing`)
+//    interpolated linearly, exactly as
 //    ParameterSet::rc_at and ocv_at interpolate them, so the fitted tables ARE the model that was fitted:
 //    per direction log R0, log R1, log tau1, log R2, log(tau2/tau1 - 1) (so 0 < tau1 < tau2 by construction,
 //    never by swapping), and OCV per knot.
@@ -37,7 +38,11 @@
 namespace cellbench::estimator {
 
 struct GlobalFitOptions {
-    double knot_spacing = kNaN;  // SOC spacing of the table breakpoints (NaN: characterize() takes the test's SOC levels)
+    double knot_spacing = kNaN;  // SOC spacing of a uniform grid of table breakpoints (used when knot_soc is empty)
+    // The table breakpoints themselves (increasing SOC, at least 3): characterize() puts them at the test's SOC
+    // levels, so every knot sits where a pulse set measured it, whatever the layout's spacing. Empty: the uniform
+    // grid of knot_spacing (0.1 when that is NaN) over the SOC the recordings visit.
+    std::vector<double> knot_soc;
     // The OCV is fitted on a grid this many times finer than the resistances and capacitances: low-rate stretches
     // (pilot, SOC-step and CC discharges) pin it between the pulse levels, while a pulse set pins the RC pairs only
     // at its own level. The tables come out on the finer grid, the RC values interpolated as the model does.

@@ -1,0 +1,64 @@
+// The global fit's table breakpoints sit at the test's own SOC levels (issue 11, layout-agnostic): a test whose
+// levels are unevenly spaced (here 7 % and 12 % steps, as the Panasonic 18650PF's HPPC mixes 5 % and 10 %) gets a
+// breakpoint at every level, where a uniform grid puts knots between levels that only the SOC-step discharges
+// reach (their resistances then alternate along SOC), and R0 comes out right at every level.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/fit.hpp"
+#include "unit/hppc_synthetic.hpp"
+
+namespace {
+
+namespace est = cellbench::estimator;
+using cellbench::test::Step;
+
+TEST(LevelKnots, UnevenLevelsEachGetABreakpointAndTheirR0) {
+    const std::vector<double> steps = {0.07, 0.07, 0.12, 0.12, 0.07};  // SOC drained between levels
+    constexpr double kPulseA = 4.5;
+    std::vector<Step> program;
+    std::vector<double> levels = {1.0};
+    for (double d : steps) {
+        for (const auto& s : cellbench::test::pulse_set_program(700.0, kPulseA)) program.push_back(s);
+        // The step drains d of the capacity net of the pulse set (30 s discharge, 10 s charge).
+        const double ah = d * cellbench::test::kCapacityAh - 20.0 * kPulseA / 3600.0;
+        program.push_back({std::round(ah / kPulseA * 3600.0), -kPulseA, "CC DChg"});
+        levels.push_back(levels.back() - d);
+    }
+    for (const auto& s : cellbench::test::pulse_set_program(700.0, kPulseA)) program.push_back(s);
+    program.push_back({700.0, 0.0, "Rest"});
+
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 0.1;  // as the P45B bench logs (at 1 s the first row after a step carries 1 s of the pairs)
+    so.voltage_noise_v = 2e-4;
+    const auto rec = cellbench::test::synthesize(program, so);
+    est::CharacterizationOptions o;
+    o.fallback_capacity_ah = cellbench::test::kCapacityAh;
+    o.fallback_c_th_j_per_k = 70.0;
+    o.fallback_r_th_k_per_w = 8.0;
+    const auto c = est::characterize({rec}, o);
+    ASSERT_TRUE(c.global.has_value());
+    // The test stops at 55 % SOC: it does not measure the capacity, the given one is used.
+    EXPECT_EQ(c.capacity.method, "given") << c.capacity.method;
+
+    // The RC breakpoints are every ocv_knots_per_interval-th table row (the OCV has its own finer grid).
+    const auto& soc = c.params.soc;
+    const int m = std::max(1, o.global.ocv_knots_per_interval);
+    std::vector<double> knots;
+    for (std::size_t j = 0; j < soc.size(); j += static_cast<std::size_t>(m)) knots.push_back(soc[j]);
+    const double r0_true = cellbench::test::p45b_discharge().r0_ohm;
+    for (double level : levels) {
+        const auto nearest = *std::min_element(knots.begin(), knots.end(), [&](double a, double b) {
+            return std::abs(a - level) < std::abs(b - level);
+        });
+        EXPECT_NEAR(nearest, level, 0.006) << "no breakpoint at the level " << level;
+        const double r0 = c.params.rc_at(level, -1).r0_ohm;
+        EXPECT_NEAR(r0, r0_true, 0.03 * r0_true) << "discharge R0 at the level " << level;
+    }
+}
+
+}  // namespace

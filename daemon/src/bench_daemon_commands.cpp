@@ -24,9 +24,11 @@ void BenchDaemon::Impl::chamber_setpoint(double c, std::uint64_t gen, int attemp
         }
         if (attempt == 0) instrument_fault("chamber", "set point " + std::to_string(c) + " degC: " + f->message, false);
         if (f->kind == drivers::ChamberFaultKind::rejected || stopping || gen != setpoint_generation) return;
+        // Retried at least every second (the safe set point of an abort among them), so a chamber back from a
+        // fault takes it within a second; a newer set point (the next run's) supersedes it.
         retry_later(attempt, [this, c, gen, attempt] {
             if (gen == setpoint_generation) chamber_setpoint(c, gen, attempt + 1);
-        });
+        }, std::chrono::milliseconds(1000));
     });
 }
 

@@ -138,8 +138,8 @@ void BenchDaemon::Impl::on_neware_event(const drivers::NewareEvent& e) {
         case drivers::NewareEventKind::group_fault: cyc.set_state(InstrumentState::error, e.message); break;
         default: cyc.set_detail(e.message); break;
     }
-    spdlog::log(e.kind == drivers::NewareEventKind::connect_failed ? spdlog::level::debug : spdlog::level::info,
-                "neware: {}: {}", drivers::to_string(e.kind), e.message);
+    // The driver has logged it (once per kind of fault in an episode: drivers/episode_log.hpp).
+    spdlog::debug("neware: {}: {}", drivers::to_string(e.kind), e.message);
     // A misbehaving parallel group (a member in protect, sharing off; the client has stopped every member):
     // immediately fatal. Lost connections, lost or malformed answers: the client reconnects with backoff and
     // the run goes on while readings come back within the grace (a valid poll answer closes the episode).
@@ -259,7 +259,7 @@ void BenchDaemon::Impl::on_chamber_fault(const drivers::ChamberFault& f) {
     chamber_instrument->set_state(f.kind == drivers::ChamberFaultKind::unreachable ? instruments::InstrumentState::offline
                                                                                    : instruments::InstrumentState::error,
                                   f.operation + ": " + f.message);
-    spdlog::warn("chamber: {} ({}): {}", drivers::to_string(f.kind), f.operation, f.message);
+    spdlog::debug("chamber: {} ({}): {}", drivers::to_string(f.kind), f.operation, f.message);  // the driver logged it
     // Policy (config: fault_policy.chamber). An alarm bit is immediately fatal; a set point not reached and
     // an exception answer are fatal when the policy says "abort"; the rest (no answer, lost connection,
     // garbled answer) is retried on a fresh connection while readings come back within the grace.

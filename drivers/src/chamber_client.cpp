@@ -1,4 +1,5 @@
 #include "cellbench/drivers/chamber_client.hpp"
+#include "cellbench/drivers/episode_log.hpp"
 
 #include <modbus.h>
 
@@ -79,6 +80,7 @@ struct ChamberClient::Impl : std::enable_shared_from_this<Impl> {
     std::shared_ptr<std::atomic<bool>> alive = std::make_shared<std::atomic<bool>>(true);
     std::function<void(const ChamberStatus&)> status_callback;
     std::function<void(const ChamberFault&)> fault_callback;
+    EpisodeLog episode_log;  // one warning per kind of fault in an episode (on the worker)
 
     // Worker-only state.
     modbus_t* ctx = nullptr;
@@ -114,8 +116,9 @@ struct ChamberClient::Impl : std::enable_shared_from_this<Impl> {
     }
 
     void report(const ChamberFault& fault) {
-        spdlog::warn("chamber {}:{}: {} ({}): {}", options.host, options.port, fault.operation, to_string(fault.kind),
-                     fault.message);
+        spdlog::log(episode_log.level(fault.operation + " " + to_string(fault.kind), spdlog::level::warn),
+                    "chamber {}:{}: {} ({}): {}", options.host, options.port, fault.operation, to_string(fault.kind),
+                    fault.message);
         if (fault_callback) to_user([cb = fault_callback, fault] { cb(fault); });
     }
 
@@ -243,6 +246,7 @@ struct ChamberClient::Impl : std::enable_shared_from_this<Impl> {
         auto [status, fault] = read_status_now();
         if (fault) report(*fault);
         if (status) {
+            episode_log.end("chamber " + options.host + ":" + std::to_string(options.port));
             supervise(*status);
             if (status_callback) to_user([cb = status_callback, s = *status] { cb(s); });
         }

@@ -1,4 +1,5 @@
 #include "cellbench/drivers/neware_client.hpp"
+#include "cellbench/drivers/episode_log.hpp"
 
 #include <algorithm>
 #include <array>
@@ -101,6 +102,7 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
     bool stopped = false;
     std::function<void(const NewareSample&)> sample_cb;
     std::function<void(const NewareEvent&)> event_cb;
+    EpisodeLog episode_log;  // one warning per kind of fault in an episode (on the strand)
 
     // ------------------------------------------------------------------------------------------------------
     // Callback helpers
@@ -120,7 +122,8 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
         if (kind == NewareEventKind::connected)
             spdlog::info("neware {}:{}: {}", options.host, options.port, message);
         else
-            spdlog::warn("neware {}:{}: {}: {}", options.host, options.port, to_string(kind), message);
+            spdlog::log(episode_log.level(to_string(kind), spdlog::level::warn), "neware {}:{}: {}: {}", options.host,
+                        options.port, to_string(kind), message);
         deliver([&] {
             if (event_cb) event_cb(NewareEvent{Clock::now(), kind, message, std::move(fault)});
         });
@@ -481,6 +484,7 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
             return;
         }
         sample.recording = false;
+        episode_log.end("neware " + options.host + ":" + std::to_string(options.port));
         deliver([&] {
             if (sample_cb) sample_cb(sample);
         });
@@ -584,6 +588,7 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
         // The tester records while its test runs; rows of a test that just ended arrive with this sample.
         sample.recording = !sample.records.empty() || sample.group.status == ChannelStatus::working ||
                            sample.group.status == ChannelStatus::pause;
+        episode_log.end("neware " + options.host + ":" + std::to_string(options.port));
         deliver([&] {
             if (sample_cb) sample_cb(sample);
         });

@@ -348,30 +348,41 @@ int main(int argc, char** argv) {
                 p = plant.read();
                 return std::abs(p.current_a) < kNoCurrentA && std::abs(p.chamber_setpoint_c - safe_setpoint_c) < 0.05;
             };
-            for (int k = 0; k < 50 && !(safe = bench_safe()); ++k) std::this_thread::sleep_for(100ms);
             // An instrument the soak itself keeps unreachable (a fault still held: the tester refusing or not
-            // answering, the chamber silent) cannot take the safe command: the tester runs its step file on its
-            // own, the chamber holds its set point. The fault is released at its scheduled end, and the command
-            // must then get through within the reconnect and retry periods (bench.hil.json: reconnect_max 5 s,
-            // stops retried every 1 s; 15 s of wall time allowed); for the tester, the record must say meanwhile
-            // that the stop was not acknowledged. The delay is reported.
-            if (!safe && open_fault) {
-                const std::string held = faults[*open_fault].kind;
-                while (wall_s() < fault_release) std::this_thread::sleep_for(100ms);
-                if (release) release();
-                release = nullptr;
-                open_fault.reset();
-                const double back = wall_s();
-                while (!(safe = bench_safe()) && wall_s() - back < 15.0) std::this_thread::sleep_for(100ms);
+            // answering, the chamber silent or failing) cannot take the safe command: the tester runs its step
+            // file on its own, the chamber holds its set point. Such a fault is released at its scheduled end,
+            // and the commands must then get through within the daemon's reconnect and retry periods
+            // (bench.hil.json: reconnect_max 5 s; stops and set points retried at least every second): 15 s of
+            // wall time from the abort, or from the release. For the tester, the record must say meanwhile that
+            // the stop was not acknowledged. The delay is reported.
+            const std::optional<std::size_t> held_at_abort = open_fault;
+            double deadline = wall_s() + 15.0, released_at = -1.0;
+            while (!(safe = bench_safe())) {
+                if (open_fault && wall_s() >= fault_release) {
+                    if (release) release();
+                    release = nullptr;
+                    open_fault.reset();
+                    released_at = wall_s();
+                    deadline = released_at + 15.0;
+                }
+                if (!open_fault && wall_s() >= deadline) break;
+                std::this_thread::sleep_for(100ms);
+            }
+            if (held_at_abort) {
+                const std::string held = faults[*held_at_abort].kind;
                 bool said = held.rfind("neware_", 0) != 0;  // only a stop can be pending
                 if (const auto [ec2, ev2] = api(http::verb::get, "/runs/" + std::to_string(id) + "/events"); ev2.contains("events"))
                     for (const auto& e : ev2["events"])
                         said = said || (e.value("kind", "") == "cycler" && e.value("level", "") == "error");
                 char d[200];
-                std::snprintf(d, sizeof d, "%s held at the abort: bench safe %.1f s after it was released%s", held.c_str(),
-                              wall_s() - back, said ? "" : "; NO event said the stop was pending");
+                if (released_at >= 0)
+                    std::snprintf(d, sizeof d, "%s held at the abort: bench %s %.1f s after its release%s", held.c_str(),
+                                  safe ? "safe" : "NOT safe", wall_s() - released_at,
+                                  said ? "" : "; NO event said the stop was pending");
+                else
+                    std::snprintf(d, sizeof d, "%s held at the abort: bench safe before its release", held.c_str());
                 r.stop_note = d;
-                if (!said) problems.push_back("run " + std::to_string(id) + ": " + d);
+                if (!said && released_at >= 0) problems.push_back("run " + std::to_string(id) + ": " + d);
             }
             r.safe_after_abort = safe;
             r.safe_detail = "current " + std::to_string(p.current_a) + " A, chamber set point " +

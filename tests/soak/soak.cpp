@@ -393,13 +393,19 @@ int main(int argc, char** argv) {
         for (auto& rr : runs)
             if (rr.id == id) r.bench_start = rr.bench_start, rr = r;
         // RSS once the daemon has settled after the run: it hands the recording to the end fit, then gives the
-        // store's caches and the freed heap back; the lowest of 5 s of samples (each run measured the same way).
+        // store's caches and the freed heap back (each run measured the same way).
+        // The end fit may still be running when the run is reported over (seconds at 100x for a short HPPC on a
+        // busy machine): the lowest figure once it has stopped falling for 5 s (the daemon trims its heap every 2 s
+        // when idle), within 30 s.
         long settled = rss_kib(mem_pid), anon = status_kib(mem_pid, "RssAnon"), file = status_kib(mem_pid, "RssFile");
-        for (int k = 0; k < 10; ++k) {
+        for (int k = 0, flat = 0; k < 60 && !(k >= 10 && flat >= 10); ++k) {
             std::this_thread::sleep_for(500ms);
             const long v = rss_kib(mem_pid);
-            if (v > 0 && (settled <= 0 || v < settled))
+            ++flat;
+            if (v > 0 && (settled <= 0 || v < settled)) {
+                if (settled - v > 64) flat = 0;
                 settled = v, anon = status_kib(mem_pid, "RssAnon"), file = status_kib(mem_pid, "RssFile");
+            }
         }
         for (auto& rr : runs)
             if (rr.id == id) rr.rss_settled_kib = settled, rr.anon_kib = anon, rr.file_kib = file;

@@ -4,9 +4,11 @@
 // poll: 2 lines a second at 1 s polls, 57 000 over a night, hiding everything else. The first fault of a kind is
 // logged at its own level, its repeats at debug and counted; the line that ends the episode (the first good
 // answer) says how many there were. Not thread-safe: used on the driver's strand or worker.
+#include <algorithm>
 #include <cstddef>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include <spdlog/spdlog.h>
 
@@ -16,26 +18,23 @@ class EpisodeLog {
 public:
     // The level to log a fault of `kind` at: `first` the first time in this episode, debug for a repeat.
     spdlog::level::level_enum level(std::string_view kind, spdlog::level::level_enum first) {
-        if (open_ && kind == last_kind_) {
+        if (std::find(kinds_.begin(), kinds_.end(), kind) != kinds_.end()) {
             ++repeats_;
             return spdlog::level::debug;
         }
-        open_ = true;
-        last_kind_ = kind;
+        kinds_.emplace_back(kind);  // a handful per episode (an instrument fails in few ways at once)
         return first;
     }
     // Ends the episode on a good answer: logs (at info, with `who`) how many repeats were kept at debug.
     void end(std::string_view who) {
-        if (!open_) return;
+        if (kinds_.empty()) return;
         if (repeats_ > 0) spdlog::info("{}: answering again ({} more faults of the episode logged at debug)", who, repeats_);
-        open_ = false;
+        kinds_.clear();
         repeats_ = 0;
-        last_kind_.clear();
     }
 
 private:
-    bool open_ = false;
-    std::string last_kind_;
+    std::vector<std::string> kinds_;  // the kinds logged in this episode
     std::size_t repeats_ = 0;
 };
 

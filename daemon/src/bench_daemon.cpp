@@ -168,10 +168,14 @@ void BenchDaemon::Impl::schedule_tick() {
                 last_idle_trim = std::chrono::steady_clock::now();
             }
         } else if (!active() && std::chrono::steady_clock::now() - last_idle_trim > kIdleTrimPeriod) {
-            // Idle between runs, the API still answers (run records, samples, exports): what those answers
-            // allocated and freed goes back to the system too, so an idle daemon's RSS is its live data, not the
-            // high-water mark of the last query. Cheap: the heap is small when no run is active.
-            return_free_memory();
+            // Idle between runs, the API still answers (run records, samples, exports): the page caches those
+            // queries filled are released, and (once the writer has done so, the next period) the freed heap goes
+            // back to the system, so an idle daemon's RSS is its live data, not the high-water mark of the last
+            // query. Cheap: the heap is small when no run is active.
+            if (!idle_released.valid() || idle_released.wait_for(std::chrono::seconds(0)) == std::future_status::ready) {
+                return_free_memory();
+                idle_released = store->release_memory();
+            }
             last_idle_trim = std::chrono::steady_clock::now();
         }
         schedule_tick();

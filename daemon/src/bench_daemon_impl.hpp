@@ -283,6 +283,7 @@ struct BenchDaemon::Impl {
     // Between runs, the freed heap is given back to the system at most this often (see schedule_tick).
     static constexpr std::chrono::seconds kIdleTrimPeriod{2};
     std::chrono::steady_clock::time_point last_idle_trim{};
+    std::future<void> idle_released;  // the store's caches released by the last idle trim
     void retry_later(int attempt, std::function<void()> fn, std::chrono::milliseconds cap = std::chrono::milliseconds(5000));
 
     void chamber_setpoint(double c, std::uint64_t gen, int attempt);

@@ -77,6 +77,10 @@ json BenchDaemon::status() {
     else
         j["progress"] = nullptr;
     if (c) j["sequencer"] = c->seq->status();
+    // Whether the last run's fits (its pulse sets', then its end fit after it ended) are still computing: a
+    // script waiting for a run's parameter set, or measuring the daemon at rest, waits for false.
+    const auto last = d.current();
+    j["fits_running"] = last && last->seq->fits_running();
     return j;
 }
 

@@ -85,6 +85,13 @@ void Sequencer::wait_for_fits() { pool_->wait_idle(); }
 
 bool Sequencer::fits_idle() const { return pool_->idle(); }
 
+bool Sequencer::fits_running() const {
+    // Under the run's lock: the end of a run reports its state and submits its end fit in one step, so nobody
+    // sees the run over with no fit pending before the end fit is under way.
+    std::lock_guard<std::mutex> lock(mutex_);
+    return !pool_->idle();
+}
+
 void Sequencer::start(const Program& program, double t) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (active(state_)) throw InputError("a run is already active");
@@ -203,7 +210,12 @@ void Sequencer::finish_locked(RunState end_state, const std::string& reason, dou
     if (fit_now) {
         spawn([this, rec = std::move(rec), t]() -> std::function<void()> {
             try {
-                auto c = std::make_shared<estimator::Characterization>(estimator::characterize({rec}));
+                // A run that does not discharge the cell from full to its cut-off does not measure the capacity:
+                // the fit then takes the run's (the cell's characterised or nominal capacity).
+                estimator::CharacterizationOptions co;
+                co.fallback_capacity_ah = opt_.capacity_ah;
+                co.fallback_capacity_source = "the run's cell capacity";
+                auto c = std::make_shared<estimator::Characterization>(estimator::characterize({rec}, co));
                 return [this, c] { sink_.on_parameter_set(c->params, c->summary_json()); };
             } catch (const std::exception& e) {
                 return [this, t, what = std::string(e.what())] {

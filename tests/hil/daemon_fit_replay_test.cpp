@@ -132,9 +132,11 @@ TEST(DaemonFitReplay, RunParametersAreValidatedAndFitDbGivesTheDaemonsParameters
     EXPECT_LE(last_fraction, 0.99) << progress.dump();
     EXPECT_TRUE(progress_monotonic);
     ASSERT_EQ(state, "completed") << d.events(id).dump(1);
-    // The fits and the final parameter set land after the end.
-    ASSERT_TRUE(eventually([&] { return d.store().latest_parameter_set(id).has_value(); }, 300s, 200ms));
+    // The fits and the final parameter set land after the end: GET /status says when ("fits_running" false),
+    // and then the parameter set is in the store.
+    ASSERT_TRUE(eventually([&] { return d.status().value("fits_running", true) == false; }, 300s, 200ms)) << d.status().dump();
     d.store().flush();
+    ASSERT_TRUE(d.store().latest_parameter_set(id).has_value()) << "fits_running turned false before the end fit was stored";
     const json daemon_fits = d.fits(id)["fits"];
     ASSERT_EQ(daemon_fits.size(), 2u) << daemon_fits.dump(1);
     const auto run = d.store().get_run(id);

@@ -397,6 +397,11 @@ int main(int argc, char** argv) {
         // The end fit may still be running when the run is reported over (seconds at 100x for a short HPPC on a
         // busy machine): the lowest figure once it has stopped falling for 5 s (the daemon trims its heap every 2 s
         // when idle), within 30 s.
+        for (int k = 0; k < 240; ++k) {  // up to 2 min for the end fit (GET /status "fits_running")
+            const auto [fc2, st] = api(http::verb::get, "/status");
+            if (fc2 == 200 && !st.value("fits_running", false)) break;
+            std::this_thread::sleep_for(500ms);
+        }
         long settled = rss_kib(mem_pid), anon = status_kib(mem_pid, "RssAnon"), file = status_kib(mem_pid, "RssFile");
         for (int k = 0, flat = 0; k < 60 && !(k >= 10 && flat >= 10); ++k) {
             std::this_thread::sleep_for(500ms);

@@ -126,6 +126,7 @@ public:
     [[nodiscard]] Recording recording() const;    // the run so far (cycler time base, thermal values attached)
     void wait_for_fits();                         // every fit started so far computed and delivered
     [[nodiscard]] bool fits_idle() const;         // no fit waiting, computing or undelivered (never blocks)
+    [[nodiscard]] bool fits_running() const;      // !fits_idle(), consistent with the run's state (takes its lock)
 
 private:
     // Every safety rule in turn; the first reason aborts the run. True when it aborted.

@@ -332,9 +332,8 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
             const auto& last = segs[r].cc_discharges.back();
             if (last.voltage_end_v > v_floor + 0.1) continue;
             const auto& q = throughput[r];
-            // The cut-off is where the cell runs empty: the discharge ends on the knee, its voltage falling
-            // faster in its last tenth of charge than over the rest of it. A test stopped part-way (its last SOC
-            // step at mid SOC) ends on a straight stretch: it does not measure the capacity.
+            // The cut-off is where the cell runs empty: the discharge ends on the knee (ends_on_knee). A test
+            // stopped part-way (its last SOC step at mid SOC) does not measure the capacity.
             if (!ends_on_knee(recordings[r], q, last, segs[r].long_rests)) continue;
             const std::size_t anchor = anchor_row(segs[r]);
             out.capacity = {q[anchor] - q[last.end - 1], "throughput from full charge to the cut-off",

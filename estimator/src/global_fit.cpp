@@ -60,6 +60,12 @@ struct WindowData {
     double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
 };
 
+double median(std::vector<double> v) {
+    if (v.empty()) return kNaN;
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+}
+
 // The knot grid and the model options shared by every cost function. Knots at any increasing SOC (the test's
 // levels need not be evenly spaced: 5 % steps at the ends, 10 % in the middle); the OCV grid divides every knot
 // interval into m equal parts.
@@ -77,8 +83,7 @@ struct Grid {
         n = static_cast<int>(knot.size());
         std::vector<double> gaps;
         for (int j = 1; j < n; ++j) gaps.push_back(knot[j] - knot[j - 1]);
-        std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
-        ref_ds = gaps[gaps.size() / 2];
+        ref_ds = median(std::move(gaps));
     }
     [[nodiscard]] double soc(int j) const { return knot[j]; }
     [[nodiscard]] double width(int k) const { return k + 1 < n ? knot[k + 1] - knot[k] : ref_ds; }
@@ -522,12 +527,6 @@ std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& init
     return soc;
 }
 
-double median(std::vector<double> v) {
-    if (v.empty()) return kNaN;
-    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
-    return v[v.size() / 2];
-}
-
 nlohmann::json num(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
 
 nlohmann::json value_json(const FittedValue& v) {
@@ -726,8 +725,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         std::vector<double> k = options.knot_soc;
         std::vector<double> gaps;
         for (std::size_t j = 1; j < k.size(); ++j) gaps.push_back(k[j] - k[j - 1]);
-        std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
-        const double typical = gaps[gaps.size() / 2];
+        const double typical = median(std::move(gaps));
         while (s_lo < k.front() - 0.01) k.insert(k.begin(), std::max(s_lo, k.front() - typical));
         while (s_hi > k.back() + 0.01) k.push_back(std::min(s_hi, k.back() + typical));
         b.grid.set_knots(std::move(k));

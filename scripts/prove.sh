@@ -54,14 +54,10 @@ run_case() {  # $1 = case (effects joined by +), $2 = seed
     fi
   fi
   if [ "$fitdir" = "$d" ] && [ ! -f "$d/params.json" ]; then
-    "$BIN/cellbench" -q fit "$d/hppc.bdf.csv" "$d/cc_low.bdf.csv" "$d/cc_high.bdf.csv" -o "$d/params.fit.json" > /dev/null 2>&1
     # The heat flux density refers to the cell's surface, which a user knows from its format (the plant's cells
-    # are 18650 or 21700 by seed; the fit assumes a 21700's): the parameter set gets the true area. C_th and
-    # R_th come from the fit as it is (cooling time constants).
-    /usr/bin/python3 -c "
-import json, sys
-p = json.load(open(sys.argv[1])); p['thermal']['area_m2'] = float(sys.argv[2])
-json.dump(p, open(sys.argv[3], 'w'), indent=1)" "$d/params.fit.json" "$area" "$d/params.json"
+    # are 18650 or 21700 by seed): the fit is told it, as a user would (`fit --area-m2`).
+    "$BIN/cellbench" -q fit "$d/hppc.bdf.csv" "$d/cc_low.bdf.csv" "$d/cc_high.bdf.csv" --area-m2 "$area" \
+      -o "$d/params.json" > "$d/fit.txt" 2>&1 || echo "fit failed: $d" >&2
   fi
   "$BIN/cellbench" -q diagnose --params "$fitdir/params.json" "$d/drive.bdf.csv" --json "$d/diagnosis.json" \
     --report "$d/report.html" > "$d/diagnose.txt" 2>&1 || echo "diagnose failed: $d" >&2

@@ -91,12 +91,12 @@ TEST(DiagnoseOnIndependentPlant, NamesHiddenBenchEffectsAndLeavesControlsAlone) 
         const auto data = plant::generate(o);
         est::CharacterizationOptions co;  // the default global fit
         co.fallback_capacity_ah = data.truth.nominal_capacity_ah;
-        auto fit = est::characterize({to_recording(data.hppc, "hppc"), to_recording(data.cc_low, "cc_low"),
+        // The heat flux density refers to the cell's surface, which a user knows from the format (18650 or
+        // 21700 by seed): the fit is told it (`fit --area-m2`; prove.sh does the same).
+        co.area_m2 = data.truth.area_m2;
+        const auto fit = est::characterize({to_recording(data.hppc, "hppc"), to_recording(data.cc_low, "cc_low"),
                                       to_recording(data.cc_high, "cc_high")},
                                      co);
-        // The heat flux density refers to the cell's surface, which a user knows from the format (18650 or
-        // 21700 by seed): the parameter set gets it (prove.sh does the same).
-        fit.params.thermal.area_m2 = data.truth.area_m2;
         for (const auto& effects : hidden) {
             plant::PlantOptions oe = o;
             oe.effects = effects;

@@ -50,6 +50,11 @@ int run_cli(int argc, char** argv) {
     fit_cmd->add_option("--capacity-ah", fit.capacity_ah,
                         "Capacity (Ah) used when no recording measures it (no pilot discharge, no test to the cut-off)")
         ->check(CLI::PositiveNumber);
+    fit_cmd->add_option("--area-m2", fit.area_m2,
+                        "Cell surface in m^2 that turns the heat flux density into heat flow (default: a 21700's; "
+                        "an 18650 has 4.18e-3)")
+        ->check(CLI::Range(1e-5, 1.0))
+        ->capture_default_str();
     fit_cmd->add_option("--smoothness", fit.smoothness,
                         "Weight of the smoothness penalty along SOC (default: chosen by cross-validation)")
         ->check(CLI::PositiveNumber);

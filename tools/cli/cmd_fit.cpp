@@ -169,6 +169,7 @@ int run_fit(const FitOptions& o) {
     co.cell = o.cell_name;
     co.fallback_capacity_ah = o.capacity_ah;
     co.fallback_capacity_source = "--capacity-ah";
+    co.area_m2 = o.area_m2;
     co.global.smoothness = o.smoothness;
     co.global.knot_spacing = o.knot_spacing;
     co.global_fit = !o.per_pulse_set;

@@ -9,6 +9,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/simulate.hpp"
 
 namespace CLI {
@@ -31,6 +32,7 @@ struct FitOptions {
     std::string output, summary_json;
     std::string cell_name = "Molicel INR-21700-P45B";
     double capacity_ah = 0.0;        // used when no recording measures the capacity
+    double area_m2 = estimator::CharacterizationOptions{}.area_m2;  // cell surface (heat flux density -> heat flow)
     double smoothness = std::numeric_limits<double>::quiet_NaN();   // NaN: cross-validated
     double knot_spacing = std::numeric_limits<double>::quiet_NaN(); // NaN: the test's SOC levels
     bool per_pulse_set = false;      // the thesis' per-pulse-set tables instead of the global fit

@@ -114,13 +114,21 @@ print("| hidden \\ named | " + " | ".join(labels) + " |")
 print("|---" * (len(labels) + 1) + "|")
 for a in truths:
     print(f"| {a} | " + " | ".join(str(conf[(a, b)] or "") for b in labels) + " |")
-eff = [r for r in single if r[0] != "none"]
+# Issue 13's acceptance counts the effects an HPPC cannot capture; resistance_temperature and resistance_current are
+# identified by the default global fit from the characterization itself (the parameter set holds them, diagnose
+# skips them), so there the right answer is "none" or the effect itself, and naming another effect is the error.
+CAPTURED = {"resistance_temperature", "resistance_current"}
+eff = [r for r in single if r[0] != "none" and r[0] not in CAPTURED]
+cap = [r for r in single if r[0] in CAPTURED]
 ok = sum(r[0] == r[2] for r in eff)
 ctrl = [r for r in single if r[0] == "none"]
 fp = sum(r[3] != "-" for r in ctrl)
 cuts = [float(r[8]) for r in eff if r[0] == r[2]]
 refit_ctrl = sum(r[4] != "-" for r in ctrl)
-print(f"\nright effect first: {ok} of {len(eff)} ({100*ok/max(len(eff),1):.0f} %)")
+print(f"\nright effect first (effects an HPPC cannot capture): {ok} of {len(eff)} ({100*ok/max(len(eff),1):.0f} %)")
+if cap:
+    wrong = sum(r[2] not in ("none", r[0]) for r in cap)
+    print(f"effects the characterization captures ({', '.join(sorted(CAPTURED))}): another effect named in {wrong} of {len(cap)}")
 print(f"controls with a significant effect finding: {fp} of {len(ctrl)} "
       f"(with a base re-identification, parameters_wrong: {refit_ctrl} of {len(ctrl)})")
 if cuts:

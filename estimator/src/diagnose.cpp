@@ -38,10 +38,15 @@ const std::vector<EffectSpec>& specs() {
          {{0.0, 0.0}, {2e-4, 0.0}, {-2e-4, 0.0}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.entropic_heat = EntropicHeatExt{x[0], x[1]}; }},
         {"thermal_second_order",
-         {{"core_fraction", 0.05, 0.95, false}, {"r_core_surface_k_per_w", 0.05, 20.0, true}},
-         {{0.7, 1.0}, {0.5, 0.3}, {0.85, 3.0}},
+         // The characterization fitted one lump to a cell that is not one: its C_th and R_th absorbed part of the
+         // second node, so they are re-identified together with it (c_th_scale, r_th_scale).
+         {{"core_fraction", 0.05, 0.95, false}, {"r_core_surface_k_per_w", 0.05, 20.0, true},
+          {"c_th_scale", 0.5, 2.0, true}, {"r_th_scale", 0.5, 2.0, true}},
+         {{0.7, 1.0, 1.0, 1.0}, {0.5, 0.3, 1.0, 1.0}, {0.85, 3.0, 1.0, 1.0}},
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.thermal_second_order = ThermalSecondOrderExt{x[0], x[1]};
+             p.thermal.c_th_j_per_k *= x[2];
+             p.thermal.r_th_k_per_w *= x[3];
          }},
         {"resistance_temperature",
          {{"activation_energy_j_per_mol", -2e4, 1.2e5, false}},
@@ -61,13 +66,30 @@ const std::vector<EffectSpec>& specs() {
          "physics_missing",
          [](const ParameterSet& p) { return p.extensions.resistance_current.has_value(); }},
         {"ocv_hysteresis",
-         {{"magnitude_v", 0.0, 0.08, false}, {"rate_per_capacity", 1.0, 300.0, true}},
-         {{0.01, 20.0}, {0.02, 100.0}},
-         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ocv_hysteresis = OcvHysteresisExt{x[0], x[1]}; }},
+         // The characterization measured its OCV on one branch (rests after discharge steps, or after charge
+         // steps), which the parameter set holds as if it were the centre: the hysteresis is fitted together with
+         // where the centre lies relative to the table (branch_offset_v; about +magnitude for a discharge branch).
+         {{"magnitude_v", 0.0, 0.08, false}, {"rate_per_capacity", 1.0, 300.0, true}, {"branch_offset_v", -0.08, 0.08, false}},
+         {{0.01, 20.0, 0.0}, {0.01, 20.0, 0.01}, {0.02, 100.0, 0.02}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             p.extensions.ocv_hysteresis = OcvHysteresisExt{x[0], x[1]};
+             for (auto& v : p.ocv_v) v += x[2];
+         }},
         {"extra_rc",
-         {{"r_ohm", 1e-5, 0.05, true}, {"tau_s", 60.0, 5000.0, true}},
-         {{2e-3, 200.0}, {5e-3, 800.0}, {2e-3, 2500.0}},
-         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.extra_rc = ExtraRcExt{x[0], x[1]}; }},
+         // A characterization with two RC pairs puts part of a slower process into its second pair (a larger R2
+         // and a longer tau2 than the cell's): that pair is re-identified together with the new one
+         // (the absorbed process only makes them larger, hence the scales' upper bound near 1).
+         {{"r_ohm", 1e-5, 0.05, true}, {"tau_s", 60.0, 5000.0, true}, {"r2_scale", 0.2, 1.2, true},
+          {"tau2_scale", 0.2, 1.2, true}},
+         {{2e-3, 800.0, 1.0, 1.0}, {5e-3, 1500.0, 0.7, 0.7}, {2e-3, 3000.0, 0.5, 0.5}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             p.extensions.extra_rc = ExtraRcExt{x[0], x[1]};
+             for (RcTable* t : {&p.discharge, &p.charge})
+                 for (std::size_t k = 0; k < t->r2_ohm.size() && k < t->c2_f.size(); ++k) {
+                     t->r2_ohm[k] *= x[2];
+                     t->c2_f[k] *= x[3] / x[2];  // tau2 = R2*C2 scales by tau2_scale
+                 }
+         }},
         {"capacity_error",
          {{"capacity_scale", 0.6, 1.4, false}},
          {{0.95}, {1.05}},
@@ -235,14 +257,36 @@ struct Fit {
     double j = INFINITY;    // objective on the fitted rows
 };
 
+// The objective at x without a search (one simulation).
+double objective_at(const Problem& pb, const ParameterSet& base, const EffectSpec& spec, const std::vector<char>& mask,
+                    const std::vector<double>& x) {
+    ParameterSet p = base;
+    spec.apply(p, x);
+    try {
+        return objective(pb, errors_of(p, *pb.rec), mask);
+    } catch (const std::exception&) {
+        return INFINITY;
+    }
+}
+
+// Searches from the `keep` most promising starts (ranked by their objective: one simulation each instead of a
+// search each), keeping the best result.
 Fit fit_effect(const Problem& pb, const ParameterSet& base, const EffectSpec& spec, const std::vector<char>& mask,
-               const std::vector<std::vector<double>>& starts, int max_iterations) {
+               std::vector<std::vector<double>> starts, int max_iterations, std::size_t keep = 2) {
+    if (starts.size() > keep) {
+        std::vector<std::pair<double, std::size_t>> ranked;
+        for (std::size_t k = 0; k < starts.size(); ++k) ranked.emplace_back(objective_at(pb, base, spec, mask, starts[k]), k);
+        std::stable_sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+        std::vector<std::vector<double>> kept;
+        for (std::size_t k = 0; k < keep; ++k) kept.push_back(starts[ranked[k].second]);
+        starts = std::move(kept);
+    }
     Fit best;
     for (const auto& start : starts) {
         std::vector<double> u(spec.params.size());
         for (std::size_t j = 0; j < u.size(); ++j) u[j] = to_u(spec.params[j], start[j]);
         auto* functor = new EffectCost(pb, base, spec, mask);
-        auto* cost = new ceres::DynamicNumericDiffCostFunction<EffectCost, ceres::CENTRAL>(functor);
+        auto* cost = new ceres::DynamicNumericDiffCostFunction<EffectCost, ceres::FORWARD>(functor);
         cost->AddParameterBlock(static_cast<int>(u.size()));
         cost->SetNumResiduals(functor->residuals());
         ceres::Problem problem;
@@ -312,7 +356,9 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
                " mV/K at 50 % SOC (" + num("%+.3f", x[1] * 1e3) + " mV/K per unit SOC)";
     else if (id == "thermal_second_order")
         what = "the cell is not one lump: a core node holding " + pct(x[0]) + " of the heat capacity behind " +
-               num("%.2f", x[1]) + " K/W lags the surface the sensors see";
+               num("%.2f", x[1]) + " K/W lags the surface the sensors see (with it, C_th " +
+               num("%.1f", x[2] * base.thermal.c_th_j_per_k) + " J/K and R_th " +
+               num("%.2f", x[3] * base.thermal.r_th_k_per_w) + " K/W)";
     else if (id == "resistance_temperature") {
         const double f10 = std::exp(x[0] / 8.314462618 *
                                     (1.0 / (base.reference_temperature_c + 283.15) - 1.0 / (base.reference_temperature_c + 273.15)));
@@ -322,12 +368,18 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
         const double x4 = 4.0 * base.capacity_ah / (2 * x[0]), x1 = base.capacity_ah / (2 * x[0]);
         what = "polarization is not linear in current (Butler-Volmer): at 4C the RC resistances are " +
                pct(std::asinh(x4) / x4 / (std::asinh(x1) / x1)) + " of their 1C value (I0 = " + num("%.1f", x[0]) + " A)";
-    } else if (id == "ocv_hysteresis")
+    } else if (id == "ocv_hysteresis") {
         what = "the OCV depends on the direction of the last current: +-" + num("%.1f", x[0] * 1e3) +
                " mV, settling over " + pct(1.0 / x[1]) + " of the capacity";
+        if (std::abs(x[2]) > 0.25 * x[0])
+            what += "; the parameter set's OCV lies " + num("%.1f", std::abs(x[2]) * 1e3) + " mV " +
+                    (x[2] > 0 ? "below" : "above") + " the centre between the branches (measured on the " +
+                    (x[2] > 0 ? "discharge" : "charge") + " branch)";
+    }
     else if (id == "extra_rc")
         what = "a slow diffusion time constant beyond the two RC pairs: " + num("%.2f", x[0] * 1e3) + " mOhm with tau " +
-               num("%.0f", x[1]) + " s";
+               num("%.0f", x[1]) + " s (with it, the second pair's R2 x" + num("%.2f", x[2]) + " and tau2 x" +
+               num("%.2f", x[3]) + ")";
     else if (id == "thermal_parameters")
         what = "the lumped thermal parameters are off (parameters wrong, re-identified on this recording): C_th " +
                num("%.1f", x[0] * base.thermal.c_th_j_per_k) + " J/K instead of " + num("%.1f", base.thermal.c_th_j_per_k) +
@@ -573,6 +625,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     ParameterSet current = params;
     QuantityRms current_rms = d.baseline;
     std::map<std::string, Finding> last_round;
+    std::map<std::string, std::vector<double>> previous_x;  // each candidate's fit in the last round
     std::size_t round = 0;
     const double round_share = 0.90 / static_cast<double>(std::max<std::size_t>(options.max_accepted, 1));
     while (round < options.max_accepted) {
@@ -600,7 +653,11 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                 fd.effect = id;
                 fd.kind = spec.kind;
                 fd.parameters_count = spec.params.size();
-                const Fit full = fit_effect(pb, current, spec, all, spec.starts, 25);
+                // From the catalogue's starts and, after the first round, from where this candidate ended last
+                // round (the base moved by one accepted effect).
+                auto starts = spec.starts;
+                if (const auto prev = previous_x.find(id); prev != previous_x.end()) starts.insert(starts.begin(), prev->second);
+                const Fit full = fit_effect(pb, current, spec, all, std::move(starts), 25);
                 if (!std::isfinite(full.j)) {
                     fd.explanation = "the fit of this effect did not converge";
                 } else {
@@ -609,7 +666,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     // their jackknife spread, which holds with correlated residuals where the Jacobian's would not.
                     std::vector<std::vector<double>> fold_x;
                     for (std::size_t f = 0; f < folds; ++f) {
-                        const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 15);
+                        const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 8);
                         if (std::isfinite(ff.j)) fold_x.push_back(ff.x);
                         ParameterSet p = current;
                         spec.apply(p, std::isfinite(ff.j) ? ff.x : full.x);
@@ -677,6 +734,8 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             if (alt < round_findings.size()) best = alt;
         }
         for (auto& f : round_findings) last_round[f.effect] = f;
+        for (std::size_t k = 0; k < todo.size(); ++k)
+            if (!round_x[k].empty()) previous_x[todo[k]] = round_x[k];
         if (best == round_findings.size()) break;
         const auto& spec =
             *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == round_findings[best].effect; });

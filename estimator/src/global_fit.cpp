@@ -184,9 +184,8 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         const auto& a = kv[idx - lo];
         const auto& b = kv[std::min(idx + 1, hi) - lo];
         auto lerp = [&](const T& x, const T& y) { return x + wr * (y - x); };
-        T f_t(1.0), f_i(1.0);
+        T f_t(1.0);  // the current factor is applied per sub-step in advance()
         if (g.temperature) f_t = exp(ea / kGasConstantJPerMolK * (1.0 / (tk.temperature_c + kZeroCelsiusK) - 1.0 / g.t_ref_k));
-        if (g.current) f_i = asinh_ratio(T(std::abs(i)) / (2.0 * i0)) / ref_ratio;
         const T r0d = lerp(a.r0d, b.r0d) * f_t, r0c = lerp(a.r0c, b.r0c) * f_t;
         // The RC pairs over a span dt with current ic held (R and C at this tick's SOC and temperature).
         auto advance = [&](double ic_a, const T& dt) {

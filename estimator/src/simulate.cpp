@@ -46,19 +46,22 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     CellState s;
     s.temperature_c = options.initial_temperature_c.value_or(std::isfinite(first_surface) ? first_surface
                                                                                           : ambient_at(0));
+    // Unknown history: a cell above half charge at the start was most likely last charged (a test starts after a
+    // full CCCV charge), one below, last discharged.
+    auto initial_hysteresis_v = [&](double soc) {
+        const auto& h = p.extensions.ocv_hysteresis;
+        return h ? (soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v : 0.0;
+    };
     if (options.initial_soc) {
         s.soc = *options.initial_soc;
     } else {
-        // The state the recording implies: a rested cell's voltage is its OCV; under current, remove R0*I.
+        // The state the recording implies: a rested cell's voltage is its OCV plus the hysteresis it holds; under
+        // current, remove R0*I.
         const double soc_guess = p.soc_from_ocv(rec.voltage_v[0]);
         const double ohmic = ohmic_drop_v(p.rc_at(soc_guess, -1), p.rc_at(soc_guess, +1), rec.current_a[0]);
-        s.soc = p.soc_from_ocv(rec.voltage_v[0] - ohmic);
+        s.soc = p.soc_from_ocv(rec.voltage_v[0] - ohmic - initial_hysteresis_v(soc_guess));
     }
-    if (const auto& h = p.extensions.ocv_hysteresis) {
-        // Unknown history: a cell above half charge at the start was most likely last charged (a test starts
-        // after a full CCCV charge), one below, last discharged.
-        s.hysteresis_v = (s.soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v;
-    }
+    s.hysteresis_v = initial_hysteresis_v(s.soc);
     tr.initial_soc = s.soc;
     tr.ambient_c = ambient_const;
 

@@ -61,19 +61,6 @@ std::string py_list(const std::vector<double>& v) {
     return s + "]";
 }
 
-std::string py_string(const std::string& text) {
-    std::string s = "\"";
-    for (char c : text) {
-        if (c == '\\' || c == '"') s += '\\';
-        if (c == '\n') {
-            s += "\\n";
-            continue;
-        }
-        s += c;
-    }
-    return s + "\"";
-}
-
 std::vector<double> unique_sorted(std::vector<double> v) {
     std::sort(v.begin(), v.end());
     v.erase(std::unique(v.begin(), v.end(), [](double a, double b) { return std::abs(a - b) < 1e-12; }), v.end());

@@ -66,10 +66,12 @@ import json, sys
 c, s, d = sys.argv[1:4]
 dg = json.load(open(f"{d}/diagnosis.json"))
 sig = [f for f in dg["findings"] if f["significant"]]
-# Re-identifications of the base fit (its OCV table, its lumped thermal parameters) say the characterization's
-# fit is off, not which effect is hidden: counted apart from the effect named first (their own column).
-REFIT = {"ocv_offset", "ocv_band", "thermal_parameters"}
-eff = [f for f in sig if f["effect"] not in REFIT]
+# Re-identifications of the base fit (kind parameters_wrong: its OCV table, its lumped thermal parameters, its dU/dT
+# table) say the characterization's fit is off, not which effect is hidden: counted apart from the effect named
+# first (their own column). capacity_error is parameters_wrong too, but it is one of the plant's hidden effects.
+PLANT_EFFECTS = {"capacity_error"}
+is_refit = lambda f: f.get("kind") == "parameters_wrong" and f["effect"] not in PLANT_EFFECTS
+eff = [f for f in sig if not is_refit(f)]
 top = eff[0]["effect"] if eff else "none"
 b, i = dg["baseline"], dg["improved"]
 # the quantity each hidden effect perturbs most (plant README)
@@ -80,7 +82,7 @@ q = aff.get(effs[0], "voltage_rms_v") if effs else "voltage_rms_v"
 cut = (1 - i[q] / b[q]) if b.get(q) and i.get(q) is not None else 0.0
 un = dg.get("unexplained")
 print("\t".join([c, s, top, ",".join(f["effect"] for f in eff) or "-",
-                 ",".join(f["effect"] for f in sig if f["effect"] in REFIT) or "-",
+                 ",".join(f["effect"] for f in sig if is_refit(f)) or "-",
                  q, f"{b[q]:.4g}", f"{i[q]:.4g}", f"{cut:.3f}", "yes" if un else "-",
                  f"{b['voltage_rms_v']*1e3:.2f}", f"{i['voltage_rms_v']*1e3:.2f}"]))
 PY

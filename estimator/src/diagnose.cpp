@@ -20,6 +20,9 @@ struct ParamSpec {
     const char* name;
     double lo, hi;
     bool log;  // searched in log space
+    // The bounds mark the largest size this correction plausibly has: a fit on them means the candidate is
+    // compensating something else, and it is flagged "implausible" (ranked after every plausible finding).
+    bool bound_is_limit = false;
 };
 
 struct EffectSpec {
@@ -34,7 +37,7 @@ struct EffectSpec {
 const std::vector<EffectSpec>& specs() {
     static const std::vector<EffectSpec> s = {
         {"entropic_heat",
-         {{"ehc_v_per_k", -1e-3, 1e-3, false}, {"ehc_slope_v_per_k", -2e-3, 2e-3, false}},
+         {{"ehc_v_per_k", -1e-3, 1e-3, false, true}, {"ehc_slope_v_per_k", -2e-3, 2e-3, false}},
          {{0.0, 0.0}, {2e-4, 0.0}, {-2e-4, 0.0}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.entropic_heat = EntropicHeatExt{x[0], x[1]}; }},
         {"thermal_second_order",
@@ -69,7 +72,7 @@ const std::vector<EffectSpec>& specs() {
          // The characterization measured its OCV on one branch (rests after discharge steps, or after charge
          // steps), which the parameter set holds as if it were the centre: the hysteresis is fitted together with
          // where the centre lies relative to the table (branch_offset_v; about +magnitude for a discharge branch).
-         {{"magnitude_v", 0.0, 0.08, false}, {"rate_per_capacity", 1.0, 300.0, true}, {"branch_offset_v", -0.08, 0.08, false}},
+         {{"magnitude_v", 0.0, 0.08, false, true}, {"rate_per_capacity", 1.0, 300.0, true, true}, {"branch_offset_v", -0.08, 0.08, false, true}},
          {{0.01, 20.0, 0.0}, {0.01, 20.0, 0.01}, {0.02, 100.0, 0.02}},
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.ocv_hysteresis = OcvHysteresisExt{x[0], x[1]};
@@ -79,7 +82,7 @@ const std::vector<EffectSpec>& specs() {
          // A characterization with two RC pairs puts part of a slower process into its second pair (a larger R2
          // and a longer tau2 than the cell's): that pair is re-identified together with the new one
          // (the absorbed process only makes them larger, hence the scales' upper bound near 1).
-         {{"r_ohm", 1e-5, 0.05, true}, {"tau_s", 60.0, 5000.0, true}, {"r2_scale", 0.2, 1.2, true},
+         {{"r_ohm", 1e-5, 0.05, true, true}, {"tau_s", 60.0, 5000.0, true}, {"r2_scale", 0.2, 1.2, true},
           {"tau2_scale", 0.2, 1.2, true}},
          {{2e-3, 800.0, 1.0, 1.0}, {5e-3, 1500.0, 0.7, 0.7}, {2e-3, 3000.0, 0.5, 0.5}},
          [](ParameterSet& p, const std::vector<double>& x) {
@@ -91,13 +94,13 @@ const std::vector<EffectSpec>& specs() {
                  }
          }},
         {"capacity_error",
-         {{"capacity_scale", 0.6, 1.4, false}},
+         {{"capacity_scale", 0.6, 1.4, false, true}},
          {{0.95}, {1.05}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.capacity_error = CapacityErrorExt{x[0]}; },
          "parameters_wrong"},
         {"thermal_parameters",
          // wide: a characterization without a long cooling can miss C_th by an order of magnitude
-         {{"c_th_scale", 0.02, 200.0, true}, {"r_th_scale", 0.1, 10.0, true}},
+         {{"c_th_scale", 0.02, 200.0, true, true}, {"r_th_scale", 0.1, 10.0, true, true}},
          {{1.0, 1.0}, {0.3, 1.0}, {3.0, 1.0}, {20.0, 1.0}},
          [](ParameterSet& p, const std::vector<double>& x) {
              // the lumped thermal parameters re-identified on this recording
@@ -106,7 +109,7 @@ const std::vector<EffectSpec>& specs() {
          },
          "parameters_wrong"},
         {"ocv_band",
-         {{"offset_v", -0.1, 0.1, false}, {"center_soc", 0.0, 1.0, false}, {"half_width_soc", 0.1, 0.35, false}},
+         {{"offset_v", -0.1, 0.1, false, true}, {"center_soc", 0.0, 1.0, false}, {"half_width_soc", 0.1, 0.35, false}},
          {{-0.01, 0.0, 0.12}, {0.01, 0.0, 0.12}, {-0.01, 0.2, 0.15}, {0.01, 0.2, 0.15}, {-0.01, 0.95, 0.12}, {0.01, 0.95, 0.12}},
          [](ParameterSet& p, const std::vector<double>& x) {
              // the OCV table re-identified in one SOC band: a triangular correction of peak x0 at x1, half width x2
@@ -117,24 +120,24 @@ const std::vector<EffectSpec>& specs() {
         {"ocv_offset",
          // a plain offset: a slope along SOC is what a capacity error looks like on a drive that discharges
          // steadily (the two cannot be told apart there), and a local error is ocv_band's
-         {{"offset_v", -0.06, 0.06, false}},
+         {{"offset_v", -0.06, 0.06, false, true}},
          {{0.0}, {0.005}, {-0.005}},
          [](ParameterSet& p, const std::vector<double>& x) {
              for (std::size_t k = 0; k < p.ocv_v.size() && k < p.soc.size(); ++k) p.ocv_v[k] += x[0];
          },
          "parameters_wrong"},
         {"series_resistance_offset",
-         {{"r_ohm", -5e-3, 0.03, false}},
+         {{"r_ohm", -5e-3, 0.03, false, true}},
          {{1e-3}, {-1e-3}},
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.series_resistance_offset = SeriesResistanceOffsetExt{x[0]};
          }},
         {"heat_flux_sensor_gain",
-         {{"gain", 0.4, 2.5, true}},
+         {{"gain", 0.4, 2.5, true, true}},
          {{0.9}, {1.1}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.heat_flux_sensor_gain = HeatFluxSensorGainExt{x[0]}; }},
         {"ambient_drift",
-         {{"offset_c", -5.0, 5.0, false}, {"rate_c_per_h", -10.0, 10.0, false}},
+         {{"offset_c", -5.0, 5.0, false, true}, {"rate_c_per_h", -10.0, 10.0, false, true}},
          {{0.0, 0.0}, {0.5, 1.0}, {-0.5, -1.0}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ambient_drift = AmbientDriftExt{x[0], x[1]}; }},
     };
@@ -153,6 +156,10 @@ bool already_present(const EffectSpec& spec, const ParameterSet& p) {
     if (spec.id == "heat_flux_sensor_gain") return e.heat_flux_sensor_gain.has_value();
     if (spec.id == "ambient_drift") return e.ambient_drift.has_value();
     return false;
+}
+
+bool has_entropic_table(const ParameterSet& p) {
+    return std::any_of(p.thermal.ehc_v_per_k.begin(), p.thermal.ehc_v_per_k.end(), [](double v) { return v != 0.0; });
 }
 
 double to_u(const ParamSpec& s, double x) { return s.log ? std::log(x) : x; }
@@ -352,8 +359,11 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
                  dq = reduction(before.heat_flux_w, after.heat_flux_w);
     std::string what;
     if (id == "entropic_heat")
-        what = "reversible (entropic) heat I*T*dU/dT was missing or wrong: dU/dT " + num("%+.3f", x[0] * 1e3) +
-               " mV/K at 50 % SOC (" + num("%+.3f", x[1] * 1e3) + " mV/K per unit SOC)";
+        what = (has_entropic_table(base) ? "the entropic coefficient table is off (parameters wrong, corrected on this "
+                                           "recording): dU/dT "
+                                         : "reversible (entropic) heat I*T*dU/dT was missing: dU/dT ") +
+               num("%+.3f", x[0] * 1e3) + " mV/K at 50 % SOC (" + num("%+.3f", x[1] * 1e3) + " mV/K per unit SOC)" +
+               (has_entropic_table(base) ? " added to the table" : "");
     else if (id == "thermal_second_order")
         what = "the cell is not one lump: a core node holding " + pct(x[0]) + " of the heat capacity behind " +
                num("%.2f", x[1]) + " K/W lags the surface the sensors see (with it, C_th " +
@@ -651,7 +661,9 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                 const auto& spec = *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == id; });
                 Finding& fd = round_findings[c];
                 fd.effect = id;
-                fd.kind = spec.kind;
+                // A parameter set with its own dU/dT table (the characterization measured it) gets that table
+                // corrected by entropic_heat: parameters wrong, not physics missing.
+                fd.kind = spec.id == "entropic_heat" && has_entropic_table(current) ? "parameters_wrong" : spec.kind;
                 fd.parameters_count = spec.params.size();
                 // From the catalogue's starts and, after the first round, from where this candidate ended last
                 // round (the base moved by one accepted effect).
@@ -685,8 +697,14 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                         fd.parameters[ps.name] = full.x[j];
                         // A value on its search bound is not an estimate (the optimum may lie beyond): flagged.
                         const double u = to_u(ps, full.x[j]), ulo = to_u(ps, ps.lo), uhi = to_u(ps, ps.hi);
-                        if (std::abs(u - ulo) <= 1e-4 * (uhi - ulo) || std::abs(uhi - u) <= 1e-4 * (uhi - ulo))
-                            fd.parameters[std::string(ps.name) + "_flags"] = nlohmann::json::array({"at_bound"});
+                        if (std::abs(u - ulo) <= 1e-4 * (uhi - ulo) || std::abs(uhi - u) <= 1e-4 * (uhi - ulo)) {
+                            auto flags = nlohmann::json::array({"at_bound"});
+                            if (ps.bound_is_limit) {
+                                flags.push_back("implausible");
+                                fd.implausible = true;
+                            }
+                            fd.parameters[std::string(ps.name) + "_flags"] = std::move(flags);
+                        }
                         if (fold_x.size() < 2) continue;  // no spread to judge: the value carries no "_sd"
                         double mean = 0, ss = 0;
                         for (const auto& x : fold_x) mean += x[j];
@@ -717,10 +735,15 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         }
         if (options.cancel && options.cancel->load()) throw DiagnoseCancelled();
         // Accept the strongest significant one and look again on top of it.
+        // A finding whose correction sits on its plausible limit ranks after every plausible one.
+        auto stronger = [&](std::size_t a, std::size_t b) {
+            const auto &fa = round_findings[a], &fb = round_findings[b];
+            if (fa.implausible != fb.implausible) return !fa.implausible;
+            return fa.score > fb.score;
+        };
         std::size_t best = round_findings.size();
         for (std::size_t k = 0; k < round_findings.size(); ++k)
-            if (round_findings[k].significant && (best == round_findings.size() || round_findings[k].score > round_findings[best].score))
-                best = k;
+            if (round_findings[k].significant && (best == round_findings.size() || stronger(k, best))) best = k;
         // Occam: when re-identifying part of the base parameter set explains nearly as much (>= 80 % of the best
         // score) as adding physics, the base is corrected first and the physics is tested again on top of it
         // (a wrong C_th otherwise passes for a second thermal node).
@@ -728,7 +751,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             std::size_t alt = round_findings.size();
             for (std::size_t k = 0; k < round_findings.size(); ++k)
                 if (round_findings[k].significant && round_findings[k].kind == "parameters_wrong" &&
-                    round_findings[k].score >= 0.8 * round_findings[best].score &&
+                    !round_findings[k].implausible && round_findings[k].score >= 0.8 * round_findings[best].score &&
                     (alt == round_findings.size() || round_findings[k].score > round_findings[alt].score))
                     alt = k;
             if (alt < round_findings.size()) best = alt;
@@ -841,6 +864,7 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
         j["findings"].push_back({{"effect", f.effect},
                                  {"kind", f.kind},
                                  {"significant", f.significant},
+                                 {"implausible", f.implausible},
                                  {"score", f.score},
                                  {"folds_improved", f.folds_improved},
                                  {"delta_bic", f.delta_bic},

@@ -107,13 +107,15 @@ TEST(DiagnoseOnIndependentPlant, NamesHiddenBenchEffectsAndLeavesControlsAlone) 
             const auto d = est::diagnose(fit.params, drive, dopt);
             Case c;
             for (auto e : effects) c.hidden += (c.hidden.empty() ? "" : "+") + std::string(plant::effect_id(e));
-            // Re-identifications of the base fit (OCV table, lumped thermal parameters; kind parameters_wrong) say the
-            // characterization's fit is off, not which effect is hidden: listed apart.
+            // Re-identifications of the base fit (kind parameters_wrong: OCV table, lumped thermal parameters, dU/dT
+            // table) say the characterization's fit is off, not which effect is hidden: listed apart. capacity_error
+            // is parameters_wrong too, and one of the hidden effects.
             for (const auto& f : d.findings) {
                 if (!f.significant) continue;
-                const bool refit = f.effect == "ocv_offset" || f.effect == "ocv_band" || f.effect == "thermal_parameters";
+                if (f.effect == "ocv_offset" || f.effect == "ocv_band" || f.effect == "thermal_parameters")
+                    EXPECT_EQ(f.kind, "parameters_wrong") << f.effect;
+                const bool refit = f.kind == "parameters_wrong" && f.effect != "capacity_error";
                 (refit ? c.refit : c.significant).push_back(f.effect);
-                if (refit) EXPECT_EQ(f.kind, "parameters_wrong");
             }
             const std::string first_hidden(plant::effect_id(effects.front()));
             const auto before = affected(d.baseline, first_hidden), after = affected(d.improved, first_hidden);
@@ -152,11 +154,11 @@ TEST(DiagnoseOnIndependentPlant, NamesHiddenBenchEffectsAndLeavesControlsAlone) 
     std::printf("right effect first %zu/%zu, RMS cut >= 50 %% in %zu of those, controls with a finding %zu/%zu, "
                 "pairs both named %zu/%zu\n",
                 right, single, cut_ok, control_fp, controls, pairs_both, pairs);
-    // Issue 13's targets are >= 90 % right first, 0 on controls, >= 80 % of pairs both named, >= 50 % RMS cut.
-    // Asserted at the level measured on this branch (make prove, seeds 1-5: controls 5/5 free of effect findings,
-    // right effect first in about two thirds of the bench cases, median RMS cut 85 %); pairs are printed, not
-    // asserted (below target; see docs/diagnose.md).
+    // Issue 13's targets: >= 90 % right first, 0 on controls, >= 80 % of pairs both named, >= 50 % RMS cut. On these
+    // bench effects they hold (make prove, seeds 1-5, docs/diagnose.md); the physics effects, each with its own
+    // characterization and fit, are make prove's alone (too slow for make test).
     EXPECT_EQ(control_fp, 0u);
-    EXPECT_GE(static_cast<double>(right), 0.5 * static_cast<double>(single));
-    EXPECT_GE(static_cast<double>(cut_ok), 0.8 * static_cast<double>(right));
+    EXPECT_GE(static_cast<double>(right), 0.9 * static_cast<double>(single));
+    EXPECT_GE(static_cast<double>(cut_ok), 0.9 * static_cast<double>(right));
+    EXPECT_GE(static_cast<double>(pairs_both), 0.8 * static_cast<double>(pairs));
 }

@@ -93,6 +93,7 @@ struct Finding {
     std::string effect;
     std::string kind = "physics_missing";  // or "parameters_wrong"
     bool significant = false;
+    bool implausible = false;     // a correction on its plausible limit (its parameter's flags say which)
     double score = 0.0;           // mean held-out error reduction (fraction), the ranking key
     std::size_t folds_improved = 0;
     double delta_bic = 0.0;

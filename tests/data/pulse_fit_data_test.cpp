@@ -13,6 +13,7 @@
 #include <tuple>
 #include <utility>
 
+#include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/pulse_fit.hpp"
 #include "cellbench/estimator/segment.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
@@ -76,6 +77,16 @@ Recording* RealHppc::rec_ = nullptr;
 RecordingSegments* RealHppc::seg_ = nullptr;
 
 }  // namespace
+
+// The HPPC file on its own (no pilot discharge, no CC discharge beside it) runs from full charge to the 2.9 V
+// cut-off: its throughput is the capacity. Its last discharge ends at 5.0x the rested voltage's slope per Ah, a
+// knee the first rule (5x) refused: `fit` of this file alone and `make bench` failed with "no recording measures
+// the capacity".
+TEST_F(RealHppc, AloneItMeasuresItsCapacityFromFullChargeToTheCutOff) {
+    const auto c = characterize({*rec_});
+    EXPECT_EQ(c.capacity.method, "throughput from full charge to the cut-off");
+    EXPECT_NEAR(c.params.capacity_ah, kCapacityAh, 0.03 * kCapacityAh);  // the pilot discharge's 3.816 Ah
+}
 
 TEST_F(RealHppc, Segmentation) {
     const auto& seg = *seg_;

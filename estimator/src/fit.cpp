@@ -9,6 +9,8 @@
 #include "cellbench/estimator/merge.hpp"
 #include "cellbench/estimator/thermal_characterization.hpp"
 
+#include "median.hpp"
+
 namespace cellbench::estimator {
 
 namespace {
@@ -125,9 +127,7 @@ double median_interval_s(const Recording& rec) {
     std::vector<double> dt;
     for (std::size_t k = 1; k < rec.size(); k += std::max<std::size_t>(1, rec.size() / 5000))
         dt.push_back(rec.time_s[k] - rec.time_s[k - 1]);
-    if (dt.empty()) return kNaN;
-    std::nth_element(dt.begin(), dt.begin() + static_cast<std::ptrdiff_t>(dt.size() / 2), dt.end());
-    return dt[dt.size() / 2];
+    return upper_median(std::move(dt));
 }
 
 // Overlapping recordings of one test (the cycler's export of the whole test and a finer recording of part of
@@ -188,10 +188,7 @@ ParameterSet generic_start(const std::vector<Recording>& recs, const std::vector
             }
         }
     double r0 = 0.05 / std::max(cap, 0.1);
-    if (!r0s.empty()) {
-        std::nth_element(r0s.begin(), r0s.begin() + static_cast<std::ptrdiff_t>(r0s.size() / 2), r0s.end());
-        r0 = r0s[r0s.size() / 2];
-    }
+    if (!r0s.empty()) r0 = upper_median(std::move(r0s));
     ParameterSet p;
     p.cell = options.cell;
     p.capacity_ah = cap;
@@ -226,8 +223,7 @@ bool ends_on_knee(const Recording& rec, const std::vector<double>& q, const Phas
         if (std::abs(dq) > 0.01 * total && std::isfinite(dv)) slopes.push_back(std::abs(dv / dq));
     }
     if (slopes.empty()) return true;  // nothing to compare with: as before, the lowest voltage is the cut-off
-    std::nth_element(slopes.begin(), slopes.begin() + static_cast<std::ptrdiff_t>(slopes.size() / 2), slopes.end());
-    const double ocv_slope = slopes[slopes.size() / 2];
+    const double ocv_slope = upper_median(std::move(slopes));
     // The last row at or before 90 % of the discharge's charge (a coarse log may have only its two ends).
     std::size_t k90 = d.begin;
     for (std::size_t k = d.begin; k + 1 < d.end; ++k)
@@ -485,10 +481,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
             for (std::size_t k = 1; k < ocv_soc.size(); ++k)
                 if (ocv_soc[k] - ocv_soc[k - 1] > 0.02) gaps.push_back(ocv_soc[k] - ocv_soc[k - 1]);
             double g = 0.1;
-            if (!gaps.empty()) {
-                std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2), gaps.end());
-                g = gaps[gaps.size() / 2];
-            }
+            if (!gaps.empty()) g = upper_median(std::move(gaps));
             // The levels' own spacing. Half of it would follow what bends between two levels (the validation
             // plant's OCV knee towards empty: 30 mV off at 10 % SOC on 10 % knots, 6 mV on 5 %), but on the P45B
             // 5 % knots predict the 4C discharge at 74 mV instead of 18 (OCV and resistance trade off along the

@@ -12,6 +12,8 @@
 #include "cellbench/estimator/electrical.hpp"
 #include "cellbench/estimator/plausibility.hpp"
 
+#include "median.hpp"
+
 namespace cellbench::estimator {
 
 namespace {
@@ -60,12 +62,6 @@ struct WindowData {
     double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
 };
 
-double median(std::vector<double> v) {
-    if (v.empty()) return kNaN;
-    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
-    return v[v.size() / 2];
-}
-
 // The knot grid and the model options shared by every cost function. Knots at any increasing SOC (the test's
 // levels need not be evenly spaced: 5 % steps at the ends, 10 % in the middle); the OCV grid divides every knot
 // interval into m equal parts.
@@ -83,7 +79,7 @@ struct Grid {
         n = static_cast<int>(knot.size());
         std::vector<double> gaps;
         for (int j = 1; j < n; ++j) gaps.push_back(knot[j] - knot[j - 1]);
-        ref_ds = median(std::move(gaps));
+        ref_ds = upper_median(std::move(gaps));
     }
     [[nodiscard]] double soc(int j) const { return knot[j]; }
     [[nodiscard]] double width(int k) const { return k + 1 < n ? knot[k + 1] - knot[k] : ref_ds; }
@@ -510,8 +506,7 @@ double voltage_noise_in_rests(const Recording& rec, const std::vector<std::pair<
             if (std::isfinite(x)) d2.push_back(std::abs(x));
         }
     if (d2.size() < 20) return kNaN;
-    std::nth_element(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(d2.size() / 2), d2.end());
-    return 1.4826 * d2[d2.size() / 2] / std::sqrt(6.0);
+    return 1.4826 * upper_median(std::move(d2)) / std::sqrt(6.0);
 }
 
 std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& initial, double capacity_ah) {
@@ -613,7 +608,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     for (const auto* rec : recordings)
         for (std::size_t k = 0; k < rec->size(); k += 10)
             if (rec->has_surface() && std::isfinite(rec->surface_c[k])) temps.push_back(rec->surface_c[k]);
-    const double t_ref_c = temps.empty() ? initial.reference_temperature_c : median(temps);
+    const double t_ref_c = temps.empty() ? initial.reference_temperature_c : upper_median(temps);
 
     // Windows: from the end of one long rest to the end of the next.
     Builder b;
@@ -724,7 +719,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         std::vector<double> k = options.knot_soc;
         std::vector<double> gaps;
         for (std::size_t j = 1; j < k.size(); ++j) gaps.push_back(k[j] - k[j - 1]);
-        const double typical = median(std::move(gaps));
+        const double typical = upper_median(std::move(gaps));
         while (s_lo < k.front() - 0.01) k.insert(k.begin(), std::max(s_lo, k.front() - typical));
         while (s_hi > k.back() + 0.01) k.push_back(std::min(s_hi, k.back() + typical));
         b.grid.set_knots(std::move(k));
@@ -741,7 +736,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     b.grid.m = std::max(1, options.ocv_knots_per_interval);
     b.grid.t_ref_k = t_ref_c + kZeroCelsiusK;
     b.grid.sigma_v = options.voltage_noise_v;
-    b.grid.i_ref_a = pulse_currents.empty() ? 1.0 : median(pulse_currents);
+    b.grid.i_ref_a = pulse_currents.empty() ? 1.0 : upper_median(pulse_currents);
     double t_min = 1e9, t_max = -1e9;
     for (const auto& w : b.windows)
         for (const auto& t : w.ticks) t_min = std::min(t_min, t.temperature_c), t_max = std::max(t_max, t.temperature_c);

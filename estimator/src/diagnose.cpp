@@ -314,9 +314,7 @@ Fit fit_effect(const Problem& pb, const ParameterSet& base, const EffectSpec& sp
         if (!sum.IsSolutionUsable()) continue;
         Fit f;
         for (std::size_t j = 0; j < u.size(); ++j) f.x.push_back(from_u(spec.params[j], u[j]));
-        ParameterSet p = base;
-        spec.apply(p, f.x);
-        f.j = objective(pb, errors_of(p, *pb.rec), mask);
+        f.j = objective_at(pb, base, spec, mask, f.x);
         if (f.j < best.j) best = f;
     }
     return best;
@@ -675,17 +673,15 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     fd.explanation = "the fit of this effect did not converge";
                 } else {
                     double sum_red = 0;
-                    // Each fold fit starts from the full fit, a small step away from its own optimum (a quarter of
-                    // the rows left out): three iterations reach it.
                     // The fold fits (each leaves one interleaved block set out) give the parameters' uncertainty:
                     // their jackknife spread, which holds with correlated residuals where the Jacobian's would not.
+                    // Each starts from the full fit, a small step from its own optimum (a quarter of the rows left
+                    // out): three iterations reach it.
                     std::vector<std::vector<double>> fold_x;
                     for (std::size_t f = 0; f < folds; ++f) {
                         const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 3);
                         if (std::isfinite(ff.j)) fold_x.push_back(ff.x);
-                        ParameterSet p = current;
-                        spec.apply(p, std::isfinite(ff.j) ? ff.x : full.x);
-                        const double jt = objective(pb, errors_of(p, rec), test[f]);
+                        const double jt = objective_at(pb, current, spec, test[f], std::isfinite(ff.j) ? ff.x : full.x);
                         const double red = j_base_test[f] > 0 ? 1.0 - jt / j_base_test[f] : 0.0;
                         sum_red += red;
                         fd.folds_improved += red > 0.0;

@@ -4,7 +4,7 @@
 // discharge, no rest after the regen pulse). For every seed the fitted parameter set is compared with the plant's
 // truth at SOC 10..90 %; the table printed is what the closing figures quote.
 //
-// Seeds: CELLBENCH_VALIDATION_SEEDS (default 3 per layout, to keep `make test` short; `make validate` runs 20),
+// Seeds: CELLBENCH_VALIDATION_SEEDS (default 3 per layout, to keep `make test` short; the closing figures use 20),
 // from CELLBENCH_VALIDATION_FIRST_SEED (default 1). CELLBENCH_VALIDATION_VERBOSE=1 prints every SOC level's
 // signed errors and the global fit's windows (where the worst-level errors come from).
 #include <gtest/gtest.h>
@@ -182,6 +182,14 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
     for (const auto& e : all) {
         EXPECT_LT(e.c_th, 0.05);
         EXPECT_LT(e.r_th, 0.05);
+    }
+    // The RC pairs keep their roles: every time constant within a factor 1.5 of the truth at every level. A
+    // collapse (one pair taking both roles, the other's tau on its bound) is off by 5-250x: USABC seed 2 from
+    // the generic start was 1133 % (tau1) and 2745 % (tau2) off at 10 % SOC before the fit tried other starts;
+    // now 7 % and 9 %. Issue 11's 25 % is missed on some seeds of 20 (the closing note's table).
+    for (std::size_t k = 0; k < all.size(); ++k) {
+        EXPECT_LT(all[k].tau1, 0.5) << "seed " << first + static_cast<int>(k);
+        EXPECT_LT(all[k].tau2, 0.5) << "seed " << first + static_cast<int>(k);
     }
 }
 

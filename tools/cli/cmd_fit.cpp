@@ -45,6 +45,9 @@ void print_parameter_table(const estimator::Characterization& c) {
         std::printf("global fit: RMS %.2f mV over %zu windows, smoothness %.0f (%s), ", c.global->rms_v * 1e3,
                     c.global->windows.size(), c.global->smoothness,
                     c.global->cross_validation.empty() ? "given" : "cross-validated");
+        if (std::isfinite(c.global->start_time_constants_s[0]))
+            std::printf("from a start at tau %.0f / %.0f s (lower objective than from the initial tables), ",
+                        c.global->start_time_constants_s[0], c.global->start_time_constants_s[1]);
         if (c.global->temperature_dependence)
             std::printf("Ea %.1f +- %.1f kJ/mol, ", c.global->activation_energy_j_per_mol.value / 1e3,
                         c.global->activation_energy_j_per_mol.sd / 1e3);

@@ -25,6 +25,7 @@
 //    uncertainty above the value itself, or without data near their knot are flagged.
 //
 // Pure computation: no I/O.
+#include <array>
 #include <cstddef>
 #include <string>
 #include <vector>
@@ -62,6 +63,11 @@ struct GlobalFitOptions {
     double long_rest_s = 600.0;              // windows break at rests at least this long
     double step_lag = 0.0;                   // start value of the fitted current-step timing (0: at the row)
     int max_iterations = 80;
+    // Starts besides the initial parameter set: uniform (tau1, tau2) in s over SOC, R0 and the OCV from the initial
+    // set, its R1 + R2 split 1 : 2. Each is fitted start_iterations on every window; the lowest of them is fitted to
+    // the end and wins where its objective is below the fit from the initial set. Empty: the initial set only.
+    std::vector<std::array<double, 2>> start_time_constants_s = {{1.0, 20.0}, {5.0, 100.0}, {10.0, 300.0}};
+    int start_iterations = 20;
     bool compute_uncertainty = true;
     Progress progress;
 };
@@ -95,6 +101,9 @@ struct GlobalFitResult {
     double reference_current_a = kNaN;
     bool temperature_dependence = false, current_dependence = false;
     double smoothness = kNaN;
+    // Where the fit that won started: the initial parameter set (NaN here) or uniform time constants in s
+    // (GlobalFitOptions::start_time_constants_s).
+    std::array<double, 2> start_time_constants_s = {kNaN, kNaN};
     std::vector<std::pair<double, double>> cross_validation;  // (weight, held-out RMS V)
     std::vector<GlobalWindow> windows;
     double rms_v = kNaN;

@@ -124,6 +124,8 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         // diagnostics: another knot spacing than characterize() derives from the test's SOC levels
         if (const char* k = std::getenv("CELLBENCH_VALIDATION_KNOT_SPACING")) co.global.knot_spacing = std::atof(k);
         if (const char* k = std::getenv("CELLBENCH_VALIDATION_SMOOTHNESS")) co.global.smoothness = std::atof(k);
+        if (const char* k = std::getenv("CELLBENCH_VALIDATION_OCV_SMOOTHNESS")) co.global.ocv_smoothness = std::atof(k);
+        if (const char* k = std::getenv("CELLBENCH_VALIDATION_DIRECTION_PRIOR")) co.global.direction_prior = std::atof(k);
         const auto c = est::characterize(recs, co);
         if (std::getenv("CELLBENCH_VALIDATION_VERBOSE")) {
             std::printf("seed %d: capacity %.4f Ah (%s), truth %.4f Ah, sample %.2f s\n", seed, c.capacity.capacity_ah,

@@ -50,7 +50,10 @@ struct GlobalFitOptions {
     int ocv_knots_per_interval = 2;
     std::vector<double> smoothness_candidates = {100.0, 300.0, 1000.0, 3000.0};  // cross-validated
     double smoothness = kNaN;                // given: no cross-validation
-    double ocv_smoothness = 0.05;            // relative weight of the OCV's second-difference penalty
+    double ocv_smoothness = 0.005;           // relative weight of the OCV's second-difference penalty
+    // Weight of the prior that charge and discharge values at one knot are alike (per unit log difference, against
+    // voltage residuals in units of voltage_noise_v; 0: none).
+    double direction_prior = 10.0;
     double voltage_noise_v = 1e-3;           // residual scale (only the relative weights depend on it)
     // The voltage jump across every current step is a residual of its own, weighted by the noise of a difference
     // of two samples (estimated per recording from its rests), not below this floor (quantization, a logger's

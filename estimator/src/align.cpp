@@ -9,6 +9,8 @@
 
 #include "cellbench/estimator/thermal_fit.hpp"
 
+#include "median.hpp"
+
 namespace cellbench::estimator {
 namespace {
 
@@ -172,8 +174,7 @@ public:
             if (cnt[j] > 0) dbin_[j] = sum[j] / cnt[j];
         std::vector<double> dts;
         for (std::size_t k = 1; k < td.size(); ++k) dts.push_back(td[k] - td[k - 1]);
-        std::nth_element(dts.begin(), dts.begin() + static_cast<std::ptrdiff_t>(dts.size() / 2), dts.end());
-        sample_s_ = std::max(dts[dts.size() / 2], 1e-3);
+        sample_s_ = std::max(upper_median(std::move(dts)), 1e-3);
     }
 
     CyclerHeat cycler(double lag_s) const { return CyclerHeat(tc_, ic_, lag_s, h_, std::min(0.1, sample_s_)); }
@@ -292,8 +293,7 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
     const double min_overlap = options.min_overlap_fraction * std::min(dur_c, dur_d);
     std::vector<double> dts;
     for (std::size_t k = 1; k < daq_time_s.size(); ++k) dts.push_back(daq_time_s[k] - daq_time_s[k - 1]);
-    std::nth_element(dts.begin(), dts.begin() + static_cast<std::ptrdiff_t>(dts.size() / 2), dts.end());
-    const double bin_s = std::max(1.0, dts[dts.size() / 2]);
+    const double bin_s = std::max(1.0, upper_median(std::move(dts)));
     const Aligner al(cycler_time_s, current_a, daq_time_s, std::move(heat), h, bin_s, min_overlap);
 
     // 1) Coarse, full offset range, on a lag grid.

@@ -7,6 +7,8 @@
 
 #include "cellbench/estimator/diagnose.hpp"
 
+#include "median.hpp"
+
 namespace cellbench::estimator {
 
 namespace {
@@ -47,13 +49,9 @@ std::optional<double> scatter(const std::vector<double>& x, const std::vector<ch
         if (std::abs(v) > 0) lsb = std::min(lsb, std::abs(v));
     }
     if (d.size() < 20) return std::nullopt;
-    auto median = [](std::vector<double> v) {
-        std::nth_element(v.begin(), v.begin() + static_cast<long>(v.size() / 2), v.end());
-        return v[v.size() / 2];
-    };
-    const double m = median(d);
+    const double m = upper_median(d);
     for (auto& v : d) v = std::abs(v - m);
-    double sigma = 1.4826 * median(d) / std::sqrt(2.0);
+    double sigma = 1.4826 * upper_median(d) / std::sqrt(2.0);
     if (std::isfinite(lsb)) sigma = std::max(sigma, lsb / std::sqrt(12.0));
     return sigma * scale;
 }

@@ -42,6 +42,18 @@ T asinh_ratio(const T& x) {
     return log(x + sqrt(x * x + 1.0)) / x;
 }
 
+// Writes one direction's five knot variables (log R0, log R1, log tau1, log R2, log(tau2/tau1 - 1): tau2 > tau1
+// by construction) from a start in SI units: resistances clamped to their plausible range, tau1 to 0.2-20 s and
+// tau2 to at least three tau1 (a start the search can move both ways from).
+void encode_start(double* x, double r0_ohm, double r1_ohm, double tau1_s, double r2_ohm, double tau2_s) {
+    const double t1 = std::clamp(tau1_s, 0.2, 20.0), t2 = std::clamp(tau2_s, 3 * t1, 2000.0);
+    x[0] = std::log(std::clamp(r0_ohm, kRMinOhm, kRMaxOhm));
+    x[1] = std::log(std::clamp(r1_ohm, kRMinOhm, kRMaxOhm));
+    x[2] = std::log(t1);
+    x[3] = std::log(std::clamp(r2_ohm, kRMinOhm, kRMaxOhm));
+    x[4] = std::log(t2 / t1 - 1.0);
+}
+
 // One tick of a window: the merged rows (t0, t1] with the mean current held, and the voltage measured at t1.
 struct Tick {
     double dt_s = 0, current_a = 0;     // mean of the currents its rows report
@@ -805,14 +817,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double s = b.grid.soc(j);
         auto& k = b.knots[j];
         for (int d = 0; d < 2; ++d) {
-            auto p = initial.rc_at(s, d ? +1 : -1);
-            const double r0 = std::clamp(p.r0_ohm, kRMinOhm, kRMaxOhm), r1 = std::clamp(p.r1_ohm, kRMinOhm, kRMaxOhm);
-            const double r2 = std::clamp(p.r2_ohm, kRMinOhm, kRMaxOhm);
-            const double t1 = std::clamp(p.tau1_s, 0.2, 20.0);
-            const double t2 = std::clamp(p.tau2_s, 3 * t1, 2000.0);
-            double* a = k.data() + 5 * d;
-            a[0] = std::log(r0), a[1] = std::log(r1), a[2] = std::log(t1), a[3] = std::log(r2),
-            a[4] = std::log(t2 / t1 - 1.0);
+            const auto p = initial.rc_at(s, d ? +1 : -1);
+            encode_start(k.data() + 5 * d, p.r0_ohm, p.r1_ohm, p.tau1_s, p.r2_ohm, p.tau2_s);
         }
     }
     b.ocv.resize(b.grid.ocv_n());
@@ -905,10 +911,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             for (auto& a : st.knots)
                 for (int d = 0; d < 2; ++d) {
                     double* x = a.data() + 5 * d;
-                    const double r12 = std::exp(x[1]) + std::exp(x[3]);
-                    const double t1 = std::clamp(t1_s, 0.2, 20.0), t2 = std::clamp(t2_s, 3 * t1, 2000.0);
-                    x[1] = std::log(r12 / 3.0), x[2] = std::log(t1), x[3] = std::log(2.0 * r12 / 3.0),
-                    x[4] = std::log(t2 / t1 - 1.0);
+                    const double r12 = std::exp(x[1]) + std::exp(x[3]);  // split 1:2, R0 kept
+                    encode_start(x, std::exp(x[0]), r12 / 3.0, t1_s, 2.0 * r12 / 3.0, t2_s);
                 }
             b.set_state(st);
             const double c = b.solve(*b.problem(all), options.start_iterations);

@@ -698,11 +698,16 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                                                                : options.step_noise_floor_v);
     }
     double i_min = 1e300, i_max = 0;
-    std::vector<double> pulse_currents;
+    // The reference current of the current dependence (the tables hold the resistances at it): the median current
+    // of the windows that are not low-rate, where the RC tables are identified. Low-rate windows (a C/20 OCV
+    // test logged every second has more rows than every pulse together) would make it the C/20 current, and
+    // the tables resistances at C/20, depending on how often a recording was logged.
+    std::vector<double> pulse_currents, low_rate_currents;
     double charge_as = 0;
     for (const auto& w : raw) {
         const auto& rec = *recordings[w.r];
         double moved = 0;
+        std::vector<double> currents;
         for (std::size_t k = w.begin + 1; k < w.end; ++k) {
             const double i = rec.current_a[k], dt = rec.time_s[k] - rec.time_s[k - 1];
             moved += std::abs(i) * dt;
@@ -710,7 +715,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             if (std::abs(i) > 0.1) {
                 i_min = std::min(i_min, std::abs(i));
                 i_max = std::max(i_max, std::abs(i));
-                pulse_currents.push_back(std::abs(i));
+                currents.push_back(std::abs(i));
             }
         }
         if (moved < 1.0) continue;  // nothing happens in it
@@ -725,6 +730,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                 }
             wd.low_rate = span > 0 && q / span < 0.2 * capacity_ah;
         }
+        auto& into = wd.low_rate ? low_rate_currents : pulse_currents;
+        into.insert(into.end(), currents.begin(), currents.end());
         wd.ticks = make_ticks(rec, w.begin, w.end, socs[w.r], t_ref_c);
         for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
         for (std::size_t k = 1; k < wd.ticks.size(); ++k)
@@ -788,6 +795,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     b.grid.m = std::max(1, options.ocv_knots_per_interval);
     b.grid.t_ref_k = t_ref_c + kZeroCelsiusK;
     b.grid.sigma_v = options.voltage_noise_v;
+    if (pulse_currents.empty()) pulse_currents = std::move(low_rate_currents);
     b.grid.i_ref_a = pulse_currents.empty() ? 1.0 : upper_median(pulse_currents);
     double t_min = 1e9, t_max = -1e9;
     for (const auto& w : b.windows)

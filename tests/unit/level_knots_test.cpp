@@ -61,4 +61,31 @@ TEST(LevelKnots, UnevenLevelsEachGetABreakpointAndTheirR0) {
     }
 }
 
+// The current dependence's reference current (the tables hold the RC resistances at it) is the pulses' current,
+// whatever else was handed in and however often it was logged: a C/20 discharge logged 4 times a second has more
+// rows than the whole HPPC, and a median over every row had made the tables resistances at C/20.
+TEST(GlobalFitReference, IsThePulseCurrentNotTheRowMedianOfALowRateDischarge) {
+    constexpr double kPulseA = 4.5;
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 1.0;
+    so.voltage_noise_v = 2e-4;
+    const auto hppc = cellbench::test::synthesize(cellbench::test::hppc_program(4, 600.0, kPulseA), so);
+    const double c20_a = cellbench::test::kCapacityAh / 20.0;
+    so.dt_s = 0.25;
+    so.soc0 = 0.9;
+    const auto c20 = cellbench::test::synthesize({{60.0, 0.0, "Rest"}, {5400.0, -c20_a, "CC DChg"}, {600.0, 0.0, "Rest"}}, so);
+    std::size_t hppc_rows = 0, c20_rows = 0;
+    for (double i : hppc.current_a) hppc_rows += std::abs(i) > 0.1;
+    for (double i : c20.current_a) c20_rows += std::abs(i) > 0.1;
+    ASSERT_GT(c20_rows, hppc_rows);  // the case: the low-rate rows outnumber the pulse rows
+    est::CharacterizationOptions o;
+    o.fallback_capacity_ah = cellbench::test::kCapacityAh;
+    o.fallback_c_th_j_per_k = 70.0;
+    o.fallback_r_th_k_per_w = 8.0;
+    const auto c = est::characterize({hppc, c20}, o);
+    ASSERT_TRUE(c.global.has_value());
+    EXPECT_GT(c.global->reference_current_a, 0.5 * kPulseA);
+    EXPECT_LT(c.global->reference_current_a, 1.01 * kPulseA);
+}
+
 }  // namespace

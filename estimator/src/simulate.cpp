@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
+#include <utility>
+#include <vector>
 
 namespace cellbench::estimator {
 
@@ -11,6 +14,33 @@ double first_finite(const std::vector<double>& v) {
     for (double x : v)
         if (std::isfinite(x)) return x;
     return kNaN;
+}
+
+// A recording with no ambient column that starts with a rest during which the surface temperature moves by more
+// than 0.5 K started out of equilibrium (a cell still cooling after its charge, as the Panasonic 18650PF's 0 degC
+// drive cycles do, from 18 degC in a 0 degC chamber): its first reading is not the ambient. The lumped model's
+// decay in a rest, T(t) = T_amb + (T_0 - T_amb) exp(-t / tau), tau = R_th C_th, fitted to that rest (linear least
+// squares in T_amb and T_0) gives the ambient, when the rest lasts at least half of tau (else nullopt).
+std::optional<double> ambient_from_first_rest(const Recording& rec, double tau_s) {
+    if (!rec.has_surface() || !(tau_s > 0)) return std::nullopt;
+    constexpr double kRestA = 0.01;
+    std::vector<std::pair<double, double>> pts;  // (exp(-t/tau), T)
+    double t_lo = kNaN, t_hi = kNaN, temp_lo = 1e300, temp_hi = -1e300;
+    for (std::size_t k = 0; k < rec.size() && std::abs(rec.current_a[k]) < kRestA; ++k) {
+        const double temp = rec.surface_c[k];
+        if (!std::isfinite(temp) || !std::isfinite(rec.time_s[k])) continue;
+        if (!std::isfinite(t_lo)) t_lo = rec.time_s[k];
+        t_hi = rec.time_s[k];
+        pts.emplace_back(std::exp(-(rec.time_s[k] - t_lo) / tau_s), temp);
+        temp_lo = std::min(temp_lo, temp), temp_hi = std::max(temp_hi, temp);
+    }
+    if (pts.size() < 10 || !(t_hi - t_lo >= 0.5 * tau_s) || !(temp_hi - temp_lo > 0.5)) return std::nullopt;
+    double se = 0, see = 0, st = 0, set = 0;
+    for (const auto& [e, temp] : pts) se += e, see += e * e, st += temp, set += e * temp;
+    const double n = static_cast<double>(pts.size()), det = n * see - se * se;
+    if (!(std::abs(det) > 1e-12)) return std::nullopt;
+    const double amb = (see * st - se * set) / det;  // the intercept: the temperature the rest decays to
+    return std::isfinite(amb) ? std::optional<double>(amb) : std::nullopt;
 }
 
 }  // namespace
@@ -33,10 +63,13 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     SimulationTrace tr;
     if (n == 0) return tr;
 
-    // Ambient: measured when present, else given, else the first surface reading (cell at equilibrium).
+    // Ambient: measured when present, else given, else where a first rest's cooling settles
+    // (ambient_from_first_rest), else the first surface reading (cell at equilibrium).
     const double first_surface = rec.has_surface() ? first_finite(rec.surface_c) : kNaN;
     double ambient_const = options.ambient_c.value_or(std::isfinite(first_surface) ? first_surface
                                                                                     : p.reference_temperature_c);
+    if (!options.ambient_c && !rec.has_ambient())
+        if (const auto a = ambient_from_first_rest(rec, p.thermal.r_th_k_per_w * p.thermal.c_th_j_per_k)) ambient_const = *a;
     if (!options.ambient_c && rec.has_ambient()) ambient_const = first_finite(rec.ambient_c);
     auto ambient_at = [&](std::size_t k) {
         if (!options.ambient_c && rec.has_ambient() && std::isfinite(rec.ambient_c[k])) return rec.ambient_c[k];

@@ -63,14 +63,18 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     SimulationTrace tr;
     if (n == 0) return tr;
 
-    // Ambient: measured when present, else given, else where a first rest's cooling settles
-    // (ambient_from_first_rest), else the first surface reading (cell at equilibrium).
+    // Ambient (constant unless measured per row): given, else measured, else where a first rest's cooling settles
+    // (ambient_from_first_rest), else the first surface reading (cell at equilibrium), else the reference.
     const double first_surface = rec.has_surface() ? first_finite(rec.surface_c) : kNaN;
-    double ambient_const = options.ambient_c.value_or(std::isfinite(first_surface) ? first_surface
-                                                                                    : p.reference_temperature_c);
-    if (!options.ambient_c && !rec.has_ambient())
-        if (const auto a = ambient_from_first_rest(rec, p.thermal.r_th_k_per_w * p.thermal.c_th_j_per_k)) ambient_const = *a;
-    if (!options.ambient_c && rec.has_ambient()) ambient_const = first_finite(rec.ambient_c);
+    double ambient_const = p.reference_temperature_c;
+    if (options.ambient_c)
+        ambient_const = *options.ambient_c;
+    else if (rec.has_ambient())
+        ambient_const = first_finite(rec.ambient_c);
+    else if (const auto a = ambient_from_first_rest(rec, p.thermal.r_th_k_per_w * p.thermal.c_th_j_per_k))
+        ambient_const = *a;
+    else if (std::isfinite(first_surface))
+        ambient_const = first_surface;
     auto ambient_at = [&](std::size_t k) {
         if (!options.ambient_c && rec.has_ambient() && std::isfinite(rec.ambient_c[k])) return rec.ambient_c[k];
         return ambient_const;

@@ -242,3 +242,43 @@ TEST(Simulate, RmsIsTimeWeighted) {
     EXPECT_DOUBLE_EQ(w[1], 1.5);
     EXPECT_DOUBLE_EQ(w[2], 1.0);
 }
+
+namespace {
+
+// A drive cycle logged without an ambient column that starts with a rest in which the cell is still cooling
+// (the Panasonic 18650PF's 0 degC files: 18 degC after the charge, in a 0 degC chamber) is not at equilibrium:
+// simulate() takes the ambient from where that rest's cooling settles, not from its first reading, which had
+// kept the model 18 K warm for the whole cycle (surface temperature RMS 17.5 degC on la92_0degC).
+Recording cooling_rest_then_discharge(const ParameterSet& p, double start_c, double ambient_c) {
+    Recording r;
+    const double tau_s = p.thermal.r_th_k_per_w * p.thermal.c_th_j_per_k;
+    const double v = p.ocv_at(0.8);
+    for (double t = 0; t <= 3.0 * tau_s; t += 60.0) {  // the rest, logged every minute
+        r.time_s.push_back(t), r.voltage_v.push_back(v), r.current_a.push_back(0.0);
+        r.surface_c.push_back(ambient_c + (start_c - ambient_c) * std::exp(-t / tau_s));
+    }
+    const double t0 = r.time_s.back();
+    for (int k = 1; k <= 600; ++k) {  // then 10 min at C/2
+        r.time_s.push_back(t0 + k), r.voltage_v.push_back(v - 0.05), r.current_a.push_back(-0.5 * p.capacity_ah);
+        r.surface_c.push_back(r.surface_c.back());
+    }
+    r.pad_optional_channels();
+    return r;
+}
+
+}  // namespace
+
+TEST(SimulateAmbient, ACoolingFirstRestGivesTheTemperatureItSettlesToNotItsFirstReading) {
+    const auto p = flat_params();
+    const CellModel model(p);
+    const auto cooling = simulate(model, cooling_rest_then_discharge(p, 18.0, 0.0));
+    EXPECT_NEAR(cooling.ambient_c, 0.0, 0.3);
+    EXPECT_NEAR(cooling.temperature_c.back(), 0.0, 3.0);  // the model cooled with the cell
+    // A rest at equilibrium changes nothing: the first reading, as before.
+    const auto settled = simulate(model, cooling_rest_then_discharge(p, 25.0, 25.0));
+    EXPECT_DOUBLE_EQ(settled.ambient_c, 25.0);
+    // An ambient given by the user wins.
+    SimulationOptions o;
+    o.ambient_c = 10.0;
+    EXPECT_DOUBLE_EQ(simulate(model, cooling_rest_then_discharge(p, 18.0, 0.0), o).ambient_c, 10.0);
+}

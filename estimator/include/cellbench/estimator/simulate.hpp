@@ -12,7 +12,8 @@ namespace cellbench::estimator {
 
 struct SimulationOptions {
     std::optional<double> initial_soc;        // default: from the first rested voltage (inverse OCV)
-    std::optional<double> ambient_c;          // default: measured ambient, else where a first rest's cooling settles, else the first surface reading
+    // default: measured ambient, else where a first rest's cooling settles, else the first surface reading
+    std::optional<double> ambient_c;
     std::optional<double> initial_temperature_c;  // default: first surface reading, else ambient
 };
 

@@ -84,11 +84,12 @@ private:
             return model_.step(trial, i, ambient_c_, dt).voltage_v - s.voltage_limit_v;
         };
         double a = 0.0, b = s.current_a;
-        double fa = v_at(a), fb = v_at(b);
+        // Bisection: keeps the root between a and b by the sign of the residual at a.
+        double fa = v_at(a);
         for (int k = 0; k < 30 && std::abs(b - a) > 1e-6; ++k) {
             const double m = 0.5 * (a + b), fm = v_at(m);
             if ((fm > 0) == (fa > 0)) a = m, fa = fm;
-            else b = m, fb = fm;
+            else b = m;
         }
         return 0.5 * (a + b);
     }

@@ -33,7 +33,6 @@ const char* to_string(RunTrigger t) {
 }
 
 namespace {
-bool terminal(RunState s) { return is_terminal(s); }
 bool active(RunState s) { return is_active(s); }
 RunTrigger trigger_of_end(RunState end) {
     return end == RunState::Completed ? RunTrigger::program_end

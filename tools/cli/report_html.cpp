@@ -332,11 +332,14 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
                 // The flag wraps under the value (the value itself never wraps, so a long flag on one line
                 // squeezed the name column to one letter per line).
                 std::string flags;
-                if (params.contains(name + "_flags") && params[name + "_flags"].is_array())
-                    for (const auto& flag : params[name + "_flags"])
-                        if (flag == "at_bound") flags += "<span class='flag'>at its search bound: not an estimate</span>";
+                if (params.contains(name + "_flags") && params[name + "_flags"].is_array()) {
+                    for (const auto& flag : params[name + "_flags"]) {
+                        if (flag == "at_bound")
+                            flags += "<span class='flag'>at its search bound: not an estimate</span>";
                         else if (flag == "implausible")
                             flags += "<span class='flag'>implausible: the largest plausible size, compensating something else</span>";
+                    }
+                }
                 o << "<tr><td>" << html_escape(label) << "</td><td class='num'>" << html_escape(shown) << flags
                   << "</td><td>" << html_escape(unit) << "</td></tr>";
             }

@@ -4,65 +4,33 @@
 
 namespace cellbench::sequencer {
 
-OrderedWorkerPool::OrderedWorkerPool(std::size_t threads) : max_threads_(std::max<std::size_t>(1, threads)) {}
-
-OrderedWorkerPool::~OrderedWorkerPool() {
-    // Every queued job has a worker that takes it before ending (submit starts one whenever fewer than the bound
-    // run, and a worker ends only on an empty queue): joining them all finishes and delivers every job.
-    // A delivery may submit more work meanwhile: its worker is joined in the next pass.
-    for (;;) {
-        std::vector<std::thread> batch;
-        std::vector<std::thread::id> ids;
-        {
-            std::lock_guard lock(mutex_);
-            if (workers_.empty()) break;
-            batch.swap(workers_);
-        }
-        for (auto& t : batch) {
-            ids.push_back(t.get_id());
-            if (t.joinable()) t.join();
-        }
-        std::lock_guard lock(mutex_);
-        for (const auto& id : ids) std::erase(ended_, id);
-    }
+OrderedWorkerPool::OrderedWorkerPool(std::size_t threads) {
+    threads = std::max<std::size_t>(1, threads);
+    workers_.reserve(threads);
+    for (std::size_t k = 0; k < threads; ++k) workers_.emplace_back([this] { work(); });
 }
 
-std::vector<std::thread> OrderedWorkerPool::take_ended_locked() {
-    std::vector<std::thread> done;
-    for (auto it = workers_.begin(); it != workers_.end();) {
-        if (std::find(ended_.begin(), ended_.end(), it->get_id()) != ended_.end()) {
-            std::erase(ended_, it->get_id());
-            done.push_back(std::move(*it));
-            it = workers_.erase(it);
-        } else {
-            ++it;
-        }
+OrderedWorkerPool::~OrderedWorkerPool() {
+    {
+        std::lock_guard lock(mutex_);
+        stop_ = true;  // workers drain the queue first
     }
-    return done;
+    cv_.notify_all();
+    for (auto& t : workers_)
+        if (t.joinable()) t.join();
 }
 
 void OrderedWorkerPool::submit(Job job) {
-    std::vector<std::thread> ended;
     {
         std::lock_guard lock(mutex_);
         queue_.emplace_back(next_serial_++, std::move(job));
-        ended = take_ended_locked();
-        if (running_ < max_threads_) {
-            ++running_;
-            workers_.emplace_back([this] { work(); });
-        }
     }
-    for (auto& t : ended) t.join();  // already returned from work(): no wait on a job
+    cv_.notify_one();
 }
 
 void OrderedWorkerPool::wait_idle() {
     std::unique_lock lock(mutex_);
     idle_cv_.wait(lock, [&] { return next_delivery_ == next_serial_; });
-}
-
-std::size_t OrderedWorkerPool::live_threads() {
-    std::lock_guard lock(mutex_);
-    return running_;
 }
 
 bool OrderedWorkerPool::idle() {
@@ -93,7 +61,9 @@ void OrderedWorkerPool::deliver_ready_locked(std::unique_lock<std::mutex>& lock)
 
 void OrderedWorkerPool::work() {
     std::unique_lock lock(mutex_);
-    while (!queue_.empty()) {
+    while (true) {
+        cv_.wait(lock, [&] { return stop_ || !queue_.empty(); });
+        if (queue_.empty()) return;  // stopping and drained
         auto [serial, job] = std::move(queue_.front());
         queue_.pop_front();
         lock.unlock();
@@ -107,9 +77,6 @@ void OrderedWorkerPool::work() {
         ready_.emplace(serial, std::move(deliver));
         deliver_ready_locked(lock);
     }
-    // The queue is empty under the lock: a later submit sees running_ below the bound and starts a worker.
-    --running_;
-    ended_.push_back(std::this_thread::get_id());
 }
 
 }  // namespace cellbench::sequencer

@@ -513,23 +513,3 @@ TEST(OrderedWorkerPool, RunsAtMostItsThreadsAtOnceAndDeliversInSubmissionOrder) 
     EXPECT_LE(most.load(), 2);
     EXPECT_GE(most.load(), 1);
 }
-
-// An idle pool holds no thread (a finished run's fit workers would otherwise keep the heap pages their malloc
-// caches pin until the next run), and it starts workers again for the next job.
-TEST(OrderedWorkerPool, HoldsNoThreadOnceIdleAndStartsAgainForMoreWork) {
-    OrderedWorkerPool pool(2);
-    EXPECT_EQ(pool.live_threads(), 0u);
-    std::atomic<int> delivered{0};
-    auto job = [&]() -> std::function<void()> { return [&] { ++delivered; }; };
-    for (int round = 1; round <= 2; ++round) {
-        for (int k = 0; k < 4; ++k) pool.submit(job);
-        pool.wait_idle();
-        EXPECT_EQ(delivered.load(), 4 * round);
-        // A worker ends right after its last delivery: wait for that (no timing assumption beyond "eventually").
-        const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
-        while (pool.live_threads() > 0 && std::chrono::steady_clock::now() < deadline)
-            std::this_thread::sleep_for(std::chrono::milliseconds(1));
-        EXPECT_EQ(pool.live_threads(), 0u) << "round " << round;
-    }
-    EXPECT_EQ(pool.threads(), 2u);
-}

@@ -595,6 +595,7 @@ nlohmann::json GlobalFitResult::to_json() const {
     j["method"] = "global: every window between long rests simulated with the exact ZOH model, all fitted together; "
                   "values at SOC knots, smoothness weight by cross-validation over windows";
     j["smoothness"] = num(smoothness);
+    j["ocv_knots_per_interval"] = ocv_knots_per_interval;
     if (std::isfinite(start_time_constants_s[0]))
         j["start"] = {{"from", "uniform time constants"}, {"tau1_s", start_time_constants_s[0]},
                       {"tau2_s", start_time_constants_s[1]}};
@@ -795,7 +796,10 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         for (int j = j_lo; j <= j_hi; ++j) k.push_back(j * ds);
         b.grid.set_knots(std::move(k));
     }
-    b.grid.m = std::max(1, options.ocv_knots_per_interval);
+    b.grid.m = options.ocv_knots_per_interval > 0
+                   ? options.ocv_knots_per_interval
+                   : std::max(2, static_cast<int>(std::ceil(b.grid.ref_ds / options.ocv_spacing_soc - 1e-9)));
+    out.ocv_knots_per_interval = b.grid.m;
     b.grid.t_ref_k = t_ref_c + kZeroCelsiusK;
     b.grid.sigma_v = options.voltage_noise_v;
     if (pulse_currents.empty()) pulse_currents = std::move(low_rate_currents);

@@ -47,7 +47,8 @@ TEST(LevelKnots, UnevenLevelsEachGetABreakpointAndTheirR0) {
 
     // The RC breakpoints are every ocv_knots_per_interval-th table row (the OCV has its own finer grid).
     const auto& soc = c.params.soc;
-    const int m = std::max(1, o.global.ocv_knots_per_interval);
+    const int m = c.global->ocv_knots_per_interval;
+    ASSERT_GE(m, 2);
     std::vector<double> knots;
     for (std::size_t j = 0; j < soc.size(); j += static_cast<std::size_t>(m)) knots.push_back(soc[j]);
     const double r0_true = cellbench::test::p45b_discharge().r0_ohm;

@@ -178,7 +178,9 @@ void expect_rc_recovered(const estimator::PulseSetFit& f, const estimator::Param
                                     std::pair{f.joint_charge, f.joint_charge_sigma}}) {
             for (const auto& [x, sx] : {std::pair{v.r1_ohm, sd.r1_ohm}, std::pair{v.tau1_s, sd.tau1_s},
                                         std::pair{v.r2_ohm, sd.r2_ohm}, std::pair{v.tau2_s, sd.tau2_s}})
-                if (std::isfinite(sx)) EXPECT_LT(sx, x) << "uncertainty larger than the value, SOC " << f.soc;
+                if (std::isfinite(sx)) {
+                    EXPECT_LT(sx, x) << "uncertainty larger than the value, SOC " << f.soc;
+                }
         }
     }
 }
@@ -289,9 +291,12 @@ TEST(RunStates, TheTableRefusesWhatAnOperatorCannotMean) {
     for (RunState s : all) {
         for (RunTrigger t : triggers) {
             const auto next = next_state(s, t);
-            if (is_terminal(s) || s == RunState::Idle)
+            if (is_terminal(s) || s == RunState::Idle) {
                 EXPECT_EQ(next.has_value(), t == RunTrigger::start) << to_string(s) << " + " << to_string(t);
-            if (next) EXPECT_NE(*next, RunState::Idle);
+            }
+            if (next) {
+                EXPECT_NE(*next, RunState::Idle);
+            }
         }
     }
     EXPECT_EQ(next_state(RunState::Running, RunTrigger::program_end), RunState::Completed);

@@ -64,7 +64,9 @@ struct Case {
 void expect_no_false_reassurance(const est::Diagnosis& d, const std::string& label) {
     if (d.unexplained) return;
     auto within = [&](const std::optional<double>& r, const std::optional<double>& n, const char* q) {
-        if (r && n) EXPECT_LE(*r, 2.0 * *n) << label << ": " << q << " above twice the noise but unexplained is null";
+        if (r && n) {
+            EXPECT_LE(*r, 2.0 * *n) << label << ": " << q << " above twice the noise but unexplained is null";
+        }
     };
     within(d.improved.voltage_v, d.noise.sigma.voltage_v, "voltage");
     within(d.improved.temperature_c, d.noise.sigma.temperature_c, "temperature");
@@ -112,8 +114,9 @@ TEST(DiagnoseOnIndependentPlant, NamesHiddenBenchEffectsAndLeavesControlsAlone) 
             // is parameters_wrong too, and one of the hidden effects.
             for (const auto& f : d.findings) {
                 if (!f.significant) continue;
-                if (f.effect == "ocv_offset" || f.effect == "ocv_band" || f.effect == "thermal_parameters")
+                if (f.effect == "ocv_offset" || f.effect == "ocv_band" || f.effect == "thermal_parameters") {
                     EXPECT_EQ(f.kind, "parameters_wrong") << f.effect;
+                }
                 const bool refit = f.kind == "parameters_wrong" && f.effect != "capacity_error";
                 (refit ? c.refit : c.significant).push_back(f.effect);
             }

@@ -195,6 +195,35 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
     }
 }
 
+// The plant's seed 15 is an LFP cell: a flat plateau with two steps and an OCV that bends within a few % of SOC
+// at both ends. With the OCV on a 5 % grid (before session 16) the fitted OCV was 95 mV high at 6 % SOC and the
+// second RC pair turned into an integrator standing in for the missing slope: tau2 off by 2353 %, R0 by 29 %,
+// the drive at 14.8 mV RMS. On the 2 % grid (GlobalFitOptions::ocv_spacing_soc) measured: OCV 3.9 mV, R0 9.5 %,
+// R1+R2 13 %, tau1 10 %, tau2 18 %, drive 4.9 mV at the worst level.
+TEST(FitOnIndependentPlantLfp, SteepOcvEndsDoNotCollapseTheRcPairs) {
+    plant::PlantOptions o;
+    o.seed = 15;
+    o.layout = plant::Layout::thesis;
+    const auto d = plant::generate(o);
+    ASSERT_EQ(d.truth.chemistry, "lfp");
+    std::vector<Recording> recs = {to_recording(d.hppc, "hppc"), to_recording(d.cc_low, "cc_low"),
+                                   to_recording(d.cc_high, "cc_high")};
+    est::CharacterizationOptions co;
+    co.area_m2 = d.truth.area_m2;
+    co.fallback_capacity_ah = d.truth.nominal_capacity_ah;
+    const auto c = est::characterize(recs, co);
+    ASSERT_TRUE(c.global.has_value());
+    EXPECT_GE(c.global->ocv_knots_per_interval, 5);  // 10 % levels, OCV knots 2 % apart
+    const auto e = compare(c, d, to_recording(d.drive, "drive"));
+    std::printf("seed 15 (lfp): OCV %.2f mV, R0 %.1f %%, R1+R2 %.1f %%, tau1 %.1f %%, tau2 %.1f %%, drive %.2f mV\n",
+                e.ocv_mv, 100 * e.r0, 100 * e.r12, 100 * e.tau1, 100 * e.tau2, e.drive_rms_mv);
+    EXPECT_LT(e.tau1, 0.5);
+    EXPECT_LT(e.tau2, 0.5);
+    EXPECT_LT(e.r12, 0.25);
+    EXPECT_LT(e.ocv_mv, 10.0);
+    EXPECT_LT(e.drive_rms_mv, 8.0);
+}
+
 INSTANTIATE_TEST_SUITE_P(Layouts, FitOnIndependentPlant,
                          ::testing::Values(plant::Layout::thesis, plant::Layout::usabc),
                          [](const auto& info) { return std::string(plant::layout_name(info.param)); });

@@ -101,6 +101,22 @@ Errors compare(const est::Characterization& c, const plant::Dataset& d, const Re
     return e;
 }
 
+// The default characterization of the plant's three characterization recordings, with what a user gives: the
+// cell's surface and its nominal capacity. The CELLBENCH_VALIDATION_* variables below are diagnostics.
+est::Characterization characterize_plant(const plant::Dataset& d) {
+    std::vector<Recording> recs = {to_recording(d.hppc, "hppc"), to_recording(d.cc_low, "cc_low"),
+                                   to_recording(d.cc_high, "cc_high")};
+    est::CharacterizationOptions co;
+    co.area_m2 = d.truth.area_m2;
+    co.fallback_capacity_ah = d.truth.nominal_capacity_ah;  // what a user gives (nominal)
+    // diagnostics: another knot spacing than characterize() derives from the test's SOC levels
+    if (const char* k = std::getenv("CELLBENCH_VALIDATION_KNOT_SPACING")) co.global.knot_spacing = std::atof(k);
+    if (const char* k = std::getenv("CELLBENCH_VALIDATION_SMOOTHNESS")) co.global.smoothness = std::atof(k);
+    if (const char* k = std::getenv("CELLBENCH_VALIDATION_OCV_SMOOTHNESS")) co.global.ocv_smoothness = std::atof(k);
+    if (const char* k = std::getenv("CELLBENCH_VALIDATION_DIRECTION_PRIOR")) co.global.direction_prior = std::atof(k);
+    return est::characterize(recs, co);
+}
+
 class FitOnIndependentPlant : public ::testing::TestWithParam<plant::Layout> {};
 
 TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
@@ -116,17 +132,7 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         o.seed = static_cast<std::uint64_t>(seed);
         o.layout = GetParam();
         const auto d = plant::generate(o);
-        std::vector<Recording> recs = {to_recording(d.hppc, "hppc"), to_recording(d.cc_low, "cc_low"),
-                                       to_recording(d.cc_high, "cc_high")};
-        est::CharacterizationOptions co;
-        co.area_m2 = d.truth.area_m2;
-        co.fallback_capacity_ah = d.truth.nominal_capacity_ah;  // what a user gives (nominal)
-        // diagnostics: another knot spacing than characterize() derives from the test's SOC levels
-        if (const char* k = std::getenv("CELLBENCH_VALIDATION_KNOT_SPACING")) co.global.knot_spacing = std::atof(k);
-        if (const char* k = std::getenv("CELLBENCH_VALIDATION_SMOOTHNESS")) co.global.smoothness = std::atof(k);
-        if (const char* k = std::getenv("CELLBENCH_VALIDATION_OCV_SMOOTHNESS")) co.global.ocv_smoothness = std::atof(k);
-        if (const char* k = std::getenv("CELLBENCH_VALIDATION_DIRECTION_PRIOR")) co.global.direction_prior = std::atof(k);
-        const auto c = est::characterize(recs, co);
+        const auto c = characterize_plant(d);
         if (std::getenv("CELLBENCH_VALIDATION_VERBOSE")) {
             std::printf("seed %d: capacity %.4f Ah (%s), truth %.4f Ah, sample %.2f s\n", seed, c.capacity.capacity_ah,
                         c.capacity.method.c_str(), d.truth.capacity_ah, d.cell.measurement.sample_s);
@@ -206,12 +212,7 @@ TEST(FitOnIndependentPlantLfp, SteepOcvEndsDoNotCollapseTheRcPairs) {
     o.layout = plant::Layout::thesis;
     const auto d = plant::generate(o);
     ASSERT_EQ(d.truth.chemistry, "lfp");
-    std::vector<Recording> recs = {to_recording(d.hppc, "hppc"), to_recording(d.cc_low, "cc_low"),
-                                   to_recording(d.cc_high, "cc_high")};
-    est::CharacterizationOptions co;
-    co.area_m2 = d.truth.area_m2;
-    co.fallback_capacity_ah = d.truth.nominal_capacity_ah;
-    const auto c = est::characterize(recs, co);
+    const auto c = characterize_plant(d);
     ASSERT_TRUE(c.global.has_value());
     EXPECT_GE(c.global->ocv_knots_per_interval, 5);  // 10 % levels, OCV knots 2 % apart
     const auto e = compare(c, d, to_recording(d.drive, "drive"));

@@ -70,6 +70,7 @@ void BenchDaemon::Impl::start() {
     guard.emplace(io.get_executor());
     for (int k = 0; k < std::max(1, opt.io_threads); ++k) threads.emplace_back([this] { io.run(); });
     if (clock->paced()) {  // before the simulated instruments start: their time stands still without it
+        pace_gate.emplace(scale, std::min(scale, kPaceGatedScale));
         pace_timer = std::make_unique<asio::steady_timer>(io);
         pace_report_at = SteadyClock::now() + std::chrono::seconds(10);
         schedule_pace();
@@ -124,7 +125,27 @@ void BenchDaemon::Impl::schedule_pace() {
     pace_timer->async_wait([this](const boost::system::error_code& ec) {
         if (ec || stopping) return;
         const auto now = SteadyClock::now();
-        clock->pace(now);
+        // Not past half an instrument's grace beyond its last reading: a daemon that gets some CPU but whose
+        // drivers fall behind (or whose hosted tester does) slows the bench down instead of aborting the run.
+        const auto gate = pace_gate->decide(clock->now_s(),
+                                            {{"neware", last_cycler_bench_s.load(), grace_for("neware")},
+                                             {"dewe", last_daq_bench_s.load(), grace_for("dewe")},
+                                             {"chamber", last_chamber_bench_s.load(), grace_for("chamber")}},
+                                            now);
+        if (gate.gated != pace_gate_closed) {
+            pace_gate_closed = gate.gated;
+            {
+                std::lock_guard l(live_m);
+                pace_waiting_for = gate.waiting_for;
+            }
+            if (gate.gated)
+                spdlog::warn("bench time: slowed to x{} while waiting for {} (its last reading {:.0f} s of bench time "
+                             "ago, grace {:.0f} s; the daemon or the simulated instrument is behind)",
+                             gate.scale, gate.waiting_for, gate.lag_bench_s, grace_for(gate.waiting_for));
+            else
+                spdlog::info("bench time: readings caught up, back at x{}", scale);
+        }
+        clock->pace(now, gate.scale);
         if (now >= pace_report_at) {
             pace_report_at = now + std::chrono::seconds(10);
             report_pace();

@@ -26,6 +26,7 @@ void BenchDaemon::Impl::feed_loop() {
 
 void BenchDaemon::Impl::on_neware_sample(const drivers::NewareSample& s) {
     const double t = bench_at(s.time);
+    last_cycler_bench_s = t;
     const auto& g = s.group;
     const auto status = std::string(protocol::neware::to_string(g.status));
     // A valid answer, with no new fault for a few polls, ends a fault episode (a flapping link stays one).
@@ -162,6 +163,7 @@ void BenchDaemon::Impl::on_neware_event(const drivers::NewareEvent& e) {
 
 void BenchDaemon::Impl::on_dewe_sample(const drivers::DeweReading& r) {
     const double t = bench_at(r.time);
+    last_daq_bench_s = t;
     sequencer::DaqSample ds{t, unix_at(r.time), r.thermopile_v, r.type_t_c, r.t1_c, r.t2_c, r.heat_flux_w_per_m2};
     DaqSample row;
     row.unix_s = ds.t_wall_s;
@@ -232,6 +234,7 @@ void BenchDaemon::Impl::daq_losses(const protocol::DeweStreamStats& st) {
 
 void BenchDaemon::Impl::on_chamber_status(const drivers::ChamberStatus& s) {
     const double t = bench_at(s.time);
+    last_chamber_bench_s = t;
     sequencer::ChamberSample cs{t, unix_at(s.time), s.process_value_c, s.setpoint_c, s.running.value_or(true),
                                 s.alarm_word};
     ChamberSample row;

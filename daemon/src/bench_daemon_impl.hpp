@@ -47,6 +47,7 @@
 #include "cellbench/sim/chamber_server.hpp"
 #include "cellbench/sim/dewe_publisher.hpp"
 #include "cellbench/sim/neware_server.hpp"
+#include "cellbench/sim/pace_gate.hpp"
 #include "cellbench/sim/plant.hpp"
 #include "bench_daemon_run_context.hpp"
 #include "chamber/chamber_instrument.hpp"
@@ -100,6 +101,12 @@ struct BenchDaemon::Impl {
     // bench down instead of finding hundreds of bench seconds gone (and its instruments "silent").
     SteadyClock::time_point pace_report_at{};
     bool pace_slow_reported = false;
+    // ... and never runs more than half an instrument's grace past its last reading (sim::PaceGate; the pacer's
+    // own, on the io threads). The readings' bench times, set by the sample handlers (any io thread).
+    std::optional<sim::PaceGate> pace_gate;
+    bool pace_gate_closed = false;
+    std::string pace_waiting_for;  // the instrument the bench waits for while the gate is closed (under live_m)
+    std::atomic<double> last_cycler_bench_s{-1}, last_daq_bench_s{-1}, last_chamber_bench_s{-1};
     SteadyClock::time_point started_at = SteadyClock::now();
 
     asio::io_context io;

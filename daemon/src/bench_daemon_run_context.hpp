@@ -48,6 +48,7 @@ inline json nullable(double x) { return std::isfinite(x) ? json(x) : json(nullpt
 // one (the host starved the daemon) adds only kPaceMaxStepWallS x scale bench seconds.
 constexpr auto kPacePeriod = std::chrono::milliseconds(10);
 constexpr double kPaceMaxStepWallS = 0.1;
+constexpr double kPaceGatedScale = 10.0;  // bench s per wall s while waiting for an instrument's readings
 
 // A bench-time period as a wall timer period (the simulation runs time_scale bench s per wall s), >= 1 ms.
 inline std::chrono::milliseconds wall_period(double bench_ms, double scale, double min_ms = 1.0) {

@@ -20,6 +20,8 @@ json BenchDaemon::status() {
     double t_rel = kNaN;
     {
         std::lock_guard l(d.live_m);
+        // Paced bench time slowed down until this instrument's readings catch up (sim::PaceGate), else null.
+        j["bench_time_waiting_for"] = d.pace_waiting_for.empty() ? json(nullptr) : json(d.pace_waiting_for);
         // Every registered instrument, in registry order. Data age: wall seconds since the instrument's newest
         // reading (null before the first).
         const double now_unix = unix_now_s();

@@ -2,12 +2,16 @@
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <cmath>
+#include <vector>
 
+#include "cellbench/sim/pace_gate.hpp"
 #include "cellbench/sim/plant.hpp"
 
 namespace {
 
 using cellbench::sim::BenchClock;
+using cellbench::sim::PaceGate;
 using namespace std::chrono_literals;
 
 TEST(BenchClock, FreeClockMapsWallTimeByTheTimeScale) {
@@ -94,6 +98,77 @@ TEST(BenchClock, AnInstantBeforeManyHoldsKeepsItsBenchTime) {
     for (int k = 2; k < 300; ++k) (k % 2 ? clock.hold(w0 + k * 10ms) : clock.pace(w0 + k * 10ms));
     EXPECT_NEAR(clock.at(w0 + 10ms), b1, 1e-6);
     EXPECT_NEAR(clock.at(w0 + 5ms), b1 - 2.0, 1e-6);  // 5 ms x 400
+}
+
+// Slowed down (the pace gate below): bench time and the readers between two paces move at the slow rate.
+TEST(BenchClock, SlowedClockRunsAtTheRateAskedAndReadersFollowIt) {
+    BenchClock clock(400.0, 0.0, BenchClock::Paced{0.1});
+    const auto w0 = BenchClock::WallClock::now();
+    const double b0 = clock.pace(w0);
+    double b1 = b0;
+    for (int k = 1; k <= 100; ++k) {
+        b1 = clock.pace(w0 + k * 10ms, 10.0);  // 1 s at x10
+        EXPECT_NEAR(clock.at(w0 + k * 10ms + 5ms), b1 + 0.005 * 10.0, 1e-6) << "a reader ran ahead at the full scale";
+    }
+    // Each pace starts from what the readers saw (never back): 5 ms at x10 ahead of the last pace at most.
+    EXPECT_NEAR(b1 - b0, 10.0, 0.06);
+    EXPECT_NEAR(clock.lost_wall_s(), 1.0 - 10.0 / 400.0, 0.2);
+    const double b2 = clock.pace(w0 + 1010ms, 1e9);  // never above the clock's own scale
+    EXPECT_NEAR(b2 - b1, 0.01 * 400.0, 0.06);
+}
+
+// The gate: the bench must not run more than half an instrument's grace past its last reading, for at most one
+// grace of wall time (then the instrument is silent, and the grace must be able to end the run).
+TEST(PaceGate, SlowsTheBenchWhileAnInstrumentsReadingsAreHalfAGraceLate) {
+    PaceGate gate(400.0, 10.0);  // grace 4000 bench s = 10 s of wall time at x400
+    const auto w0 = PaceGate::WallClock::now();
+    auto src = [](double last) { return std::vector<PaceGate::Source>{{"neware", last, 4000.0}, {"dewe", -1, 4000.0}}; };
+    auto d = gate.decide(1000.0, src(900.0), w0);
+    EXPECT_FALSE(d.gated);
+    EXPECT_DOUBLE_EQ(d.scale, 400.0);
+    d = gate.decide(3000.0, src(900.0), w0 + 1s);  // 2100 s behind: more than half the grace
+    EXPECT_TRUE(d.gated);
+    EXPECT_DOUBLE_EQ(d.scale, 10.0);
+    EXPECT_EQ(d.waiting_for, "neware");
+    EXPECT_NEAR(d.lag_bench_s, 2100.0, 1e-9);
+    d = gate.decide(3010.0, src(900.0), w0 + 5s);
+    EXPECT_TRUE(d.gated);
+    d = gate.decide(3020.0, src(3015.0), w0 + 6s);  // the reading came: full scale at once
+    EXPECT_FALSE(d.gated);
+    EXPECT_DOUBLE_EQ(d.scale, 400.0);
+    EXPECT_TRUE(d.waiting_for.empty());
+    EXPECT_EQ(gate.episodes(), 1);
+    EXPECT_EQ(gate.expired(), 0);
+    EXPECT_NEAR(gate.gated_wall_s(), 5.0, 1e-9);
+}
+
+TEST(PaceGate, GivesUpAfterOneGraceOfWallTimeSoASilentInstrumentStillEndsTheRun) {
+    PaceGate gate(400.0, 10.0);
+    const auto w0 = PaceGate::WallClock::now();
+    const std::vector<PaceGate::Source> silent = {{"neware", 0.0, 4000.0}};
+    EXPECT_TRUE(gate.decide(2100.0, silent, w0).gated);
+    EXPECT_TRUE(gate.decide(2150.0, silent, w0 + 9s).gated);
+    const auto d = gate.decide(2200.0, silent, w0 + 10100ms);  // 10 s of wall time = the grace at x400
+    EXPECT_FALSE(d.gated);
+    EXPECT_DOUBLE_EQ(d.scale, 400.0);
+    EXPECT_EQ(gate.expired(), 1);
+    EXPECT_FALSE(gate.decide(4100.0, silent, w0 + 15s).gated) << "still silent: no second episode";
+    EXPECT_EQ(gate.episodes(), 1);
+    // Readings again, then late again: a new episode.
+    EXPECT_FALSE(gate.decide(4200.0, {{"neware", 4190.0, 4000.0}}, w0 + 16s).gated);
+    EXPECT_TRUE(gate.decide(6300.0, {{"neware", 4190.0, 4000.0}}, w0 + 22s).gated);
+    EXPECT_EQ(gate.episodes(), 2);
+}
+
+TEST(PaceGate, InstrumentsWithoutReadingsOrGraceAreNotWaitedFor) {
+    PaceGate gate(100.0, 10.0);
+    const auto w0 = PaceGate::WallClock::now();
+    const std::vector<PaceGate::Source> none = {{"neware", -1, 1000.0}, {"dewe", 0.0, 0.0}, {"chamber", 0.0, NAN}};
+    EXPECT_FALSE(gate.decide(1e6, none, w0).gated);
+    // The source furthest behind in units of its own grace is the one named.
+    const auto d = gate.decide(1000.0, {{"neware", 0.0, 1800.0}, {"dewe", 300.0, 1000.0}}, w0 + 1s);
+    EXPECT_TRUE(d.gated);
+    EXPECT_EQ(d.waiting_for, "dewe");  // 0.70 of its grace against 0.56
 }
 
 }  // namespace

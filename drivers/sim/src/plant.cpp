@@ -224,7 +224,8 @@ BenchClock::BenchClock(double time_scale, double bench_start_s)
       wall_start_(WallClock::now()),
       anchor_wall_(wall_start_),
       anchor_bench_(bench_start_s),
-      last_read_(bench_start_s) {}
+      last_read_(bench_start_s),
+      rate_(time_scale_) {}
 
 BenchClock::BenchClock(double time_scale, double bench_start_s, Paced paced) : BenchClock(time_scale, bench_start_s) {
     paced_ = true;
@@ -238,8 +239,8 @@ double BenchClock::max_step_s() const {
 
 double BenchClock::read_locked(WallClock::time_point wall) const {
     if (wall >= anchor_wall_) {
-        if (held_) return anchor_bench_;  // held: no reader runs ahead until the next pace()
-        return anchor_bench_ + std::min(seconds(wall - anchor_wall_) * time_scale_, max_step_wall_s_ * time_scale_);
+        // at the last step's rate (0 when held): no reader runs ahead of the pacer by more than one step
+        return anchor_bench_ + std::min(seconds(wall - anchor_wall_), max_step_wall_s_) * rate_;
     }
     // An instant before the last pace(): between the two pace()/hold() calls around it (every call of the last
     // ~20 s is kept): linear at the scale when that step was whole, squeezed when it was bounded, flat when held.
@@ -279,31 +280,37 @@ BenchClock::WallClock::time_point BenchClock::wall_at(double bench_time_s) const
 double BenchClock::pace(WallClock::time_point wall) {
     if (!paced_) return at(wall);
     std::lock_guard lock(mutex_);
-    return advance_locked(wall, false);
+    return advance_locked(wall, time_scale_);
+}
+
+double BenchClock::pace(WallClock::time_point wall, double scale) {
+    if (!paced_) return at(wall);
+    std::lock_guard lock(mutex_);
+    return advance_locked(wall, std::isfinite(scale) ? std::clamp(scale, 0.0, time_scale_) : time_scale_);
 }
 
 double BenchClock::hold(WallClock::time_point wall) {
     if (!paced_) return at(wall);
     std::lock_guard lock(mutex_);
-    return advance_locked(wall, true);
+    return advance_locked(wall, 0.0);
 }
 
-double BenchClock::advance_locked(WallClock::time_point wall, bool hold) {
+double BenchClock::advance_locked(WallClock::time_point wall, double rate) {
     if (wall <= anchor_wall_) {
-        held_ = held_ || hold;
+        rate_ = std::min(rate_, rate);
         return anchor_bench_;
     }
     const double dt = seconds(wall - anchor_wall_);
-    const double step = hold ? 0.0 : std::min(dt, max_step_wall_s_);
-    const double next = std::max(anchor_bench_ + step * time_scale_, last_read_);
-    if (step < dt) lost_wall_s_ += dt - step;
+    const double step = std::min(dt, max_step_wall_s_);
+    const double next = std::max(anchor_bench_ + step * rate, last_read_);
+    lost_wall_s_ += dt - (next - anchor_bench_) / time_scale_;
     if (trail_.empty()) trail_.emplace_back(anchor_wall_, anchor_bench_);
     trail_.emplace_back(wall, next);
     while (trail_.size() > kTrail) trail_.pop_front();
     anchor_wall_ = wall;
     anchor_bench_ = next;
     last_read_ = anchor_bench_;
-    held_ = hold;
+    rate_ = rate;
     if (seconds(wall - history_.back().first) >= 1.0) {
         history_.emplace_back(wall, anchor_bench_);
         while (history_.size() > kHistory) history_.pop_front();

@@ -138,6 +138,10 @@ public:
 
     // Paced mode: moves bench time to `wall` (by at most one bounded step) and returns it. No-op when free.
     double pace(WallClock::time_point wall = WallClock::now());
+    // Paced mode: the same step at another rate (bench seconds per wall second, at most the time scale; 0 is
+    // hold()): the bench slows down while the consumer catches up (sim::PaceGate). Readers until the next call
+    // see time move at that rate. No-op when free.
+    double pace(WallClock::time_point wall, double scale);
     // Paced mode: the consumer is behind (its queue of readings is late): wall time up to `wall` passes without
     // bench time (readers still never see it go back). No-op when free.
     double hold(WallClock::time_point wall = WallClock::now());
@@ -150,7 +154,7 @@ public:
 
 private:
     double read_locked(WallClock::time_point wall) const;
-    double advance_locked(WallClock::time_point wall, bool hold);
+    double advance_locked(WallClock::time_point wall, double rate);
 
     double time_scale_;
     double bench_start_s_;
@@ -165,7 +169,7 @@ private:
     std::deque<std::pair<WallClock::time_point, double>> trail_;  // (wall, bench) of recent pace()/hold()
     std::deque<std::pair<WallClock::time_point, double>> history_;  // (wall, bench) about once a second
     double lost_wall_s_ = 0.0;
-    bool held_ = false;  // the last call was hold(): readers see no time pass
+    double rate_ = 0.0;  // bench s per wall s of the last pace() (0 after hold(): readers see no time pass)
 };
 
 }  // namespace cellbench::sim

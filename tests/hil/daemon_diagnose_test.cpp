@@ -209,10 +209,11 @@ TEST(DaemonDiagnoseHil, DiagnosesARunAndAnUploadedRecording) {
         if (run_job.contains("diagnosis")) skipped = run_job["diagnosis"].value("skipped_in_baseline", json::array()).size();
         expect_report(run_job, "run diagnosis", estimator::effect_catalogue().size() - skipped);
     }
-    if (run_job.contains("diagnosis"))
+    if (run_job.contains("diagnosis")) {
         for (const auto& f : run_job["diagnosis"]["findings"])
             EXPECT_FALSE(f.value("significant", false))
                 << "a clean bench diagnosed against its own parameter set: " << f.dump();
+    }
     EXPECT_EQ(run_job["source"]["kind"], "run");
     EXPECT_EQ(run_job["source"]["run_id"], id);
 

@@ -224,14 +224,19 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
                     worst_rc_bench_soc = std::max(worst_rc_bench_soc, err_bench);
                 }
                 EXPECT_TRUE(std::isfinite(v) && v > 0.0) << dir << " " << name << ", pulse set " << f["pulse_set"];
-                if (!cv)
+                if (!cv) {
                     EXPECT_NEAR(v, value, 0.15 * value) << dir << " " << name << ", pulse set " << f["pulse_set"]
                                                         << " at SOC " << soc << " (cell SOC " << cell_soc << ")";
+                }
             }
             std::printf("%s\n", cv ? "  (pulse turned CV: not asserted)" : "");
-            if (got.contains("flags")) EXPECT_TRUE(got["flags"].empty()) << dir << " flags " << got["flags"].dump();
+            if (got.contains("flags")) {
+                EXPECT_TRUE(got["flags"].empty()) << dir << " flags " << got["flags"].dump();
+            }
         }
-        if (f.contains("flags")) EXPECT_TRUE(f["flags"].empty()) << "flags " << f["flags"].dump();
+        if (f.contains("flags")) {
+            EXPECT_TRUE(f["flags"].empty()) << "flags " << f["flags"].dump();
+        }
     }
     std::printf("  worst R1/C1/R2/C2 error %.1f %% (against the cell at the bench's SOC: %.1f %%); the pair whose pulse "
                 "turned CV: %.1f %%\n",

@@ -54,7 +54,9 @@ TEST(DaemonSamples, AnswersFollowEveryCommitWhileTheRunGoesOn) {
     const std::uint64_t at = d.store().commit_count();
     const json body = json::parse(*d.samples_body(id, q));
     const json direct = d.samples(id, q);
-    if (d.store().commit_count() == at) EXPECT_EQ(body, direct);
+    if (d.store().commit_count() == at) {
+        EXPECT_EQ(body, direct);
+    }
     std::printf("%d polls compared without a commit in between, %d identical\n", compared, agreed);
     EXPECT_GT(compared, 0) << "every poll raced a commit: nothing was checked";
     EXPECT_GT(last_to, 0.0) << "the run stored no rows";

@@ -100,7 +100,7 @@ struct StartRequest {
     std::string program;
     std::string cell;
     nlohmann::json body;
-    std::map<std::string, nlohmann::json> parameters;  // = daemon::ProgramOverrides (last: {program, cell, body} still reads)
+    std::map<std::string, nlohmann::json> parameters{};  // = daemon::ProgramOverrides (last: {program, cell, body} still reads)
 };
 
 // POST /runs/{id}/diagnose body {"params": NAME, "effects": [...]} and POST /diagnose?params=NAME&effects=a,b.

@@ -142,8 +142,12 @@ void BenchDaemon::Impl::schedule_pace() {
                 spdlog::warn("bench time: slowed to x{} while waiting for {} (its last reading {:.0f} s of bench time "
                              "ago, grace {:.0f} s; the daemon or the simulated instrument is behind)",
                              gate.scale, gate.waiting_for, gate.lag_bench_s, grace_for(gate.waiting_for));
+            else if (pace_gate->expired() > pace_gate_expired)
+                spdlog::warn("bench time: back at x{} with an instrument still silent after a whole grace of wall "
+                             "time: its silence is taken as real", scale);
             else
                 spdlog::info("bench time: readings caught up, back at x{}", scale);
+            pace_gate_expired = pace_gate->expired();
         }
         clock->pace(now, gate.scale);
         if (now >= pace_report_at) {

@@ -160,6 +160,15 @@ TEST(PaceGate, GivesUpAfterOneGraceOfWallTimeSoASilentInstrumentStillEndsTheRun)
     EXPECT_EQ(gate.episodes(), 2);
 }
 
+TEST(PaceGate, ABenchNoFasterThanTheSlowScaleIsNeverGated) {
+    PaceGate gate(10.0, 10.0);  // x10: the daemon's slow scale is the full scale
+    const auto w0 = PaceGate::WallClock::now();
+    const auto d = gate.decide(1000.0, {{"neware", 0.0, 100.0}}, w0);
+    EXPECT_FALSE(d.gated);
+    EXPECT_DOUBLE_EQ(d.scale, 10.0);
+    EXPECT_EQ(gate.episodes(), 0);
+}
+
 TEST(PaceGate, InstrumentsWithoutReadingsOrGraceAreNotWaitedFor) {
     PaceGate gate(100.0, 10.0);
     const auto w0 = PaceGate::WallClock::now();

@@ -26,7 +26,8 @@ PaceGate::Decision PaceGate::decide(double bench_now_s, const std::vector<Source
     if (last_gated_ && wall > last_wall_) gated_wall_s_ += seconds(wall - last_wall_);
     last_wall_ = wall;
 
-    const bool behind = worst > 0.5;
+    // A bench that runs no faster than the slow scale has nothing to slow down.
+    const bool behind = worst > 0.5 && slow_scale_ < time_scale_;
     if (!behind) {
         in_episode_ = gave_up_ = false;
     } else if (!in_episode_) {

@@ -39,7 +39,8 @@ public:
     };
 
     // slow_scale: bench seconds per wall second while gated (small against the time scale, but enough to keep
-    // the simulated instruments that stream by bench time, such as the DAQ, from looking silent).
+    // the simulated instruments that stream by bench time, such as the DAQ, from looking silent). A clock whose
+    // time scale is not above it is never gated.
     explicit PaceGate(double time_scale, double slow_scale = 10.0);
 
     // The scale for the step that ends at `wall` (bench time `bench_now_s` before it).

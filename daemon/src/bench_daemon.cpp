@@ -132,22 +132,21 @@ void BenchDaemon::Impl::schedule_pace() {
                                              {"dewe", last_daq_bench_s.load(), grace_for("dewe")},
                                              {"chamber", last_chamber_bench_s.load(), grace_for("chamber")}},
                                             now);
-        if (gate.gated != pace_gate_closed) {
-            pace_gate_closed = gate.gated;
+        using Change = sim::PaceGate::Change;
+        if (gate.change != Change::none) {
             {
                 std::lock_guard l(live_m);
-                pace_waiting_for = gate.waiting_for;
+                pace_waiting_for = gate.gated ? gate.waiting_for : std::string();
             }
-            if (gate.gated)
+            if (gate.change == Change::closed)
                 spdlog::warn("bench time: slowed to x{} while waiting for {} (its last reading {:.0f} s of bench time "
                              "ago, grace {:.0f} s; the daemon or the simulated instrument is behind)",
                              gate.scale, gate.waiting_for, gate.lag_bench_s, grace_for(gate.waiting_for));
-            else if (pace_gate->expired() > pace_gate_expired)
-                spdlog::warn("bench time: back at x{} with an instrument still silent after a whole grace of wall "
-                             "time: its silence is taken as real", scale);
+            else if (gate.change == Change::gave_up)
+                spdlog::warn("bench time: back at x{} with {} still silent after a whole grace of wall time: its "
+                             "silence is taken as real", scale, gate.waiting_for);
             else
                 spdlog::info("bench time: readings caught up, back at x{}", scale);
-            pace_gate_expired = pace_gate->expired();
         }
         clock->pace(now, gate.scale);
         if (now >= pace_report_at) {

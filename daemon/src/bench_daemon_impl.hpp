@@ -104,8 +104,6 @@ struct BenchDaemon::Impl {
     // ... and never runs more than half an instrument's grace past its last reading (sim::PaceGate; the pacer's
     // own, on the io threads). The readings' bench times, set by the sample handlers (any io thread).
     std::optional<sim::PaceGate> pace_gate;
-    bool pace_gate_closed = false;
-    int pace_gate_expired = 0;     // the gate's episodes that ended on a silent instrument, as last logged
     std::string pace_waiting_for;  // the instrument the bench waits for while the gate is closed (under live_m)
     std::atomic<double> last_cycler_bench_s{-1}, last_daq_bench_s{-1}, last_chamber_bench_s{-1};
     SteadyClock::time_point started_at = SteadyClock::now();

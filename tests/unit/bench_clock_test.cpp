@@ -126,15 +126,19 @@ TEST(PaceGate, SlowsTheBenchWhileAnInstrumentsReadingsAreHalfAGraceLate) {
     auto d = gate.decide(1000.0, src(900.0), w0);
     EXPECT_FALSE(d.gated);
     EXPECT_DOUBLE_EQ(d.scale, 400.0);
+    EXPECT_EQ(d.change, PaceGate::Change::none);
     d = gate.decide(3000.0, src(900.0), w0 + 1s);  // 2100 s behind: more than half the grace
     EXPECT_TRUE(d.gated);
+    EXPECT_EQ(d.change, PaceGate::Change::closed);
     EXPECT_DOUBLE_EQ(d.scale, 10.0);
     EXPECT_EQ(d.waiting_for, "neware");
     EXPECT_NEAR(d.lag_bench_s, 2100.0, 1e-9);
     d = gate.decide(3010.0, src(900.0), w0 + 5s);
     EXPECT_TRUE(d.gated);
+    EXPECT_EQ(d.change, PaceGate::Change::none);
     d = gate.decide(3020.0, src(3015.0), w0 + 6s);  // the reading came: full scale at once
     EXPECT_FALSE(d.gated);
+    EXPECT_EQ(d.change, PaceGate::Change::caught_up);
     EXPECT_DOUBLE_EQ(d.scale, 400.0);
     EXPECT_TRUE(d.waiting_for.empty());
     EXPECT_EQ(gate.episodes(), 1);
@@ -150,6 +154,8 @@ TEST(PaceGate, GivesUpAfterOneGraceOfWallTimeSoASilentInstrumentStillEndsTheRun)
     EXPECT_TRUE(gate.decide(2150.0, silent, w0 + 9s).gated);
     const auto d = gate.decide(2200.0, silent, w0 + 10100ms);  // 10 s of wall time = the grace at x400
     EXPECT_FALSE(d.gated);
+    EXPECT_EQ(d.change, PaceGate::Change::gave_up);
+    EXPECT_EQ(d.waiting_for, "neware");  // named in the log line that says the silence is taken as real
     EXPECT_DOUBLE_EQ(d.scale, 400.0);
     EXPECT_EQ(gate.expired(), 1);
     EXPECT_FALSE(gate.decide(4100.0, silent, w0 + 15s).gated) << "still silent: no second episode";

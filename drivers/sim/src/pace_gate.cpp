@@ -41,7 +41,8 @@ PaceGate::Decision PaceGate::decide(double bench_now_s, const std::vector<Source
     }
     d.gated = in_episode_ && !gave_up_;
     d.scale = d.gated ? slow_scale_ : time_scale_;
-    if (!d.gated) d.waiting_for.clear(), d.lag_bench_s = 0;
+    if (d.gated != last_gated_) d.change = d.gated ? Change::closed : gave_up_ ? Change::gave_up : Change::caught_up;
+    if (!d.gated && d.change != Change::gave_up) d.waiting_for.clear(), d.lag_bench_s = 0;
     last_gated_ = d.gated;
     return d;
 }

@@ -31,10 +31,14 @@ public:
         double grace_bench_s = 0;           // its silence grace (bench seconds); <= 0 or not finite: not gated on
     };
 
+    // What this decision changed against the previous one (for the caller's log and status).
+    enum class Change { none, closed, caught_up, gave_up };
+
     struct Decision {
         double scale = 0;          // bench seconds per wall second allowed for the next step
         bool gated = false;        // the gate is closed (scale < the clock's time scale because of a source)
-        std::string waiting_for;   // the source furthest behind (in units of its grace) while gated
+        Change change = Change::none;
+        std::string waiting_for;   // the source furthest behind (in units of its grace) while gated or giving up
         double lag_bench_s = 0;    // how far that source's last reading is behind bench time
     };
 

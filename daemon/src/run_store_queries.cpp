@@ -65,13 +65,15 @@ std::vector<RunInfo> RunStore::list_runs(std::size_t limit) const {
     });
 }
 
-std::optional<RunInfo> RunStore::get_run(RunId run) const {
+std::optional<RunInfo> RunStore::get_run(RunId run, RunRead what) const {
     auto lease = impl_->acquire();
+    const bool with_config = what == RunRead::with_config;
     return guarded_read(impl_->path, [&]() -> std::optional<RunInfo> {
-        Stmt s(lease.db(), std::string("SELECT ") + kRunColumns + ", config_json FROM runs WHERE id = ?1");
+        Stmt s(lease.db(), std::string("SELECT ") + kRunColumns + (with_config ? ", config_json" : "") +
+                               " FROM runs WHERE id = ?1");
         s.integer(1, run);
         if (!s.step()) return std::nullopt;
-        return read_run_row(s, true);
+        return read_run_row(s, with_config);
     });
 }
 

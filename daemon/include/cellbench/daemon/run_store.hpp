@@ -70,7 +70,7 @@ struct RunInfo {
     std::optional<double> started_unix_s, ended_unix_s;
     std::string reason;                 // why it ended (abort reason, "stopped by operator", ...), may be empty
     std::int64_t cycler_samples = 0, daq_samples = 0, chamber_samples = 0;  // committed rows
-    nlohmann::json config;              // as given to create_run (only filled by get_run)
+    nlohmann::json config;              // as given to create_run (only filled by get_run with RunRead::with_config)
 };
 
 // Times: t_s = seconds on the daemon's monotonic clock since the run started (one clock for every source);
@@ -306,7 +306,11 @@ public:
 
     // -- reads (thread-safe; never block the writer) ------------------------------------------------------
     [[nodiscard]] std::vector<RunInfo> list_runs(std::size_t limit = 1000) const;  // newest first
-    [[nodiscard]] std::optional<RunInfo> get_run(RunId run) const;
+    // What get_run reads: the run's summary, or with it the configuration the run was created with (program,
+    // cell and bench as given). Parsing that JSON is most of a read's cost; status, events and existence checks
+    // never need it (the API during a run: 60 % of /status CPU went to parsing a config it then dropped).
+    enum class RunRead { summary, with_config };
+    [[nodiscard]] std::optional<RunInfo> get_run(RunId run, RunRead what = RunRead::with_config) const;
     [[nodiscard]] std::vector<StepRecord> steps(RunId run) const;
     // Events of a run in order; after_id pages (events with id > after_id).
     [[nodiscard]] std::vector<EventRecord> events(RunId run, std::int64_t after_id = 0, std::size_t limit = 10000) const;

@@ -127,11 +127,11 @@ void BenchDaemon::Impl::schedule_pace() {
         const auto now = SteadyClock::now();
         // Not past half an instrument's grace beyond its last reading: a daemon that gets some CPU but whose
         // drivers fall behind (or whose hosted tester does) slows the bench down instead of aborting the run.
-        const auto gate = pace_gate->decide(clock->now_s(),
-                                            {{"neware", last_cycler_bench_s.load(), grace_for("neware")},
-                                             {"dewe", last_daq_bench_s.load(), grace_for("dewe")},
-                                             {"chamber", last_chamber_bench_s.load(), grace_for("chamber")}},
-                                            now);
+        std::vector<sim::PaceGate::Source> sources;
+        sources.reserve(instruments.size());
+        for (const auto& inst : instruments)  // the bench time of each one's last reading: the instrument keeps it
+            sources.push_back({inst->name(), inst->last_reading_t_s().value_or(-1.0), grace_for(inst->name())});
+        const auto gate = pace_gate->decide(clock->now_s(), sources, now);
         using Change = sim::PaceGate::Change;
         if (gate.change != Change::none) {
             {

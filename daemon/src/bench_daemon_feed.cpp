@@ -26,7 +26,6 @@ void BenchDaemon::Impl::feed_loop() {
 
 void BenchDaemon::Impl::on_neware_sample(const drivers::NewareSample& s) {
     const double t = bench_at(s.time);
-    last_cycler_bench_s = t;
     const auto& g = s.group;
     const auto status = std::string(protocol::neware::to_string(g.status));
     // A valid answer, with no new fault for a few polls, ends a fault episode (a flapping link stays one).
@@ -121,7 +120,7 @@ void BenchDaemon::Impl::on_neware_sample(const drivers::NewareSample& s) {
     row.t_s = t;  // live: bench time
     row.soc = live_soc;
     live_cycler = row;
-    cycler_instrument->note_reading(row.unix_s);
+    cycler_instrument->note_reading(row.unix_s, t);
     std::vector<instruments::MemberReading> members;
     members.reserve(s.members.size());
     for (const auto& m : s.members)
@@ -163,7 +162,6 @@ void BenchDaemon::Impl::on_neware_event(const drivers::NewareEvent& e) {
 
 void BenchDaemon::Impl::on_dewe_sample(const drivers::DeweReading& r) {
     const double t = bench_at(r.time);
-    last_daq_bench_s = t;
     sequencer::DaqSample ds{t, unix_at(r.time), r.thermopile_v, r.type_t_c, r.t1_c, r.t2_c, r.heat_flux_w_per_m2};
     DaqSample row;
     row.unix_s = ds.t_wall_s;
@@ -182,7 +180,7 @@ void BenchDaemon::Impl::on_dewe_sample(const drivers::DeweReading& r) {
     std::lock_guard lock(live_m);
     row.t_s = t;
     live_daq = row;
-    daq_instrument->note_reading(row.unix_s);
+    daq_instrument->note_reading(row.unix_s, t);
 }
 
 void BenchDaemon::Impl::on_dewe_health(const drivers::DeweHealth& h) {
@@ -234,7 +232,6 @@ void BenchDaemon::Impl::daq_losses(const protocol::DeweStreamStats& st) {
 
 void BenchDaemon::Impl::on_chamber_status(const drivers::ChamberStatus& s) {
     const double t = bench_at(s.time);
-    last_chamber_bench_s = t;
     sequencer::ChamberSample cs{t, unix_at(s.time), s.process_value_c, s.setpoint_c, s.running.value_or(true),
                                 s.alarm_word};
     ChamberSample row;
@@ -254,7 +251,7 @@ void BenchDaemon::Impl::on_chamber_status(const drivers::ChamberStatus& s) {
     std::lock_guard lock(live_m);
     row.t_s = t;
     live_chamber = row;
-    chamber_instrument->note_reading(row.unix_s);
+    chamber_instrument->note_reading(row.unix_s, t);
     chamber_instrument->set_state(instruments::InstrumentState::connected, "");
 }
 

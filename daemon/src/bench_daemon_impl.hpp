@@ -102,10 +102,9 @@ struct BenchDaemon::Impl {
     SteadyClock::time_point pace_report_at{};
     bool pace_slow_reported = false;
     // ... and never runs more than half an instrument's grace past its last reading (sim::PaceGate; the pacer's
-    // own, on the io threads). The readings' bench times, set by the sample handlers (any io thread).
+    // own, on the io threads), fed the bench time of each instrument's last reading (Instrument::last_reading_t_s).
     std::optional<sim::PaceGate> pace_gate;
     std::string pace_waiting_for;  // the instrument the bench waits for while the gate is closed (under live_m)
-    std::atomic<double> last_cycler_bench_s{-1}, last_daq_bench_s{-1}, last_chamber_bench_s{-1};
     SteadyClock::time_point started_at = SteadyClock::now();
 
     asio::io_context io;

@@ -85,11 +85,17 @@ void Instrument::set_simulated(bool simulated) {
     simulated_ = simulated;
 }
 
-void Instrument::note_reading(double unix_s) {
+void Instrument::note_reading(double unix_s, double t_s) {
     std::lock_guard l(m_);
     last_reading_unix_s_ = unix_s;
+    last_reading_t_s_ = t_s;
     reading_times_.push_back(unix_s);
     if (reading_times_.size() > kRateWindow) reading_times_.pop_front();
+}
+
+std::optional<double> Instrument::last_reading_t_s() const {
+    std::lock_guard l(m_);
+    return last_reading_t_s_;
 }
 
 void Instrument::count_fault(bool lost_answer) {

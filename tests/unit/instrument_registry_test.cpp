@@ -49,7 +49,11 @@ TEST(Instrument, StatusCarriesDataAgeSampleRateAndFaults) {
     std::vector<std::string> log;
     FakeInstrument i("a", &log);
     EXPECT_FALSE(i.status(100.0).data_age_s.has_value());
-    for (int k = 0; k <= 10; ++k) i.note_reading(100.0 + 0.1 * k);  // 10 Hz for 1 s
+    EXPECT_FALSE(i.last_reading_t_s().has_value());
+    // 10 Hz for 1 s of wall time; on the daemon's clock (a simulated bench at x100) 100 s
+    for (int k = 0; k <= 10; ++k) i.note_reading(100.0 + 0.1 * k, 5000.0 + 10.0 * k);
+    ASSERT_TRUE(i.last_reading_t_s().has_value());
+    EXPECT_DOUBLE_EQ(*i.last_reading_t_s(), 5100.0);  // what the simulated bench's pacer waits on
     const auto s = i.status(102.0);
     ASSERT_TRUE(s.data_age_s.has_value());
     EXPECT_NEAR(*s.data_age_s, 1.0, 1e-9);

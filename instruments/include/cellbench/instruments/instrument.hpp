@@ -87,8 +87,11 @@ public:
     void set_detail(std::string detail);
     void set_address(std::string address);
     void set_simulated(bool simulated);
-    // A reading taken at wall time unix_s (data age, sample rate).
-    void note_reading(double unix_s);
+    // A reading taken at wall time unix_s (data age, sample rate) and t_s on the daemon's clock (bench time, the
+    // clock the run's silence graces and the simulated bench's pacer count in).
+    void note_reading(double unix_s, double t_s);
+    // The daemon-clock time of the last reading (nullopt: none yet).
+    [[nodiscard]] std::optional<double> last_reading_t_s() const;
     // The channels of an instrument made of several, as the newest reading gave them.
     void set_members(std::vector<MemberReading> members);
     // A fault report; lost_answer: an answer that never came or could not be read (timeout, protocol error).
@@ -109,7 +112,7 @@ private:
     bool simulated_ = false;
     bool was_connected_ = false;
     std::uint64_t reconnects_ = 0, faults_ = 0, lost_answers_ = 0;
-    std::optional<double> last_reading_unix_s_;
+    std::optional<double> last_reading_unix_s_, last_reading_t_s_;
     std::deque<double> reading_times_;  // the last readings' wall times, for the sample rate
     std::vector<MemberReading> members_;
 };

@@ -72,7 +72,9 @@ const std::vector<EffectSpec>& specs() {
          // The characterization measured its OCV on one branch (rests after discharge steps, or after charge
          // steps), which the parameter set holds as if it were the centre: the hysteresis is fitted together with
          // where the centre lies relative to the table (branch_offset_v; about +magnitude for a discharge branch).
-         {{"magnitude_v", 0.0, 0.08, false, true}, {"rate_per_capacity", 1.0, 300.0, true, true}, {"branch_offset_v", -0.08, 0.08, false, true}},
+         // A branch change that needs more than a third of the capacity to settle (rate below 3 per capacity) is
+         // a drift along the drive, which an OCV or capacity error explains as well, not a hysteresis: implausible.
+         {{"magnitude_v", 0.0, 0.08, false, true}, {"rate_per_capacity", 3.0, 300.0, true, true}, {"branch_offset_v", -0.08, 0.08, false, true}},
          {{0.01, 20.0, 0.0}, {0.01, 20.0, 0.01}, {0.02, 100.0, 0.02}},
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.ocv_hysteresis = OcvHysteresisExt{x[0], x[1]};
@@ -558,6 +560,33 @@ std::vector<ConditionError> locate_errors(const ParameterSet& params, const Reco
     return out;
 }
 
+std::size_t accepted_in_round(const std::vector<Finding>& round) {
+    // A finding whose correction sits on its plausible limit ranks after every plausible one.
+    auto stronger = [&](std::size_t a, std::size_t b) {
+        const auto &fa = round[a], &fb = round[b];
+        if (fa.implausible != fb.implausible) return !fa.implausible;
+        return fa.score > fb.score;
+    };
+    std::size_t best = round.size();
+    for (std::size_t k = 0; k < round.size(); ++k)
+        if (round[k].significant && (best == round.size() || stronger(k, best))) best = k;
+    // Occam: when re-identifying part of the base parameter set explains nearly as much (>= 80 % of the best
+    // score) as adding physics, the one BIC prefers goes first and the other is tested again on top of it.
+    // BIC charges each parameter, so the base correction (fewer parameters) wins unless the physics fits the
+    // whole recording better by more than its extra parameters cost: a wrong C_th otherwise passes for a
+    // second thermal node (which re-identifies C_th and R_th as well: four parameters against two).
+    if (best < round.size() && round[best].kind == "physics_missing") {
+        std::size_t alt = round.size();
+        for (std::size_t k = 0; k < round.size(); ++k)
+            if (round[k].significant && round[k].kind == "parameters_wrong" && !round[k].implausible &&
+                round[k].score >= 0.8 * round[best].score &&
+                (alt == round.size() || round[k].score > round[alt].score))
+                alt = k;
+        if (alt < round.size() && round[alt].delta_bic <= round[best].delta_bic) best = alt;
+    }
+    return best;
+}
+
 Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options) {
     // Progress: the baseline up to 5 %, the candidate rounds (at most max_accepted) to 95 %, then the final
     // simulation of the improved model. A search that stops early jumps to 95 %.
@@ -733,28 +762,8 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             for (auto& t : pool) t.join();
         }
         if (options.cancel && options.cancel->load()) throw DiagnoseCancelled();
-        // Accept the strongest significant one and look again on top of it.
-        // A finding whose correction sits on its plausible limit ranks after every plausible one.
-        auto stronger = [&](std::size_t a, std::size_t b) {
-            const auto &fa = round_findings[a], &fb = round_findings[b];
-            if (fa.implausible != fb.implausible) return !fa.implausible;
-            return fa.score > fb.score;
-        };
-        std::size_t best = round_findings.size();
-        for (std::size_t k = 0; k < round_findings.size(); ++k)
-            if (round_findings[k].significant && (best == round_findings.size() || stronger(k, best))) best = k;
-        // Occam: when re-identifying part of the base parameter set explains nearly as much (>= 80 % of the best
-        // score) as adding physics, the base is corrected first and the physics is tested again on top of it
-        // (a wrong C_th otherwise passes for a second thermal node).
-        if (best < round_findings.size() && round_findings[best].kind == "physics_missing") {
-            std::size_t alt = round_findings.size();
-            for (std::size_t k = 0; k < round_findings.size(); ++k)
-                if (round_findings[k].significant && round_findings[k].kind == "parameters_wrong" &&
-                    !round_findings[k].implausible && round_findings[k].score >= 0.8 * round_findings[best].score &&
-                    (alt == round_findings.size() || round_findings[k].score > round_findings[alt].score))
-                    alt = k;
-            if (alt < round_findings.size()) best = alt;
-        }
+        // Accept the strongest significant one (accepted_in_round) and look again on top of it.
+        const std::size_t best = accepted_in_round(round_findings);
         for (auto& f : round_findings) last_round[f.effect] = f;
         for (std::size_t k = 0; k < todo.size(); ++k)
             if (!round_x[k].empty()) previous_x[todo[k]] = round_x[k];

@@ -152,6 +152,11 @@ struct Diagnosis {
     nlohmann::json holdout;                  // the hold-out scheme ({"scheme": "interleaved_blocks", ...})
 };
 
+// Which of one round's candidate findings diagnose accepts (an index; round.size() when none is significant): the
+// strongest significant one, plausible before implausible; a significant base correction (parameters_wrong)
+// scoring at least 80 % of it goes first instead, unless the physics is better by BIC.
+std::size_t accepted_in_round(const std::vector<Finding>& round);
+
 // Throws InputError if the recording is too short to cross-validate (fewer than folds * 60 s).
 Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options = {});
 

@@ -61,7 +61,7 @@ std::shared_ptr<const std::string> BenchDaemon::samples_body(RunId id, const Sam
 namespace {
 json samples_answer(RunStore& store, RunId id, std::optional<double> from_s, std::optional<double> to_s,
                     std::size_t max_points) {
-    if (!store.get_run(id, RunStore::RunRead::summary)) throw NotFound("no run " + std::to_string(id));
+    existing_run(store, id);
     const auto w = store.samples(id, from_s, to_s, max_points);
     // The API's shape: one time base (the cycler's, or the bucket grid) with every series on it; DAQ and
     // chamber values are the latest at or before each point (raw), or the bucket's min/max (decimated).
@@ -132,7 +132,7 @@ json samples_answer(RunStore& store, RunId id, std::optional<double> from_s, std
 }  // namespace
 
 json BenchDaemon::events(RunId id) {
-    if (!impl_->store->get_run(id, RunStore::RunRead::summary)) throw NotFound("no run " + std::to_string(id));
+    existing_run(*impl_->store, id);
     json ev = json::array();
     for (const auto& e : impl_->store->events(id)) {
         json x = to_json(e);
@@ -143,7 +143,7 @@ json BenchDaemon::events(RunId id) {
 }
 
 json BenchDaemon::steps(RunId id) {
-    if (!impl_->store->get_run(id, RunStore::RunRead::summary)) throw NotFound("no run " + std::to_string(id));
+    existing_run(*impl_->store, id);
     json out = json::array();
     for (const auto& s : impl_->store->steps(id)) {
         auto opt = [](const std::optional<double>& v) { return v && std::isfinite(*v) ? json(*v) : json(nullptr); };
@@ -156,14 +156,14 @@ json BenchDaemon::steps(RunId id) {
 }
 
 json BenchDaemon::fits(RunId id) {
-    if (!impl_->store->get_run(id, RunStore::RunRead::summary)) throw NotFound("no run " + std::to_string(id));
+    existing_run(*impl_->store, id);
     json f = json::array();
     for (const auto& r : impl_->store->pulse_fits(id)) f.push_back(to_json(r));
     return {{"run_id", id}, {"fits", std::move(f)}};
 }
 
 std::unique_ptr<ExportCursor> BenchDaemon::export_bdf_csv(RunId id) {
-    if (!impl_->store->get_run(id, RunStore::RunRead::summary)) throw NotFound("no run " + std::to_string(id));
+    existing_run(*impl_->store, id);
     const Recording rec = impl_->store->export_recording(id);
     std::ostringstream out;
     protocol::write_bdf_csv(out, rec);

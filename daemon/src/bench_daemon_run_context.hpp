@@ -18,6 +18,7 @@
 #include <spdlog/spdlog.h>
 
 #include "cellbench/core/version.hpp"
+#include "cellbench/daemon/api.hpp"
 #include "cellbench/daemon/config.hpp"
 #include "cellbench/daemon/run_store.hpp"
 #include "cellbench/estimator/params.hpp"
@@ -86,6 +87,14 @@ inline EventLevel event_level(const std::string& severity) {
 inline std::string api_state(RunState s, bool waiting_equilibrium) {
     if (s == RunState::running && waiting_equilibrium) return "waiting_equilibrium";
     return std::string(to_string(s));
+}
+
+// A run's summary from the store (never its stored config), NotFound when there is no such run: where an API call
+// on /runs/{id} starts.
+inline RunInfo existing_run(const RunStore& store, RunId id) {
+    auto r = store.get_run(id, RunStore::RunRead::summary);
+    if (!r) throw NotFound("no run " + std::to_string(id));
+    return std::move(*r);
 }
 
 inline bool live_state(RunState s) { return s == RunState::starting || s == RunState::running || s == RunState::paused; }

@@ -212,7 +212,7 @@ json BenchDaemon::Impl::start_run(const StartRequest& req) {
 }
 
 std::shared_ptr<RunContext> BenchDaemon::Impl::run_for_command(RunId id) {
-    if (!store->get_run(id, RunStore::RunRead::summary)) throw NotFound("no run " + std::to_string(id));
+    existing_run(*store, id);
     auto c = active();
     if (!c || c->id != id) throw Conflict("run " + std::to_string(id) + " is not active");
     return c;
@@ -283,9 +283,7 @@ json BenchDaemon::Impl::run_json(const RunInfo& r) const {
 }
 
 json BenchDaemon::Impl::run_json(RunId id) const {
-    const auto r = store->get_run(id, RunStore::RunRead::summary);  // run_json drops the config
-    if (!r) throw NotFound("no run " + std::to_string(id));
-    return run_json(*r);
+    return run_json(existing_run(*store, id));
 }
 
 }  // namespace cellbench::daemon

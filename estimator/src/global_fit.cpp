@@ -28,6 +28,10 @@ constexpr double kOcvCurvatureScaleV = 0.01;
 constexpr double kRMinOhm = kPlausibleRMinOhm, kRMaxOhm = kPlausibleRMaxOhm;
 constexpr double kTau1MinS = kPlausibleTau1MinS, kTau1MaxS = kPlausibleTau1MaxS;
 constexpr double kTau2MinS = kPlausibleTau2MinS, kTau2MaxS = kPlausibleTau2MaxS;
+// The slow pair's search range: from a resistance that changes nothing (its lower bound means "no slow pair") and
+// from five minutes (slower than the pulses' pairs, which a long rest's relaxation follows) to three hours.
+constexpr double kSlowRMinOhm = 1e-6;
+constexpr double kSlowTauMinS = 300.0, kSlowTauMaxS = 10800.0;
 
 double scalar(double x) { return x; }
 template <typename J>
@@ -86,6 +90,7 @@ struct Grid {
     double t_ref_k = 298.15;
     double i_ref_a = 1.0;
     bool temperature = false, current = false;
+    bool slow = false;  // a third, SOC-independent pair (extra_rc) for the relaxation the long rests show
     double sigma_v = 1e-3;
     void set_knots(std::vector<double> k) {
         knot = std::move(k);
@@ -153,10 +158,10 @@ T rc_step(const T& v, const T& r_ohm, const T& tau_s, const T& current_a, const 
 
 // Simulates one window; writes (V_model - V_measured) / sigma for every tick with a measured voltage.
 // knots[j] for j in [knot_lo, knot_hi] (absolute table indices), ocv[j] the OCV knots [ocv_lo, ocv_hi],
-// global = {Ea/1e4, log I0}.
+// global = {Ea/1e4, log I0}, slow = {log R3, log tau3} (used when g.slow).
 template <typename T>
 void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv, T const* const* ocv_knots, const T* ea_scaled,
-                     const T* log_i0, const T* step_lag, const T* offset,
+                     const T* log_i0, const T* step_lag, const T* slow, const T* offset,
                      T* residuals, double* model_v = nullptr) {
     using std::exp;
     const int lo = w.knot_lo, hi = w.knot_hi;
@@ -171,7 +176,8 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
     const T i0 = exp(*log_i0);
     const T ref_ratio = asinh_ratio(T(g.i_ref_a) / (2.0 * i0));
     const T lag = *step_lag;
-    T v1d(0.0), v2d(0.0), v1c(0.0), v2c(0.0);
+    T v1d(0.0), v2d(0.0), v1c(0.0), v2c(0.0), v3(0.0);
+    const T r3 = g.slow ? exp(slow[0]) : T(0.0), tau3 = g.slow ? exp(slow[1]) : T(1.0);
     std::size_t r = 0;
     // offset = {initial-SOC correction, log of the window's capacity scale}: SOC = s0 + off + g (s - s0)
     const T off = offset ? offset[0] : T(0.0);
@@ -210,6 +216,8 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
             v2d = rc_step(v2d, r2d, t2d, id, dt);
             v1c = rc_step(v1c, r1c, t1c, icc, dt);
             v2c = rc_step(v2c, r2c, t2c, icc, dt);
+            // The slow pair as CellModel applies extra_rc: the whole current, R and tau scaled by temperature only.
+            if (g.slow) v3 = rc_step(v3, r3 * f_t, tau3 * f_t, T(ic_a), dt);
         };
         if (tk.step) {
             // The step happened `lag` of the interval before the row that shows it (see make_ticks).
@@ -225,7 +233,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         if (olo == ohi) wo = T(0.0);
         const T& oa = *ocv_knots[jo - olo];
         const T ocv = oa + wo * (*ocv_knots[std::min(jo + 1, ohi) - olo] - oa);
-        const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c;
+        const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c + v3;
         if (model_v) model_v[k] = scalar(v);
         if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
         // The voltage's jump across a current step, over one sample interval: R0 times the step plus the pairs'
@@ -249,8 +257,8 @@ struct WindowCost {
         kv.reserve(nk);
         for (int j = 0; j < nk; ++j) kv.push_back(knot_values(p[j]));
         const int g = nk + no;
-        simulate_window(*grid, *w, kv.data(), p + nk, p[g], p[g + 1], p[g + 2], w->fit_offset ? p[g + 3] : nullptr,
-                        residuals);
+        simulate_window(*grid, *w, kv.data(), p + nk, p[g], p[g + 1], p[g + 2], p[g + 3],
+                        w->fit_offset ? p[g + 4] : nullptr, residuals);
         return true;
     }
 };
@@ -316,6 +324,7 @@ struct Builder {
     std::vector<bool> ocv_free;
     double ea = 0.0, log_i0 = 0.0;  // Ea / 1e4 J/mol, log I0 (each its own block, held when not identified)
     double step_lag = 0.0;          // fraction of a step's sample interval the new current flows before its row
+    std::array<double, 2> slow{};   // log R3 (Ohm), log tau3 (s): the slow pair (held when not identified)
     std::vector<std::array<double, 2>> offsets;  // per window (used when fit_offset): SOC offset, log capacity scale
     std::vector<std::unique_ptr<ceres::CostFunction>> window_costs;
     std::vector<std::unique_ptr<ceres::CostFunction>> smooth_costs, ocv_smooth_costs;
@@ -326,11 +335,13 @@ struct Builder {
         std::vector<std::array<double, kKnotSize>> knots;
         std::vector<double> ocv;
         double ea = 0, log_i0 = 0, step_lag = 0;
+        std::array<double, 2> slow{};
         std::vector<std::array<double, 2>> offsets;
     };
-    [[nodiscard]] State state() const { return {knots, ocv, ea, log_i0, step_lag, offsets}; }
+    [[nodiscard]] State state() const { return {knots, ocv, ea, log_i0, step_lag, slow, offsets}; }
     void set_state(const State& s) {
-        knots = s.knots, ocv = s.ocv, ea = s.ea, log_i0 = s.log_i0, step_lag = s.step_lag, offsets = s.offsets;
+        knots = s.knots, ocv = s.ocv, ea = s.ea, log_i0 = s.log_i0, step_lag = s.step_lag, slow = s.slow,
+        offsets = s.offsets;
     }
 
     std::vector<double*> blocks_of(std::size_t w) {
@@ -340,6 +351,7 @@ struct Builder {
         b.push_back(&ea);
         b.push_back(&log_i0);
         b.push_back(&step_lag);
+        b.push_back(slow.data());
         if (windows[w].fit_offset) b.push_back(offsets[w].data());
         return b;
     }
@@ -352,6 +364,7 @@ struct Builder {
             c->AddParameterBlock(1);
             c->AddParameterBlock(1);
             c->AddParameterBlock(1);
+            c->AddParameterBlock(2);
             if (windows[w].fit_offset) c->AddParameterBlock(2);
             c->SetNumResiduals(static_cast<int>(windows[w].residuals + windows[w].step_residuals));
             window_costs.emplace_back(c);
@@ -396,6 +409,7 @@ struct Builder {
         p->AddParameterBlock(&step_lag, 1);
         p->SetParameterLowerBound(&step_lag, 0, 0.0);
         p->SetParameterUpperBound(&step_lag, 0, 1.0);
+        p->AddParameterBlock(slow.data(), 2);
         for (std::size_t w = 0; w < windows.size(); ++w)
             if (use[w]) p->AddResidualBlock(window_costs[w].get(), nullptr, blocks_of(w));
         for (int j = 1; j + 1 < grid.n; ++j)
@@ -432,6 +446,14 @@ struct Builder {
             p->SetParameterUpperBound(&log_i0, 0, std::log(1000.0 * grid.i_ref_a));
         } else {
             p->SetParameterBlockConstant(&log_i0);
+        }
+        if (grid.slow) {
+            p->SetParameterLowerBound(slow.data(), 0, std::log(kSlowRMinOhm));
+            p->SetParameterUpperBound(slow.data(), 0, std::log(kRMaxOhm));
+            p->SetParameterLowerBound(slow.data(), 1, std::log(kSlowTauMinS));
+            p->SetParameterUpperBound(slow.data(), 1, std::log(kSlowTauMaxS));
+        } else {
+            p->SetParameterBlockConstant(slow.data());
         }
         for (std::size_t w = 0; w < windows.size(); ++w)
             if (use[w] && windows[w].fit_offset) {
@@ -654,6 +676,9 @@ nlohmann::json GlobalFitResult::to_json() const {
                                   ? nlohmann::json{{"exchange_current_a", value_json(exchange_current_a)},
                                                    {"reference_current_a", reference_current_a}}
                                   : nlohmann::json(nullptr);
+    j["extra_rc"] = slow_relaxation ? nlohmann::json{{"r_ohm", value_json(slow_r_ohm)}, {"tau_s", value_json(slow_tau_s)},
+                                                     {"used", params.extensions.extra_rc.has_value()}}
+                                    : nlohmann::json(nullptr);
     j["windows"] = nlohmann::json::array();
     for (const auto& w : windows)
         j["windows"].push_back({{"recording", w.recording}, {"begin", w.begin}, {"end", w.end}, {"kind", w.kind},
@@ -832,6 +857,16 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     b.grid.current = options.current_dependence && i_max > options.min_current_ratio * i_min && i_min < 1e299;
     out.temperature_dependence = b.grid.temperature;
     out.current_dependence = b.grid.current;
+    // A slow pair where a rest is long enough to show it: four times its fastest time constant.
+    double longest_rest_s = 0;
+    for (std::size_t r = 0; r < recordings.size() && r < long_rest_ranges.size(); ++r)
+        for (const auto& [rb, re] : long_rest_ranges[r])
+            if (re > rb && re <= recordings[r]->size())
+                longest_rest_s = std::max(longest_rest_s, recordings[r]->time_s[re - 1] - recordings[r]->time_s[rb]);
+    b.grid.slow = options.slow_relaxation && longest_rest_s >= 4.0 * kSlowTauMinS;
+    out.slow_relaxation = b.grid.slow;
+    if (options.slow_relaxation && !b.grid.slow)
+        out.notes.push_back("no rest of 20 min or more: no slow relaxation pair (extra_rc) identified");
     out.reference_current_a = b.grid.i_ref_a;
     for (std::size_t w = 0; w < b.windows.size(); ++w) {
         auto& wd = b.windows[w];
@@ -871,6 +906,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             }
     b.ea = b.grid.temperature ? 3.0 : 0.0;
     b.log_i0 = std::log(b.grid.current ? 2.0 * b.grid.i_ref_a : 1e6);
+    // The slow pair starts at a quarter of the initial set's R0 at mid SOC and 1000 s (off: at its lower bound).
+    b.slow = {std::log(b.grid.slow ? std::max(0.25 * initial.rc_at(0.5, -1).r0_ohm, 10 * kSlowRMinOhm) : kSlowRMinOhm),
+              std::log(1000.0)};
     b.offsets.assign(b.windows.size(), {0.0, 0.0});
     b.make_costs();
     b.make_direction_prior(options.direction_prior);
@@ -995,7 +1033,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // Uncertainty: (J'J)^-1 of the whole problem (smoothness included, as a prior), scaled by the residual
     // variance and inflated by (1 + rho) / (1 - rho) for correlated residuals.
     const int n_rc = b.grid.n * kKnotSize, n_ocv = b.grid.ocv_n();
-    const int n_par = n_rc + n_ocv + 2;  // knots, OCV knots, Ea, log I0
+    const int n_par = n_rc + n_ocv + 4;  // knots, OCV knots, Ea, log I0, log R3, log tau3
     Eigen::MatrixXd cov = Eigen::MatrixXd::Constant(n_par, n_par, kNaN);
     if (options.compute_uncertainty) {
         progress(0.9, "global fit: uncertainty");
@@ -1004,6 +1042,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         for (auto& o : b.ocv) eo.parameter_blocks.push_back(&o);
         eo.parameter_blocks.push_back(&b.ea);
         eo.parameter_blocks.push_back(&b.log_i0);
+        eo.parameter_blocks.push_back(b.slow.data());
         double cost = 0;
         ceres::CRSMatrix jac;
         problem->Evaluate(eo, &cost, nullptr, nullptr, &jac);
@@ -1021,8 +1060,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double s2 = sse / dof * (1 + rho) / (1 - rho);
         cov *= s2;
         // Held blocks (constant global) have zero columns: NaN for them.
-        if (!b.grid.temperature) cov(n_par - 2, n_par - 2) = kNaN;
-        if (!b.grid.current) cov(n_par - 1, n_par - 1) = kNaN;
+        if (!b.grid.temperature) cov(n_par - 4, n_par - 4) = kNaN;
+        if (!b.grid.current) cov(n_par - 3, n_par - 3) = kNaN;
+        if (!b.grid.slow) cov(n_par - 2, n_par - 2) = cov(n_par - 1, n_par - 1) = kNaN;
     }
     // Which knots have data of each direction nearby, and which OCV knots have rows near them.
     std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
@@ -1131,7 +1171,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             out.ocv[j].flags.push_back("implausible");
             out.notes.push_back("fitted OCV not increasing at SOC " + std::to_string(p.soc[j]));
         }
-    const int g0 = n_par - 2, g1 = n_par - 1;
+    const int g0 = n_par - 4, g1 = n_par - 3, g2 = n_par - 2, g3 = n_par - 1;
     if (b.grid.temperature) {
         const double ea = b.ea * kEaScale;
         out.activation_energy_j_per_mol = {ea, kEaScale * std::sqrt(cov(g0, g0)), {}};
@@ -1153,6 +1193,19 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     } else {
         out.notes.push_back("the recordings' currents span a ratio below " + std::to_string(options.min_current_ratio) +
                             ": current dependence of the polarization not identified");
+    }
+    if (b.grid.slow) {
+        const double r3 = std::exp(b.slow[0]), tau3 = std::exp(b.slow[1]);
+        out.slow_r_ohm = {r3, r3 * std::sqrt(cov(g2, g2)), {}};
+        out.slow_tau_s = {tau3, tau3 * std::sqrt(cov(g3, g3)), {}};
+        for (auto* v : {&out.slow_r_ohm, &out.slow_tau_s})
+            if (std::isfinite(v->sd) && v->sd > v->value) v->flags.push_back("uncertain");
+        if (r3 < 100 * kSlowRMinOhm) out.slow_r_ohm.flags.push_back("at_bound");
+        if (tau3 < 1.01 * kSlowTauMinS || tau3 > 0.99 * kSlowTauMaxS) out.slow_tau_s.flags.push_back("at_bound");
+        // The tables were fitted with it: it stays in the model unless the fit put it at its lower bound (no slow
+        // pair); its flags say how well the data determine it.
+        if (r3 >= 100 * kSlowRMinOhm) p.extensions.extra_rc = ExtraRcExt{r3, tau3};
+        else out.notes.push_back("the long rests show no slow relaxation beyond the two RC pairs: no extra_rc");
     }
     progress(1.0, "global fit: done");
     return out;

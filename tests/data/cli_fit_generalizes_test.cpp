@@ -138,6 +138,10 @@ void fit_and_predict(const std::string& temperature, const std::vector<std::stri
     const auto s = read_json(o / "s.json");
     std::printf("%s: capacity %.4f Ah (%s)\n", temperature.c_str(), s["capacity"]["capacity_ah"].get<double>(),
                 s["capacity"]["method"].get<std::string>().c_str());
+    // The HPPC's long rests (20-60 min) relax for their whole length: the fit identifies a slow pair from them.
+    ASSERT_TRUE(s["global"]["extra_rc"].is_object()) << s["global"].dump();
+    std::printf("%s: slow pair %s\n", temperature.c_str(), s["global"]["extra_rc"].dump().c_str());
+    EXPECT_TRUE(s["global"]["extra_rc"]["used"].get<bool>());
     for (const auto& [c, bound_v] : cycles) {
         const auto [v, t] = simulate_rms(o / "p.json", d / (c + "_" + temperature + ".bdf.csv"), o / "m.json");
         std::printf("%s %s: voltage RMS %.2f mV, surface temperature RMS %.3f degC\n", c.c_str(), temperature.c_str(),
@@ -158,10 +162,11 @@ TEST(FitGeneralizes, SecondCellAt25degCPredictsEveryDriveCycle) {
 }
 
 TEST(FitGeneralizes, SecondCellAt0degCPredictsEveryDriveCycle) {
-    // Issue 11's target is 40 mV each; us06 misses it today (48 mV, see docs/model.md): held at what it gets.
+    // Issue 11's target: 40 mV each. US06 needs both the slow pair the HPPC's long rests show and the temperature
+    // dependence its 6C pulses' 4 K of heating show (47.9 mV with neither; docs/model.md).
     // The 0 degC recordings have no ambient column and la92 starts warm (18 degC): simulate's ambient (the first
     // surface reading) is wrong for it, so temperature is printed, not checked, here.
-    fit_and_predict("0degC", {}, {{"us06", 0.052}, {"hwfet", 0.040}, {"la92", 0.040}}, false);
+    fit_and_predict("0degC", {}, {{"us06", 0.040}, {"hwfet", 0.040}, {"la92", 0.040}}, false);
 }
 
 }  // namespace

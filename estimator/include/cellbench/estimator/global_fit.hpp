@@ -68,8 +68,13 @@ struct GlobalFitOptions {
     double step_noise_floor_v = 0.1e-3;
     bool temperature_dependence = true;
     bool current_dependence = true;
-    double min_temperature_span_k = 5.0;
+    double min_temperature_span_k = 3.0;
     double min_current_ratio = 2.5;
+    // A third RC pair, the same at every SOC and in both directions (the `extra_rc` extension: R3, tau3 of 5 min to
+    // 3 h), for the slow relaxation a long rest shows after a discharge (solid-state diffusion), identified when a
+    // rest of at least 20 min is in the recordings. Without it the second pair has to serve both the pulses and the
+    // rests' tail (Panasonic 0 degC: tau2 about 45 s while the rests relax for 25 min; docs/model.md).
+    bool slow_relaxation = true;
     double long_rest_s = 600.0;              // windows break at rests at least this long
     double step_lag = 0.0;                   // start value of the fitted current-step timing (0: at the row)
     int max_iterations = 80;
@@ -108,6 +113,8 @@ struct GlobalFitResult {
     std::vector<std::vector<FittedValue>> discharge, charge;  // [knot][quantity]
     std::vector<FittedValue> ocv;
     FittedValue activation_energy_j_per_mol, exchange_current_a;
+    bool slow_relaxation = false;         // a slow pair was fitted (GlobalFitOptions::slow_relaxation)
+    FittedValue slow_r_ohm, slow_tau_s;   // its R3 and tau3 (in params.extensions.extra_rc when identified)
     double reference_current_a = kNaN;
     bool temperature_dependence = false, current_dependence = false;
     double smoothness = kNaN;

@@ -29,7 +29,9 @@ constexpr double kRMinOhm = kPlausibleRMinOhm, kRMaxOhm = kPlausibleRMaxOhm;
 constexpr double kTau1MinS = kPlausibleTau1MinS, kTau1MaxS = kPlausibleTau1MaxS;
 constexpr double kTau2MinS = kPlausibleTau2MinS, kTau2MaxS = kPlausibleTau2MaxS;
 // The slow pair's search range: from a resistance that changes nothing (its lower bound means "no slow pair") and
-// from five minutes (slower than the pulses' pairs, which a long rest's relaxation follows) to three hours.
+// from five minutes (slower than the pulses' pairs, which a long rest's relaxation follows) to three hours, and
+// never beyond the longest rest (Grid::slow_tau_max_s): a relaxation slower than every rest is a drift within
+// them, which the OCV and the capacity explain as well.
 constexpr double kSlowRMinOhm = 1e-6;
 constexpr double kSlowTauMinS = 300.0, kSlowTauMaxS = 10800.0;
 
@@ -91,6 +93,7 @@ struct Grid {
     double i_ref_a = 1.0;
     bool temperature = false, current = false;
     bool slow = false;  // a third, SOC-independent pair (extra_rc) for the relaxation the long rests show
+    double slow_tau_max_s = kSlowTauMaxS;  // its time constant's upper bound: the longest rest
     double sigma_v = 1e-3;
     void set_knots(std::vector<double> k) {
         knot = std::move(k);
@@ -451,7 +454,7 @@ struct Builder {
             p->SetParameterLowerBound(slow.data(), 0, std::log(kSlowRMinOhm));
             p->SetParameterUpperBound(slow.data(), 0, std::log(kRMaxOhm));
             p->SetParameterLowerBound(slow.data(), 1, std::log(kSlowTauMinS));
-            p->SetParameterUpperBound(slow.data(), 1, std::log(kSlowTauMaxS));
+            p->SetParameterUpperBound(slow.data(), 1, std::log(grid.slow_tau_max_s));
         } else {
             p->SetParameterBlockConstant(slow.data());
         }
@@ -864,6 +867,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             if (re > rb && re <= recordings[r]->size())
                 longest_rest_s = std::max(longest_rest_s, recordings[r]->time_s[re - 1] - recordings[r]->time_s[rb]);
     b.grid.slow = options.slow_relaxation && longest_rest_s >= 4.0 * kSlowTauMinS;
+    b.grid.slow_tau_max_s = std::clamp(longest_rest_s, 4.0 * kSlowTauMinS, kSlowTauMaxS);
     out.slow_relaxation = b.grid.slow;
     if (options.slow_relaxation && !b.grid.slow)
         out.notes.push_back("no rest of 20 min or more: no slow relaxation pair (extra_rc) identified");
@@ -1201,7 +1205,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         for (auto* v : {&out.slow_r_ohm, &out.slow_tau_s})
             if (std::isfinite(v->sd) && v->sd > v->value) v->flags.push_back("uncertain");
         if (r3 < 100 * kSlowRMinOhm) out.slow_r_ohm.flags.push_back("at_bound");
-        if (tau3 < 1.01 * kSlowTauMinS || tau3 > 0.99 * kSlowTauMaxS) out.slow_tau_s.flags.push_back("at_bound");
+        if (tau3 < 1.01 * kSlowTauMinS || tau3 > 0.99 * b.grid.slow_tau_max_s) out.slow_tau_s.flags.push_back("at_bound");
         // The tables were fitted with it: it stays in the model unless the fit put it at its lower bound (no slow
         // pair); its flags say how well the data determine it.
         if (r3 >= 100 * kSlowRMinOhm) p.extensions.extra_rc = ExtraRcExt{r3, tau3};

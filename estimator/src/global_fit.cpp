@@ -1204,11 +1204,12 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         out.slow_tau_s = {tau3, tau3 * std::sqrt(cov(g3, g3)), {}};
         for (auto* v : {&out.slow_r_ohm, &out.slow_tau_s})
             if (std::isfinite(v->sd) && v->sd > v->value) v->flags.push_back("uncertain");
-        if (r3 < 100 * kSlowRMinOhm) out.slow_r_ohm.flags.push_back("at_bound");
+        const bool absent = r3 < 100 * kSlowRMinOhm;  // at its lower bound: no slow pair
+        if (absent) out.slow_r_ohm.flags.push_back("at_bound");
         if (tau3 < 1.01 * kSlowTauMinS || tau3 > 0.99 * b.grid.slow_tau_max_s) out.slow_tau_s.flags.push_back("at_bound");
-        // The tables were fitted with it: it stays in the model unless the fit put it at its lower bound (no slow
-        // pair); its flags say how well the data determine it.
-        if (r3 >= 100 * kSlowRMinOhm) p.extensions.extra_rc = ExtraRcExt{r3, tau3};
+        // The tables were fitted with it: it stays in the model unless absent; its flags say how well the data
+        // determine it.
+        if (!absent) p.extensions.extra_rc = ExtraRcExt{r3, tau3};
         else out.notes.push_back("the long rests show no slow relaxation beyond the two RC pairs: no extra_rc");
     }
     progress(1.0, "global fit: done");

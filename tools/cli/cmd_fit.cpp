@@ -54,10 +54,16 @@ void print_parameter_table(const estimator::Characterization& c) {
         if (c.global->current_dependence)
             std::printf("I0 %.2f +- %.2f A (ref %.2f A), ", c.global->exchange_current_a.value,
                         c.global->exchange_current_a.sd, c.global->reference_current_a);
-        if (c.global->params.extensions.extra_rc)
+        if (c.global->params.extensions.extra_rc) {
+            // Its flags as the summary has them (at_bound, uncertain), not one word for all of them.
+            std::string flags;
+            for (const auto* v : {&c.global->slow_r_ohm, &c.global->slow_tau_s})
+                for (const auto& f : v->flags) flags += (flags.empty() ? " (" : ", ") + f;
+            if (!flags.empty()) flags += ")";
             std::printf("slow pair R3 %.2f +- %.2f mOhm, tau3 %.0f +- %.0f s%s, ", c.global->slow_r_ohm.value * 1e3,
                         c.global->slow_r_ohm.sd * 1e3, c.global->slow_tau_s.value, c.global->slow_tau_s.sd,
-                        c.global->slow_tau_s.flags.empty() ? "" : " (at its bound)");
+                        flags.c_str());
+        }
         std::printf("%zu values flagged (? uncertain or unidentified, ! implausible)\n", c.global->flagged_count());
     }
     std::printf("pulse sets: %zu fitted;", c.pulse_fits.size());

@@ -70,8 +70,8 @@ struct GlobalFitOptions {
     bool current_dependence = true;
     double min_temperature_span_k = 3.0;
     double min_current_ratio = 2.5;
-    // A third RC pair, the same at every SOC and in both directions (the `extra_rc` extension: R3, tau3 of 5 min to
-    // 3 h), for the slow relaxation a long rest shows after a discharge (solid-state diffusion), identified when a
+    // A third RC pair, the same at every SOC and in both directions (the `extra_rc` extension: R3, tau3 from 5 min
+    // to the longest rest, at most 3 h), for the slow relaxation a long rest shows after a discharge (solid-state diffusion), identified when a
     // rest of at least 20 min is in the recordings. Without it the second pair has to serve both the pulses and the
     // rests' tail (Panasonic 0 degC: tau2 about 45 s while the rests relax for 25 min; docs/model.md).
     bool slow_relaxation = true;

@@ -145,9 +145,9 @@ if pairs:
         named = [x.split(':')[0] for x in r[3].split(',')]
         return all(e in named for e in r[0].split('+') if e not in CAPTURED)
     both = sum(named_all(r) for r in pairs)
-    part = [r[0] for r in pairs if any(e in CAPTURED for e in r[0].split('+'))]
+    part = sum(any(e in CAPTURED for e in r[0].split('+')) for r in pairs)
     print(f"two-effect cases with both named: {both} of {len(pairs)} ({100*both/len(pairs):.0f} %)"
-          + (f"; in {len(part)} of them one member is captured by the fit and only the other must be named" if part else ""))
+          + (f"; in {part} of them one member is captured by the fit and only the other must be named" if part else ""))
 PY
 
 if [ "${CATALOGUE:-0}" = 1 ]; then

@@ -720,6 +720,13 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                                    static_cast<double>(spec.params.size()) * std::log(n_eff);
                     fd.significant = fd.score >= options.min_cv_improvement && fd.folds_improved + 1 >= folds &&
                                      fd.delta_bic < options.bic_threshold;
+                    // A capacity correction within 2 sd of the capacity the characterization measured (its
+                    // recordings' disagreement on the charge scale, ParameterSet::capacity_ah_sd) does not show
+                    // that capacity wrong, however well it fits this recording: the recording is then as
+                    // consistent with the base as the characterization's own data are with each other.
+                    const bool within_capacity_sd = spec.id == "capacity_error" && std::isfinite(params.capacity_ah_sd) &&
+                                                    std::abs(full.x[0] - 1.0) * params.capacity_ah < 2.0 * params.capacity_ah_sd;
+                    if (within_capacity_sd) fd.significant = false;
                     for (std::size_t j = 0; j < spec.params.size(); ++j) {
                         const auto& ps = spec.params[j];
                         fd.parameters[ps.name] = full.x[j];
@@ -745,6 +752,10 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     spec.apply(p, full.x);
                     fd.improved = rms_of(p, rec_full);
                     fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
+                    if (within_capacity_sd)
+                        fd.explanation += "; within twice the characterization's capacity uncertainty (+-" +
+                                          num("%.2f", 100.0 * params.capacity_ah_sd / params.capacity_ah) +
+                                          " % at 1 sd): not evidence that the capacity is wrong";
                     round_x[c] = full.x;
                 }
                 const std::size_t k = ++done;

@@ -686,7 +686,9 @@ nlohmann::json GlobalFitResult::to_json() const {
     for (const auto& w : windows)
         j["windows"].push_back({{"recording", w.recording}, {"begin", w.begin}, {"end", w.end}, {"kind", w.kind},
                                 {"soc_min", num(w.soc_min)}, {"soc_max", num(w.soc_max)},
-                                {"soc_offset", w.soc_offset}, {"capacity_scale", w.capacity_scale}, {"rms_v", num(w.rms_v)}, {"residuals", w.residuals}});
+                                {"soc_offset", w.soc_offset}, {"capacity_scale", w.capacity_scale},
+                                {"capacity_scale_fitted", w.capacity_scale_fitted}, {"rms_v", num(w.rms_v)},
+                                {"residuals", w.residuals}});
     j["notes"] = notes;
     return j;
 }
@@ -813,6 +815,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         }
         gw.kind = pulses > 0 ? "pulses" : (chg > 3 * dis ? "charge" : (dis > 3 * chg ? "discharge" : "mixed"));
         gw.residuals = wd.residuals;
+        gw.capacity_scale_fitted = wd.fit_offset && wd.low_rate;  // Builder::problem's rule
         b.windows.push_back(std::move(wd));
         out.windows.push_back(gw);
     }

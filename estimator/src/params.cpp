@@ -168,6 +168,8 @@ ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
     ParameterSet p;
     if (auto it = j.find("cell"); it != j.end() && it->is_string()) p.cell = it->get<std::string>();
     p.capacity_ah = number_member(j, "capacity_ah", source, "$");
+    if (auto it = j.find("capacity_ah_sd"); it != j.end() && !it->is_null())
+        p.capacity_ah_sd = number_member(j, "capacity_ah_sd", source, "$");
     if (j.contains("reference_temperature_c"))
         p.reference_temperature_c = number_member(j, "reference_temperature_c", source, "$");
     p.soc = array_member(j, "soc", source, "$");
@@ -187,7 +189,7 @@ ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
 
 json ParameterSet::to_json() const {
     const json ext = extensions.to_json();
-    return json{{"schema", kParamsSchema},
+    json j{{"schema", kParamsSchema},
                 {"cell", cell},
                 {"capacity_ah", capacity_ah},
                 {"reference_temperature_c", reference_temperature_c},
@@ -202,10 +204,14 @@ json ParameterSet::to_json() const {
                   {"ehc_soc", thermal.ehc_soc},
                   {"ehc_v_per_k", thermal.ehc_v_per_k}}},
                 {"extensions", ext}};
+    if (std::isfinite(capacity_ah_sd)) j["capacity_ah_sd"] = capacity_ah_sd;
+    return j;
 }
 
 void ParameterSet::validate(const std::string& source) const {
     if (!(capacity_ah > 0)) fail(source, "$.capacity_ah", "expected a positive capacity in Ah");
+    if (!std::isnan(capacity_ah_sd) && !(capacity_ah_sd >= 0 && std::isfinite(capacity_ah_sd)))
+        fail(source, "$.capacity_ah_sd", "expected a non-negative uncertainty in Ah (or no member)");
     if (soc.size() < 2) fail(source, "$.soc", "expected at least two SOC breakpoints");
     for (std::size_t i = 0; i < soc.size(); ++i) {
         if (soc[i] < 0 || soc[i] > 1) fail(source, "$.soc[" + std::to_string(i) + "]", "expected a fraction 0..1");

@@ -1,6 +1,7 @@
 // Parameter set JSON (cellbench.params/1): round trip, table look-ups, clear errors with JSON paths.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <fstream>
 #include <sstream>
 
@@ -94,4 +95,19 @@ TEST(ParameterSet, ErrorsNameTheJsonPathAndWhatWasExpected) {
     j = thesis_json();
     j["charge"]["c2_f"][0] = -1.0;
     EXPECT_NE(error_of(j).find("$.charge.c2_f[0]: expected a positive value"), std::string::npos) << error_of(j);
+}
+
+TEST(ParameterSet, CapacityUncertaintyIsOptionalAndRoundTrips) {
+    auto p = ParameterSet::from_json(thesis_json(), "p45b-thesis.json");
+    EXPECT_TRUE(std::isnan(p.capacity_ah_sd)) << "a set without it states none";
+    EXPECT_FALSE(p.to_json().contains("capacity_ah_sd")) << "not written as a number it is not";
+    p.capacity_ah_sd = 0.012;
+    const auto again = ParameterSet::from_json(p.to_json(), "again");
+    EXPECT_DOUBLE_EQ(again.capacity_ah_sd, 0.012);
+
+    auto j = thesis_json();
+    j["capacity_ah_sd"] = -0.01;
+    EXPECT_NE(error_of(j).find("$.capacity_ah_sd: expected a non-negative uncertainty"), std::string::npos) << error_of(j);
+    j["capacity_ah_sd"] = nullptr;  // null: not stated
+    EXPECT_EQ(error_of(j), "");
 }

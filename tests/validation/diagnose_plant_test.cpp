@@ -99,6 +99,11 @@ TEST(DiagnoseOnIndependentPlant, NamesHiddenBenchEffectsAndLeavesControlsAlone) 
         const auto fit = est::characterize({to_recording(data.hppc, "hppc"), to_recording(data.cc_low, "cc_low"),
                                       to_recording(data.cc_high, "cc_high")},
                                      co);
+        // The C/20 discharge beside the HPPC gives the capacity's uncertainty (their disagreement on the charge
+        // scale), which diagnose weighs a capacity correction against.
+        EXPECT_TRUE(std::isfinite(fit.params.capacity_ah_sd)) << "seed " << seed;
+        std::printf("seed %d: capacity %.4f +- %.4f Ah (plant %.4f Ah)\n", seed, fit.params.capacity_ah,
+                    fit.params.capacity_ah_sd, data.truth.capacity_ah);
         for (const auto& effects : hidden) {
             plant::PlantOptions oe = o;
             oe.effects = effects;

@@ -17,7 +17,11 @@ namespace {
 
 void print_parameter_table(const estimator::Characterization& c) {
     const auto& p = c.params;
-    std::printf("capacity %.4f Ah (%s, %s)\n", p.capacity_ah, c.capacity.method.c_str(), c.capacity.source.c_str());
+    if (std::isfinite(c.capacity.capacity_ah_sd))
+        std::printf("capacity %.4f +- %.4f Ah (%s, %s; +- the recordings' disagreement on the charge scale)\n",
+                    p.capacity_ah, c.capacity.capacity_ah_sd, c.capacity.method.c_str(), c.capacity.source.c_str());
+    else
+        std::printf("capacity %.4f Ah (%s, %s)\n", p.capacity_ah, c.capacity.method.c_str(), c.capacity.source.c_str());
     std::printf("%5s %7s | %-36s | %-36s\n", "SOC", "OCV", "discharge R0  R1 mOhm  C1 F  R2 mOhm  C2 F",
                 "charge R0  R1 mOhm  C1 F  R2 mOhm  C2 F");
     for (std::size_t k = 0; k < p.soc.size(); ++k) {

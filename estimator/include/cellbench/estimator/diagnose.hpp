@@ -22,7 +22,8 @@
 //    already holds (the global fit identifies resistance_temperature and resistance_current) is not proposed
 //    again as missing.
 // 5. Kinds: a finding is "physics_missing" (an effect of the catalogue) or "parameters_wrong" (the base set is
-//    off: OCV table offset in a SOC band, capacity; re-identified on this recording).
+//    off: OCV table offset in a SOC band, capacity; re-identified on this recording). A capacity correction
+//    within twice the parameter set's capacity_ah_sd (the characterization's own uncertainty) is not significant.
 // 6. No false reassurance: the measurement noise is estimated from the recording itself (sample-to-sample
 //    scatter in rests); when a quantity's residual after the accepted findings stays above noise_factor times
 //    its noise, `unexplained` says where, how large, what it correlates with and which terms a sparse

@@ -47,6 +47,10 @@ struct CapacityMeasurement {
     double capacity_ah = kNaN;
     std::string method;  // "pilot discharge", "HPPC throughput to cut-off", "fallback"
     std::string source;
+    // 1 sigma: how far the characterization's recordings disagree on the charge scale (the global fit's charge
+    // scale of each slow discharge it was free to rescale, spanning at least half the SOC range); NaN where no
+    // such recording was handed in.
+    double capacity_ah_sd = kNaN;
 };
 
 // What the thermal fits gave, with the choice made and why (filled by fit_thermal_parameters).

@@ -97,6 +97,7 @@ struct GlobalWindow {
     double soc_min = kNaN, soc_max = kNaN;
     double soc_offset = 0.0;         // fitted initial-SOC correction (windows without a rested start)
     double capacity_scale = 1.0;     // fitted ratio of the window's charge scale (its own rate, its own day)
+    bool capacity_scale_fitted = false;  // free (a slow discharge not anchored to the test's full charge), else 1
     double rms_v = kNaN;
     std::size_t residuals = 0;
 };

@@ -1,6 +1,7 @@
 #pragma once
 // The cell's parameter set ("cellbench.params/1", INTERFACES.md): the model's numbers, kept apart from the
 // model equations (model.hpp) and from the step program that produced the data.
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -85,6 +86,9 @@ struct ModelExtensions {
 struct ParameterSet {
     std::string cell;
     double capacity_ah = 0.0;
+    // 1 sigma of capacity_ah where the characterization could judge it (its recordings' disagreement on the
+    // charge scale); NaN: not estimated. `diagnose` does not call a capacity correction within 2 sigma a finding.
+    double capacity_ah_sd = std::numeric_limits<double>::quiet_NaN();
     double reference_temperature_c = 25.0;
     std::vector<double> soc;    // ascending fractions 0..1
     std::vector<double> ocv_v;  // one per soc

@@ -277,7 +277,6 @@ std::vector<double> level_knots(const std::vector<Recording>& recordings, const 
     return knots;
 }
 
-
 // The capacity's uncertainty from the characterization's own recordings: the global fit gives each slow discharge
 // that does not start from the test's full charge (an OCV test, a pilot discharge of another day) its own charge
 // scale. Where that scale departs from 1, the recording's charge and the SOC axis the HPPC's rests laid out

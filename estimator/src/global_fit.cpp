@@ -76,6 +76,9 @@ struct WindowData {
     int ocv_lo = 0, ocv_hi = 0;    // OCV-grid indices the window touches
     bool fit_offset = false;
     bool low_rate = false;  // mean |I| of its current below C/5
+    // Only a slow discharge (below C/5, typically an OCV test from another day) gets its own charge scale: at
+    // higher rates what looks like less capacity is polarization, which the model must explain itself.
+    [[nodiscard]] bool capacity_scale_free() const { return fit_offset && low_rate; }
     std::size_t residuals = 0;       // one per tick with a measured voltage: (V_model - V) / sigma_v
     std::size_t step_residuals = 0;  // one per current step between two measured voltages (see simulate_window)
     double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
@@ -462,10 +465,7 @@ struct Builder {
             if (use[w] && windows[w].fit_offset) {
                 p->SetParameterLowerBound(offsets[w].data(), 0, -0.3);
                 p->SetParameterUpperBound(offsets[w].data(), 0, 0.3);
-                // Only a slow discharge (below C/5, typically an OCV test from another day) gets its own charge
-                // scale: at higher rates what looks like less capacity is polarization, which the model must
-                // explain itself.
-                const double g = windows[w].low_rate ? 0.2 : 1e-9;
+                const double g = windows[w].capacity_scale_free() ? 0.2 : 1e-9;
                 p->SetParameterLowerBound(offsets[w].data(), 1, -g);
                 p->SetParameterUpperBound(offsets[w].data(), 1, g);
             }
@@ -815,7 +815,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         }
         gw.kind = pulses > 0 ? "pulses" : (chg > 3 * dis ? "charge" : (dis > 3 * chg ? "discharge" : "mixed"));
         gw.residuals = wd.residuals;
-        gw.capacity_scale_fitted = wd.fit_offset && wd.low_rate;  // Builder::problem's rule
+        gw.capacity_scale_fitted = wd.capacity_scale_free();
         b.windows.push_back(std::move(wd));
         out.windows.push_back(gw);
     }

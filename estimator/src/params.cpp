@@ -190,20 +190,20 @@ ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
 json ParameterSet::to_json() const {
     const json ext = extensions.to_json();
     json j{{"schema", kParamsSchema},
-                {"cell", cell},
-                {"capacity_ah", capacity_ah},
-                {"reference_temperature_c", reference_temperature_c},
-                {"soc", soc},
-                {"ocv_v", ocv_v},
-                {"discharge", rc_json(discharge)},
-                {"charge", rc_json(charge)},
-                {"thermal",
-                 {{"c_th_j_per_k", thermal.c_th_j_per_k},
-                  {"r_th_k_per_w", thermal.r_th_k_per_w},
-                  {"area_m2", thermal.area_m2},
-                  {"ehc_soc", thermal.ehc_soc},
-                  {"ehc_v_per_k", thermal.ehc_v_per_k}}},
-                {"extensions", ext}};
+           {"cell", cell},
+           {"capacity_ah", capacity_ah},
+           {"reference_temperature_c", reference_temperature_c},
+           {"soc", soc},
+           {"ocv_v", ocv_v},
+           {"discharge", rc_json(discharge)},
+           {"charge", rc_json(charge)},
+           {"thermal",
+            {{"c_th_j_per_k", thermal.c_th_j_per_k},
+             {"r_th_k_per_w", thermal.r_th_k_per_w},
+             {"area_m2", thermal.area_m2},
+             {"ehc_soc", thermal.ehc_soc},
+             {"ehc_v_per_k", thermal.ehc_v_per_k}}},
+           {"extensions", ext}};
     if (std::isfinite(capacity_ah_sd)) j["capacity_ah_sd"] = capacity_ah_sd;
     return j;
 }

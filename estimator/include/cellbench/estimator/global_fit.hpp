@@ -84,6 +84,10 @@ struct GlobalFitOptions {
     std::vector<std::array<double, 2>> start_time_constants_s = {{1.0, 20.0}, {5.0, 100.0}, {10.0, 300.0}};
     int start_iterations = 20;
     bool compute_uncertainty = true;
+    // Tests: compare every window's Jacobian with Ceres' dynamic autodiff over the whole window (the reference the
+    // fit's cheaper derivative passes must reproduce) at the start and at the fitted values; the largest relative
+    // difference lands in GlobalFitResult::jacobian_mismatch. Costs several reference evaluations per window.
+    bool check_jacobian = false;
     Progress progress;
 };
 
@@ -128,6 +132,7 @@ struct GlobalFitResult {
     double rms_v = kNaN;
     double residual_autocorrelation = kNaN;
     double step_lag = kNaN;  // fitted fraction of a step's sample interval the new current flowed before its row
+    double jacobian_mismatch = kNaN;  // GlobalFitOptions::check_jacobian: the largest relative difference found
     std::vector<std::string> notes;
 
     static constexpr const char* kQuantities[7] = {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s"};

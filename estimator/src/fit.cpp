@@ -511,6 +511,12 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         out.capacity.capacity_ah_sd = capacity_disagreement_ah(*out.global, cap);
         electrical = out.global->params;
         electrical.capacity_ah_sd = out.capacity.capacity_ah_sd;
+        // The OCV's uncertainty per table row, where the fit stated one for every row (the table is its OCV grid).
+        if (out.global->ocv.size() == electrical.soc.size() &&
+            std::all_of(out.global->ocv.begin(), out.global->ocv.end(), [](const FittedValue& v) {
+                return std::isfinite(v.sd) && v.sd >= 0;
+            }))
+            for (const auto& v : out.global->ocv) electrical.ocv_v_sd.push_back(v.sd);
         electrical.cell = options.cell;
         electrical.thermal.c_th_j_per_k = 1.0;
         electrical.thermal.r_th_k_per_w = 1.0;

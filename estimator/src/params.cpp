@@ -174,6 +174,7 @@ ParameterSet ParameterSet::from_json(const json& j, const std::string& source) {
         p.reference_temperature_c = number_member(j, "reference_temperature_c", source, "$");
     p.soc = array_member(j, "soc", source, "$");
     p.ocv_v = array_member(j, "ocv_v", source, "$");
+    if (auto it = j.find("ocv_v_sd"); it != j.end() && !it->is_null()) p.ocv_v_sd = array_member(j, "ocv_v_sd", source, "$");
     p.discharge = rc_table(member(j, "discharge", source, "$"), source, "$.discharge");
     p.charge = rc_table(member(j, "charge", source, "$"), source, "$.charge");
     const auto& th = member(j, "thermal", source, "$");
@@ -205,6 +206,7 @@ json ParameterSet::to_json() const {
              {"ehc_v_per_k", thermal.ehc_v_per_k}}},
            {"extensions", ext}};
     if (std::isfinite(capacity_ah_sd)) j["capacity_ah_sd"] = capacity_ah_sd;
+    if (!ocv_v_sd.empty()) j["ocv_v_sd"] = ocv_v_sd;
     return j;
 }
 
@@ -229,6 +231,12 @@ void ParameterSet::validate(const std::string& source) const {
             if (!(v[i] > 0)) fail(source, path + "[" + std::to_string(i) + "]", "expected a positive value");
     };
     check_size(ocv_v, "$.ocv_v");
+    if (!ocv_v_sd.empty()) {
+        check_size(ocv_v_sd, "$.ocv_v_sd");
+        for (std::size_t i = 0; i < ocv_v_sd.size(); ++i)
+            if (!(ocv_v_sd[i] >= 0 && std::isfinite(ocv_v_sd[i])))
+                fail(source, "$.ocv_v_sd[" + std::to_string(i) + "]", "expected a non-negative uncertainty in V");
+    }
     for (const auto& [name, t] : {std::pair<std::string, const RcTable*>{"discharge", &discharge}, {"charge", &charge}}) {
         check_positive(t->r0_ohm, "$." + name + ".r0_ohm");
         check_positive(t->r1_ohm, "$." + name + ".r1_ohm");

@@ -111,3 +111,24 @@ TEST(ParameterSet, CapacityUncertaintyIsOptionalAndRoundTrips) {
     j["capacity_ah_sd"] = nullptr;  // null: not stated
     EXPECT_EQ(error_of(j), "");
 }
+
+TEST(ParameterSet, OcvUncertaintyIsOptionalOnePerSocAndRoundTrips) {
+    auto p = ParameterSet::from_json(thesis_json(), "p45b-thesis.json");
+    EXPECT_TRUE(p.ocv_v_sd.empty()) << "a set without it states none";
+    EXPECT_FALSE(p.to_json().contains("ocv_v_sd"));
+    p.ocv_v_sd.assign(p.soc.size(), 4e-4);
+    p.ocv_v_sd.back() = 1.5e-3;
+    const auto again = ParameterSet::from_json(p.to_json(), "again");
+    ASSERT_EQ(again.ocv_v_sd.size(), p.soc.size());
+    EXPECT_DOUBLE_EQ(again.ocv_v_sd.back(), 1.5e-3);
+
+    auto j = thesis_json();
+    j["ocv_v_sd"] = nlohmann::json::array({1e-3, 1e-3});
+    EXPECT_NE(error_of(j).find("$.ocv_v_sd: expected " + std::to_string(p.soc.size()) + " values"), std::string::npos)
+        << error_of(j);
+    j["ocv_v_sd"] = p.to_json()["ocv_v_sd"];
+    j["ocv_v_sd"][1] = -1e-3;
+    EXPECT_NE(error_of(j).find("$.ocv_v_sd[1]: expected a non-negative uncertainty"), std::string::npos) << error_of(j);
+    j["ocv_v_sd"] = nullptr;  // null: not stated
+    EXPECT_EQ(error_of(j), "");
+}

@@ -92,6 +92,9 @@ struct ParameterSet {
     double reference_temperature_c = 25.0;
     std::vector<double> soc;    // ascending fractions 0..1
     std::vector<double> ocv_v;  // one per soc
+    // 1 sigma of each ocv_v where the characterization judged it (the global fit's uncertainty); empty: not
+    // estimated.
+    std::vector<double> ocv_v_sd;
     RcTable discharge, charge;
     ThermalParams thermal;
     ModelExtensions extensions;

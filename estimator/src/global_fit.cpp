@@ -364,28 +364,51 @@ private:
         const std::size_t n = static_cast<std::size_t>(num_residuals()), nt = w.ticks.size();
         for (int b = 0; b < nb; ++b)
             if (jacobians[b]) std::fill(jacobians[b], jacobians[b] + n * sizes[b], 0.0);
-        // The ticks at which each block enters directly: a knot where a tick interpolates from it, an OCV knot
-        // likewise; Ea, I0, the step lag, the slow pair and the SOC offset everywhere.
+        // The variables in units: each knot's two directions (5 each: log R0, log R1, log tau1, log R2, the tau2
+        // ratio), each OCV knot, and Ea, I0, the step lag, the slow pair and the SOC offset as whole blocks. The
+        // ticks at which a unit enters directly: a knot's direction where a tick interpolates from that knot and
+        // either a current of that direction flows in it (ZOH: its pairs are driven; R0 multiplies the current) or
+        // that direction's pairs hold a voltage (their decay depends on tau); before its first such tick the
+        // direction's pairs are exactly zero and R0 multiplies nothing. An OCV knot where a tick interpolates from
+        // it; the whole blocks everywhere.
+        struct Unit {
+            int block = 0, q0 = 0, size = 0;
+            std::size_t first = std::numeric_limits<std::size_t>::max(), last = 0;
+        };
         constexpr std::size_t kNone = std::numeric_limits<std::size_t>::max();
-        std::vector<std::size_t> first(nb, kNone), last(nb, 0);
-        auto enters = [&](int b, std::size_t k) {
-            if (first[b] == kNone) first[b] = k;
-            last[b] = k;
+        std::vector<Unit> units;
+        for (int b = 0; b < nb; ++b) {
+            if (b < nk) {
+                units.push_back({b, 0, 5}), units.push_back({b, 5, 5});
+            } else {
+                units.push_back({b, 0, sizes[b]});
+            }
+        }
+        auto enters = [&](int u, std::size_t k) {
+            if (units[u].first == kNone) units[u].first = k;
+            units[u].last = k;
         };
         for (std::size_t k = 0; k < nt; ++k) {
+            const Tick& tk = w.ticks[k];
+            const auto& st = trace.state[k];
+            const bool discharge = tk.current_a < 0 || (tk.step && tk.current_before_a < 0) || st[0] != 0 || st[1] != 0;
+            const bool charge = tk.current_a > 0 || (tk.step && tk.current_before_a > 0) || st[2] != 0 || st[3] != 0;
             const int ki = trace.knot[k] - w.knot_lo, oi = trace.ocv[k] - w.ocv_lo;
-            enters(ki, k), enters(std::min(ki + 1, nk - 1), k);
-            enters(nk + oi, k), enters(nk + std::min(oi + 1, no - 1), k);
+            for (int kb : {ki, std::min(ki + 1, nk - 1)}) {
+                if (discharge) enters(2 * kb, k);
+                if (charge) enters(2 * kb + 1, k);
+            }
+            enters(2 * nk + oi, k), enters(2 * nk + std::min(oi + 1, no - 1), k);
         }
         for (int b = g; b < nb; ++b)
-            if (nt > 0) first[b] = 0, last[b] = nt - 1;
+            if (nt > 0) units[2 * nk + (b - nk)].first = 0, units[2 * nk + (b - nk)].last = nt - 1;
         std::vector<int> order;
-        for (int b = 0; b < nb; ++b)
-            if (jacobians[b] && first[b] != kNone) order.push_back(b);
+        for (int u = 0; u < static_cast<int>(units.size()); ++u)
+            if (jacobians[units[u].block] && units[u].first != kNone) order.push_back(u);
         std::stable_sort(order.begin(), order.end(), [&](int a, int c) {
-            return first[a] != first[c] ? first[a] < first[c] : last[a] < last[c];
+            return units[a].first != units[c].first ? units[a].first < units[c].first : units[a].last < units[c].last;
         });
-        // Derivative passes of up to kLanes variables, whole blocks, in that order.
+        // Derivative passes of up to kLanes variables, whole units, in that order.
         std::vector<std::vector<J>> pj(nb);
         std::vector<J const*> ocv_ptr(no);
         std::vector<KnotValues<J>> kv(nk);
@@ -394,8 +417,8 @@ private:
         while (next < order.size()) {
             std::vector<int> chunk;
             int lanes = 0;
-            while (next < order.size() && lanes + sizes[order[next]] <= kLanes)
-                lanes += sizes[order[next]], chunk.push_back(order[next++]);
+            while (next < order.size() && lanes + units[order[next]].size <= kLanes)
+                lanes += units[order[next]].size, chunk.push_back(order[next++]);
             for (int b = 0; b < nb; ++b) {
                 pj[b].resize(sizes[b]);
                 for (int q = 0; q < sizes[b]; ++q) pj[b][q] = J(p[b][q]);
@@ -403,10 +426,11 @@ private:
             PassRange range;
             range.begin = kNone, range.direct_last = 0;
             int lane = 0;
-            for (int b : chunk) {
-                for (int q = 0; q < sizes[b]; ++q) pj[b][q].v[lane++] = 1.0;
-                range.begin = std::min(range.begin, first[b]);
-                range.direct_last = std::max(range.direct_last, last[b]);
+            for (int u : chunk) {
+                const Unit& un = units[u];
+                for (int q = 0; q < un.size; ++q) pj[un.block][un.q0 + q].v[lane++] = 1.0;
+                range.begin = std::min(range.begin, un.first);
+                range.direct_last = std::max(range.direct_last, un.last);
             }
             range.state = trace.state[range.begin];
             range.r = trace.r[range.begin], range.rs = trace.rs[range.begin];
@@ -418,8 +442,11 @@ private:
             auto copy_rows = [&](std::size_t from, std::size_t to) {
                 for (std::size_t row = from; row < to; ++row) {
                     int l = 0;
-                    for (int b : chunk)
-                        for (int q = 0; q < sizes[b]; ++q) jacobians[b][row * sizes[b] + q] = res[row].v[l++];
+                    for (int u : chunk) {
+                        const Unit& un = units[u];
+                        double* jb = jacobians[un.block] + row * sizes[un.block] + un.q0;
+                        for (int q = 0; q < un.size; ++q) jb[q] = res[row].v[l++];
+                    }
                 }
             };
             copy_rows(r0, range.r);

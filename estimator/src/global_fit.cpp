@@ -325,9 +325,10 @@ struct WindowCost {
 // values enter only where the SOC is within one knot interval of it, an OCV knot only there, and a slow discharge
 // over the whole SOC range touches every knot (the independent plant's C/20 discharge: 13 passes over 2500
 // ticks, 60 % of the fit). Here a plain pass records each tick's state and the intervals it reads; the variables
-// are then grouped, 12 to a derivative pass, in the order they first enter, and each pass runs from the first tick
-// any of its variables enters to where the RC voltages have forgotten the last (PassRange). Before that tick the
-// derivatives are zero exactly; after it they are below kForgottenV.
+// are then grouped, 12 to a derivative pass, in the order they first enter (a knot's two directions apart: a
+// direction enters with its first current), and each pass runs from the first tick any of its variables enters to
+// where the RC voltages have forgotten the last (PassRange). Before that tick the derivatives are zero exactly;
+// after it they are below kForgottenV.
 class WindowJacobian final : public ceres::CostFunction {
 public:
     static constexpr int kLanes = 12;

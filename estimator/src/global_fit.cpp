@@ -372,19 +372,16 @@ private:
         // that direction's pairs hold a voltage (their decay depends on tau); before its first such tick the
         // direction's pairs are exactly zero and R0 multiplies nothing. An OCV knot where a tick interpolates from
         // it; the whole blocks everywhere.
+        constexpr std::size_t kNone = std::numeric_limits<std::size_t>::max();
         struct Unit {
             int block = 0, q0 = 0, size = 0;
-            std::size_t first = std::numeric_limits<std::size_t>::max(), last = 0;
+            std::size_t first = kNone, last = 0;
         };
-        constexpr std::size_t kNone = std::numeric_limits<std::size_t>::max();
+        // Units 2j and 2j + 1: knot j's discharge and charge halves; then one unit per other block, in block order.
         std::vector<Unit> units;
-        for (int b = 0; b < nb; ++b) {
-            if (b < nk) {
-                units.push_back({b, 0, 5}), units.push_back({b, 5, 5});
-            } else {
-                units.push_back({b, 0, sizes[b]});
-            }
-        }
+        for (int b = 0; b < nk; ++b) units.push_back({b, 0, 5}), units.push_back({b, 5, 5});
+        for (int b = nk; b < nb; ++b) units.push_back({b, 0, sizes[b]});
+        auto unit_of_block = [&](int b) { return 2 * nk + (b - nk); };  // b >= nk
         auto enters = [&](int u, std::size_t k) {
             if (units[u].first == kNone) units[u].first = k;
             units[u].last = k;
@@ -399,10 +396,10 @@ private:
                 if (discharge) enters(2 * kb, k);
                 if (charge) enters(2 * kb + 1, k);
             }
-            enters(2 * nk + oi, k), enters(2 * nk + std::min(oi + 1, no - 1), k);
+            enters(unit_of_block(nk + oi), k), enters(unit_of_block(nk + std::min(oi + 1, no - 1)), k);
         }
         for (int b = g; b < nb; ++b)
-            if (nt > 0) units[2 * nk + (b - nk)].first = 0, units[2 * nk + (b - nk)].last = nt - 1;
+            if (nt > 0) units[unit_of_block(b)].first = 0, units[unit_of_block(b)].last = nt - 1;
         std::vector<int> order;
         for (int u = 0; u < static_cast<int>(units.size()); ++u)
             if (jacobians[units[u].block] && units[u].first != kNone) order.push_back(u);

@@ -17,13 +17,7 @@ namespace est = cellbench::estimator;
 using cellbench::Recording;
 using cellbench::test::Step;
 
-est::CharacterizationOptions options() {
-    est::CharacterizationOptions o;
-    o.fallback_capacity_ah = cellbench::test::kCapacityAh;  // what a user would give (--capacity-ah)
-    o.fallback_c_th_j_per_k = 70.0;
-    o.fallback_r_th_k_per_w = 8.0;
-    return o;
-}
+est::CharacterizationOptions options() { return cellbench::test::characterization_options(); }
 
 Recording synth(const std::vector<Step>& program) {
     cellbench::test::SyntheticOptions so;

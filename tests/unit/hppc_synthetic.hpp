@@ -12,6 +12,7 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/electrical.hpp"
+#include "cellbench/estimator/fit.hpp"
 
 namespace cellbench::test {
 
@@ -27,6 +28,16 @@ inline estimator::Rc2Params<double> p45b_discharge() { return {7.5e-3, 1.5e-3, 2
 inline estimator::Rc2Params<double> p45b_charge() { return {7.8e-3, 1.2e-3, 1.5, 10.0e-3, 24.0}; }
 
 inline constexpr double kCapacityAh = 3.82;
+
+// What a user would give `characterize` for this cell when a recording does not measure it (--capacity-ah, and
+// thermal values a recording without a heat flux sensor cannot identify).
+inline estimator::CharacterizationOptions characterization_options() {
+    estimator::CharacterizationOptions o;
+    o.fallback_capacity_ah = kCapacityAh;
+    o.fallback_c_th_j_per_k = 70.0;
+    o.fallback_r_th_k_per_w = 8.0;
+    return o;
+}
 
 // Smooth, monotone OCV(SOC) of roughly the P45B's shape between 2.9 and 4.1 V.
 inline double synthetic_ocv(double soc) { return 3.25 + 0.80 * soc + 0.06 * std::tanh((soc - 0.1) * 12.0); }

@@ -36,10 +36,7 @@ TEST(LevelKnots, UnevenLevelsEachGetABreakpointAndTheirR0) {
     so.dt_s = 0.1;  // as the P45B bench logs (at 1 s the first row after a step carries 1 s of the pairs)
     so.voltage_noise_v = 2e-4;
     const auto rec = cellbench::test::synthesize(program, so);
-    est::CharacterizationOptions o;
-    o.fallback_capacity_ah = cellbench::test::kCapacityAh;
-    o.fallback_c_th_j_per_k = 70.0;
-    o.fallback_r_th_k_per_w = 8.0;
+    auto o = cellbench::test::characterization_options();
     const auto c = est::characterize({rec}, o);
     ASSERT_TRUE(c.global.has_value());
     // The test stops at 55 % SOC: it does not measure the capacity, the given one is used.
@@ -79,10 +76,7 @@ TEST(GlobalFitReference, IsThePulseCurrentNotTheRowMedianOfALowRateDischarge) {
     for (double i : hppc.current_a) hppc_rows += std::abs(i) > 0.1;
     for (double i : c20.current_a) c20_rows += std::abs(i) > 0.1;
     ASSERT_GT(c20_rows, hppc_rows);  // the case: the low-rate rows outnumber the pulse rows
-    est::CharacterizationOptions o;
-    o.fallback_capacity_ah = cellbench::test::kCapacityAh;
-    o.fallback_c_th_j_per_k = 70.0;
-    o.fallback_r_th_k_per_w = 8.0;
+    auto o = cellbench::test::characterization_options();
     const auto c = est::characterize({hppc, c20}, o);
     ASSERT_TRUE(c.global.has_value());
     EXPECT_GT(c.global->reference_current_a, 0.5 * kPulseA);

@@ -27,10 +27,7 @@ TEST(WindowJacobian, DerivativePassesGiveTheDynamicAutodiffJacobianAtTheStartAnd
     const double c10_a = cellbench::test::kCapacityAh / 10.0;
     const auto c10 = cellbench::test::synthesize({{60.0, 0.0, "Rest"}, {30000.0, -c10_a, "CC DChg"}, {1800.0, 0.0, "Rest"}}, so);
 
-    est::CharacterizationOptions o;
-    o.fallback_capacity_ah = cellbench::test::kCapacityAh;
-    o.fallback_c_th_j_per_k = 70.0;
-    o.fallback_r_th_k_per_w = 8.0;
+    auto o = cellbench::test::characterization_options();
     o.global.check_jacobian = true;
     o.global.smoothness = 300.0;  // one weight: the check, not the cross-validation, is under test
     o.global.start_time_constants_s.clear();

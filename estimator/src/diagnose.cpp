@@ -456,8 +456,20 @@ Recording merge_intervals(const Recording& rec, double step_s) {
         opt(rec.heat_flux_w_per_m2, out.heat_flux_w_per_m2);
     };
     copy_row(0, rec.current_a[0]);
+    // An interval never spans a change of the set current: a row's voltage is the instantaneous one at its end,
+    // so an interval averaging two currents would pair that voltage with a current the cell never carried
+    // (on a 0.1 s drive profile merged to 1 s: 21 mV RMS of error the model cannot remove, against 6.6 mV
+    // on the rows themselves). A change is a step between rows larger than 0.5 % of the largest current
+    // (far above a cycler's current noise).
+    double i_max = 0;
+    for (double i : rec.current_a) i_max = std::max(i_max, std::abs(i));
+    const double step_a = std::max(0.005 * i_max, 1e-3);
     double charge = 0, span = 0;
     for (std::size_t k = 1; k < rec.size(); ++k) {
+        if (span > 0 && std::abs(rec.current_a[k] - rec.current_a[k - 1]) > step_a) {
+            copy_row(k - 1, charge / span);
+            charge = span = 0;
+        }
         const double dt = rec.time_s[k] - rec.time_s[k - 1];
         charge += rec.current_a[k] * dt;
         span += dt;

@@ -173,6 +173,8 @@ double from_u(const ParamSpec& s, double u) { return s.log ? std::exp(u) : u; }
 struct Problem {
     const Recording* rec = nullptr;  // merged copy
     double ms_v = kNaN, ms_t = kNaN, ms_q = kNaN;  // baseline mean squared errors (normalisation)
+    // The instruments' accuracy (DiagnoseOptions' floors), squared.
+    double floor2_v = 0, floor2_t = 0, floor2_q = 0;
     double area_m2 = 0.0;
 };
 
@@ -197,8 +199,14 @@ Errors errors_of(const ParameterSet& p, const Recording& rec) {
     return e;
 }
 
+// Which quantities an objective sums. The searches use all; the evidence (held-out scores, BIC) only those whose
+// error under the current base exceeds the instrument's accuracy (evidence_quantities).
+struct Quantities {
+    bool v = true, t = true, q = true;
+};
+
 // Sum over quantities of mean squared error / baseline mean squared error, over the masked rows.
-double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask) {
+double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask, Quantities use = {}) {
     double sv = 0, st = 0, sq = 0;
     std::size_t nv = 0, nt = 0, nq = 0;
     for (std::size_t k = 0; k < e.v.size(); ++k) {
@@ -208,9 +216,9 @@ double objective(const Problem& pb, const Errors& e, const std::vector<char>& ma
         if (std::isfinite(e.q[k])) sq += e.q[k] * e.q[k], ++nq;
     }
     double j = 0;
-    if (nv && pb.ms_v > 0) j += sv / nv / pb.ms_v;
-    if (nt && pb.ms_t > 0) j += st / nt / pb.ms_t;
-    if (nq && pb.ms_q > 0) j += sq / nq / pb.ms_q;
+    if (use.v && nv && pb.ms_v > 0) j += sv / nv / pb.ms_v;
+    if (use.t && nt && pb.ms_t > 0) j += st / nt / pb.ms_t;
+    if (use.q && nq && pb.ms_q > 0) j += sq / nq / pb.ms_q;
     return j;
 }
 
@@ -269,11 +277,11 @@ struct Fit {
 
 // The objective at x without a search (one simulation).
 double objective_at(const Problem& pb, const ParameterSet& base, const EffectSpec& spec, const std::vector<char>& mask,
-                    const std::vector<double>& x) {
+                    const std::vector<double>& x, Quantities use = {}) {
     ParameterSet p = base;
     spec.apply(p, x);
     try {
-        return objective(pb, errors_of(p, *pb.rec), mask);
+        return objective(pb, errors_of(p, *pb.rec), mask, use);
     } catch (const std::exception&) {
         return INFINITY;
     }
@@ -637,9 +645,12 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
             return n ? s / n : kNaN;
         };
         auto floor2 = [](double x) { return x * x; };
-        pb.ms_v = std::max(ms(e.v), floor2(options.voltage_floor_v));
-        pb.ms_t = std::max(ms(e.t), floor2(options.temperature_floor_c));
-        pb.ms_q = std::max(ms(e.q), floor2(options.heat_flux_floor_w));
+        pb.floor2_v = floor2(options.voltage_floor_v);
+        pb.floor2_t = floor2(options.temperature_floor_c);
+        pb.floor2_q = floor2(options.heat_flux_floor_w);
+        pb.ms_v = std::max(ms(e.v), pb.floor2_v);
+        pb.ms_t = std::max(ms(e.t), pb.floor2_t);
+        pb.ms_q = std::max(ms(e.q), pb.floor2_q);
     }
     const std::size_t n = rec.size();
     std::vector<char> all(n, 1);
@@ -683,9 +694,33 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         const double round_start = 0.05 + round_share * static_cast<double>(round - 1);
         progress(round_start, "round " + std::to_string(round) + " candidates");
         const Errors base_e = errors_of(current, rec);
-        const double j_base_all = objective(pb, base_e, all);
+        // Evidence comes from the quantities the current base misses by more than the instrument's accuracy
+        // (DiagnoseOptions' floors): a change that only moves an error already inside the accuracy class (a
+        // 1.5 mV voltage residual against a cycler's 5 mV) is not evidence of physics, however large its share
+        // of that small error. With none left, no candidate can be significant.
+        const Quantities evidence = [&] {
+            auto above = [&](const std::vector<double>& v, double floor2) {
+                double s = 0;
+                std::size_t k = 0;
+                for (double x : v)
+                    if (std::isfinite(x)) s += x * x, ++k;
+                return k > 0 && s / static_cast<double>(k) > floor2;
+            };
+            return Quantities{above(base_e.v, pb.floor2_v), above(base_e.t, pb.floor2_t), above(base_e.q, pb.floor2_q)};
+        }();
+        if (round == 1) {
+            auto names = nlohmann::json::array();
+            if (evidence.v && rec.size()) names.push_back("voltage");
+            if (evidence.t && rec.has_surface()) names.push_back("temperature");
+            if (evidence.q && rec.has_heat_flux()) names.push_back("heat_flux");
+            d.holdout["evidence_quantities"] = std::move(names);
+            d.holdout["floors"] = {{"voltage_v", options.voltage_floor_v},
+                                   {"temperature_c", options.temperature_floor_c},
+                                   {"heat_flux_w", options.heat_flux_floor_w}};
+        }
+        const double j_base_all = objective(pb, base_e, all, evidence);
         std::vector<double> j_base_test(folds);
-        for (std::size_t f = 0; f < folds; ++f) j_base_test[f] = objective(pb, base_e, test[f]);
+        for (std::size_t f = 0; f < folds; ++f) j_base_test[f] = objective(pb, base_e, test[f], evidence);
 
         std::vector<std::string> todo;
         for (const auto& id : candidates)
@@ -722,13 +757,14 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     for (std::size_t f = 0; f < folds; ++f) {
                         const Fit ff = fit_effect(pb, current, spec, train[f], {full.x}, 3);
                         if (std::isfinite(ff.j)) fold_x.push_back(ff.x);
-                        const double jt = objective_at(pb, current, spec, test[f], std::isfinite(ff.j) ? ff.x : full.x);
+                        const double jt = objective_at(pb, current, spec, test[f], std::isfinite(ff.j) ? ff.x : full.x, evidence);
                         const double red = j_base_test[f] > 0 ? 1.0 - jt / j_base_test[f] : 0.0;
                         sum_red += red;
                         fd.folds_improved += red > 0.0;
                     }
                     fd.score = sum_red / static_cast<double>(folds);
-                    fd.delta_bic = n_eff * std::log(std::max(full.j, 1e-300) / j_base_all) +
+                    const double j_full_evidence = objective_at(pb, current, spec, all, full.x, evidence);
+                    fd.delta_bic = (j_base_all > 0 ? n_eff * std::log(std::max(j_full_evidence, 1e-300) / j_base_all) : 0.0) +
                                    static_cast<double>(spec.params.size()) * std::log(n_eff);
                     fd.significant = fd.score >= options.min_cv_improvement && fd.folds_improved + 1 >= folds &&
                                      fd.delta_bic < options.bic_threshold;
@@ -865,6 +901,11 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     pct(options.min_cv_improvement) + " on average and in " + std::to_string(folds - 1) + " of " +
                     std::to_string(folds) + " interleaved folds, BIC improvement > " +
                     num("%.0f", -options.bic_threshold) + ")";
+        if (d.holdout.contains("evidence_quantities") && d.holdout["evidence_quantities"].empty())
+            d.summary += "; every error is within its instrument's accuracy (voltage " +
+                         num("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
+                         num("%.2f", options.temperature_floor_c) + " degC, heat flux " +
+                         num("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         d.summary += d.unexplained ? ", but the model is NOT adequate: " + d.unexplained->summary + "."
                                    : " and the residual is at the noise level: the model is adequate for this recording.";
     } else {

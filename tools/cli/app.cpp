@@ -81,6 +81,16 @@ int run_cli(int argc, char** argv) {
     diag_cmd->add_option("--report", diag.report, "Write a self-contained HTML report");
     diag_cmd->add_option("--improved", diag.improved, "Write the parameter set with the accepted extensions");
     diag_cmd->add_option("--effects", diag.effects, "Only try these effect ids (default: the whole catalogue)");
+    // The evidence only counts a quantity the parameter set misses by more than its instrument's accuracy.
+    diag_cmd->add_option("--voltage-floor-mv", diag.voltage_floor_mv,
+                         "Voltage accuracy, mV (default 5: a cycler's 0.05 % of 10 V); smaller errors are no evidence")
+        ->check(CLI::PositiveNumber);
+    diag_cmd->add_option("--temperature-floor-c", diag.temperature_floor_c,
+                         "Temperature accuracy, degC (default 0.3); smaller errors are no evidence")
+        ->check(CLI::PositiveNumber);
+    diag_cmd->add_option("--heat-flux-floor-w", diag.heat_flux_floor_w,
+                         "Heat flux accuracy over the cell's surface, W (default 0.05); smaller errors are no evidence")
+        ->check(CLI::PositiveNumber);
 
     ExportParamsOptions exp;
     auto* exp_cmd = app.add_subcommand(

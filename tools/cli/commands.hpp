@@ -48,6 +48,8 @@ int run_simulate(const SimulateOptions& o);
 struct DiagnoseCliOptions {
     std::string params, recording, json, report, improved;
     std::vector<std::string> effects;  // empty = whole catalogue
+    // The instruments' accuracy (DiagnoseOptions' floors); unset: the library's defaults.
+    std::optional<double> voltage_floor_mv, temperature_floor_c, heat_flux_floor_w;
 };
 int run_diagnose(const DiagnoseCliOptions& o);
 

@@ -55,7 +55,9 @@ struct DiagnoseOptions {
     std::size_t threads = 0;           // worker threads for the candidates (0 = one per core)
     // Errors below these RMS levels are not worth modelling (instrument accuracy): each quantity's error is
     // normalised by max(its baseline RMS, this floor), so a 30 % gain on a 0.1 degC error does not count as
-    // much as a 30 % gain on a 2 degC one.
+    // much as a 30 % gain on a 2 degC one; and a quantity the current base already meets within its floor
+    // gives no evidence at all (it leaves the held-out scores and the BIC; with none left, nothing is
+    // significant, though `unexplained` still reports a residual above the noise).
     double voltage_floor_v = 0.005;       // cycler voltage accuracy class (0.05 % of a 10 V range)
     double temperature_floor_c = 0.3;     // thermocouple-grade agreement
     double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface

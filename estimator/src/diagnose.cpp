@@ -748,6 +748,9 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                 if (!std::isfinite(full.j)) {
                     fd.explanation = "the fit of this effect did not converge";
                 } else {
+                    // A harness or contact adds resistance; a negative offset says the parameter set's R0 is too
+                    // high for this cell: the base re-identified, not something the bench added.
+                    if (spec.id == "series_resistance_offset" && full.x[0] < 0.0) fd.kind = "parameters_wrong";
                     double sum_red = 0;
                     // The fold fits (each leaves one interleaved block set out) give the parameters' uncertainty:
                     // their jackknife spread, which holds with correlated residuals where the Jacobian's would not.

@@ -1,7 +1,8 @@
 // diagnose's evidence counts only what the instruments can vouch for: a quantity the base model already meets
 // within its accuracy floor (DiagnoseOptions: 5 mV, 0.3 degC, 0.05 W) gives no held-out score and no BIC, so a
 // change that only reshapes an error inside the accuracy class is never a significant finding, while the same
-// physics at a size above the floor is found.
+// physics at a size above the floor is found. A series resistance below the parameter set's is the base's R0
+// re-identified (parameters wrong), not a harness.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -71,4 +72,15 @@ TEST(DiagnoseEvidence, TheSamePhysicsAboveTheAccuracyIsFound) {
     EXPECT_EQ(d.findings.front().effect, "series_resistance_offset");
     EXPECT_TRUE(d.findings.front().significant) << d.findings.front().explanation;
     EXPECT_NEAR(d.findings.front().parameters.at("r_ohm").get<double>(), 5e-3, 0.5e-3);
+    EXPECT_EQ(d.findings.front().kind, "physics_missing") << "a harness added resistance the characterization did not see";
+}
+
+TEST(DiagnoseEvidence, ALowerSeriesResistanceIsTheBaseR0TooHighNotMissingPhysics) {
+    // The cell's resistance 4 mOhm below the parameter set's: no harness removes resistance.
+    const auto d = diagnose_series(with_series_resistance(-4e-3));
+    ASSERT_FALSE(d.findings.empty());
+    EXPECT_EQ(d.findings.front().effect, "series_resistance_offset");
+    EXPECT_TRUE(d.findings.front().significant) << d.findings.front().explanation;
+    EXPECT_NEAR(d.findings.front().parameters.at("r_ohm").get<double>(), -4e-3, 0.5e-3);
+    EXPECT_EQ(d.findings.front().kind, "parameters_wrong");
 }

@@ -807,6 +807,36 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                         fd.explanation += "; within twice the characterization's capacity uncertainty (+-" +
                                           num("%.2f", 100.0 * params.capacity_ah_sd / params.capacity_ah) +
                                           " % at 1 sd): not evidence that the capacity is wrong";
+                    // An OCV correction the characterization's own rests rule out: where the parameter set states
+                    // its OCV uncertainty (ocv_v_sd), a correction beyond 5 sd there and beyond the instrument's
+                    // accuracy contradicts what the characterization measured. If the cell has not changed
+                    // since, the recording's voltage differs there for another reason (its history: a hysteresis;
+                    // or its SOC), so the correction is flagged implausible and ranked after plausible findings.
+                    if ((id == "ocv_band" || id == "ocv_offset") && params.ocv_v_sd.size() == params.soc.size() &&
+                        params.soc.size() >= 2) {
+                        double sd = 0;
+                        if (id == "ocv_band") {
+                            sd = interp_hold(params.soc, params.ocv_v_sd, full.x[1]);
+                        } else {  // a plain offset: against the table's typical uncertainty
+                            std::vector<double> v;
+                            for (double x : params.ocv_v_sd)
+                                if (std::isfinite(x)) v.push_back(x);
+                            sd = kNaN;
+                            if (!v.empty()) {
+                                std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+                                sd = v[v.size() / 2];
+                            }
+                        }
+                        const double allowed = std::max(5.0 * sd, options.voltage_floor_v);
+                        if (std::isfinite(sd) && std::abs(full.x[0]) > allowed) {
+                            fd.implausible = true;
+                            fd.parameters["offset_v_flags"] = {"contradicts_characterization", "implausible"};
+                            fd.explanation += "; but the characterization measured this OCV to +-" + num("%.1f", sd * 1e3) +
+                                              " mV (1 sd): a correction beyond " + num("%.1f", allowed * 1e3) +
+                                              " mV contradicts it unless the cell changed since (otherwise its history, "
+                                              "e.g. a hysteresis, or its SOC differs)";
+                        }
+                    }
                     round_x[c] = full.x;
                 }
                 const std::size_t k = ++done;

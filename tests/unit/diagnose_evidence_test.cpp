@@ -2,7 +2,8 @@
 // within its accuracy floor (DiagnoseOptions: 5 mV, 0.3 degC, 0.05 W) gives no held-out score and no BIC, so a
 // change that only reshapes an error inside the accuracy class is never a significant finding, while the same
 // physics at a size above the floor is found. A series resistance below the parameter set's is the base's R0
-// re-identified (parameters wrong), not a harness.
+// re-identified (parameters wrong), not a harness. An OCV correction beyond what the characterization's own
+// rests allow (5 sd of the parameter set's ocv_v_sd, and beyond the accuracy) is flagged as contradicting it.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -83,4 +84,61 @@ TEST(DiagnoseEvidence, ALowerSeriesResistanceIsTheBaseR0TooHighNotMissingPhysics
     EXPECT_TRUE(d.findings.front().significant) << d.findings.front().explanation;
     EXPECT_NEAR(d.findings.front().parameters.at("r_ohm").get<double>(), -4e-3, 0.5e-3);
     EXPECT_EQ(d.findings.front().kind, "parameters_wrong");
+}
+
+namespace {
+
+// An hour of 1C discharge from 65 % SOC with C/2 charge pulses and rests, simulated by a cell whose OCV lies
+// 25 mV above the parameter set's at 20 % SOC (a triangle 10 % SOC wide on each side).
+Recording with_ocv_band() {
+    estimator::ParameterSet truth = thesis();
+    for (std::size_t k = 0; k < truth.soc.size(); ++k)
+        truth.ocv_v[k] += 0.025 * std::max(0.0, 1.0 - std::abs(truth.soc[k] - 0.2) / 0.1);
+    Recording r;
+    r.source = "synthetic";
+    const double c1 = truth.capacity_ah;
+    for (int k = 0; k <= 3600; ++k) {
+        r.time_s.push_back(k);
+        const int phase = (k / 60) % 6;
+        r.current_a.push_back(k < 120 ? 0.0 : (phase == 5 ? 0.0 : phase == 4 ? 0.5 * c1 : -1.0 * c1));
+        r.voltage_v.push_back(0.0);
+    }
+    estimator::SimulationOptions so;
+    so.initial_soc = 0.65;
+    so.ambient_c = 25.0;
+    const auto tr = estimator::simulate(estimator::CellModel(truth), r, so);
+    for (std::size_t k = 0; k < r.size(); ++k) r.voltage_v[k] = std::round(tr.voltage_v[k] * 1e4) / 1e4;
+    return r;
+}
+
+estimator::Finding band_finding(const estimator::ParameterSet& base, const Recording& rec) {
+    estimator::DiagnoseOptions o;
+    o.effects = {"ocv_band"};
+    o.max_accepted = 1;
+    o.threads = 1;
+    const auto d = estimator::diagnose(base, rec, o);
+    EXPECT_EQ(d.findings.size(), 1u);
+    return d.findings.empty() ? estimator::Finding{} : d.findings.front();
+}
+
+}  // namespace
+
+TEST(DiagnoseEvidence, AnOcvCorrectionTheCharacterizationRulesOutIsFlagged) {
+    const Recording rec = with_ocv_band();
+    estimator::ParameterSet base = thesis();
+    base.ocv_v_sd.assign(base.soc.size(), 0.8e-3);  // the characterization measured the OCV to 0.8 mV
+    const auto measured = band_finding(base, rec);
+    EXPECT_TRUE(measured.significant) << measured.explanation;
+    EXPECT_GT(measured.parameters.at("offset_v").get<double>(), 0.015);
+    EXPECT_TRUE(measured.implausible) << measured.explanation;
+    EXPECT_EQ(measured.parameters.at("offset_v_flags"), nlohmann::json({"contradicts_characterization", "implausible"}));
+    EXPECT_NE(measured.explanation.find("contradicts"), std::string::npos) << measured.explanation;
+
+    // Without a stated OCV uncertainty, or with one that allows the correction, it is an ordinary re-identification.
+    base.ocv_v_sd.clear();
+    const auto unstated = band_finding(base, rec);
+    EXPECT_TRUE(unstated.significant);
+    EXPECT_FALSE(unstated.implausible) << unstated.explanation;
+    base.ocv_v_sd.assign(base.soc.size(), 10e-3);
+    EXPECT_FALSE(band_finding(base, rec).implausible);
 }

@@ -229,6 +229,12 @@ std::string html_escape(const std::string& s) {
     return o;
 }
 
+bool contains_flag(const nlohmann::json& flags, const char* flag) {
+    for (const auto& f : flags)
+        if (f == flag) return true;
+    return false;
+}
+
 std::string round_sig(double x, int digits) {
     if (!std::isfinite(x)) return "–";
     if (x == 0.0) return "0";
@@ -336,7 +342,9 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
                     for (const auto& flag : params[name + "_flags"]) {
                         if (flag == "at_bound")
                             flags += "<span class='flag'>at its search bound: not an estimate</span>";
-                        else if (flag == "implausible")
+                        else if (flag == "contradicts_characterization")
+                            flags += "<span class='flag'>contradicts the characterization: beyond 5 sd of the OCV it measured</span>";
+                        else if (flag == "implausible" && !contains_flag(params[name + "_flags"], "contradicts_characterization"))
                             flags += "<span class='flag'>implausible: the largest plausible size, compensating something else</span>";
                     }
                 }

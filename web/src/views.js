@@ -308,7 +308,10 @@ function diagnosisCard(d, title) {
       : h("div.empty", null, "no condition stands out"),
     h("h2", { style: "margin-top:16px" }, "Findings (strongest first)"),
     h("div", { id: "diag-findings" }, (d.findings || []).length ? d.findings.map((f) => h("div.finding" + (f.significant ? ".sig" : ""), null,
-      h("h3", null, f.effect, " ", pill(f.significant ? "significant" : "not significant", f.significant ? "ok" : ""), h("span.muted.small", null, ` score ${fmt(f.score, 2)}`)),
+      h("h3", null, f.effect, " ", pill(f.significant ? "significant" : "not significant", f.significant ? "ok" : ""),
+        f.kind ? [" ", pill(f.kind === "parameters_wrong" ? "parameters wrong" : "physics missing", "")] : null,
+        f.implausible ? [" ", pill("implausible", "warning")] : null,
+        h("span.muted.small", null, ` score ${fmt(f.score, 2)}`)),
       h("div", null, f.explanation),
       f.improved ? h("div.small.muted", { style: "margin-top:4px" }, "with it: ", metrics(f.improved)) : null))
       : h("div.empty", null, "no candidate was tried")));

@@ -32,6 +32,8 @@ struct EffectSpec {
     void (*apply)(ParameterSet&, const std::vector<double>&);
     const char* kind = "physics_missing";     // or "parameters_wrong": the base set re-identified in part
     bool (*present)(const ParameterSet&) = nullptr;  // the parameter set already holds it
+    // The recording's initial SOC moved by this much (a state of the recording, not of the parameter set).
+    double (*start_soc_offset)(const std::vector<double>&) = nullptr;
 };
 
 const std::vector<EffectSpec>& specs() {
@@ -119,6 +121,16 @@ const std::vector<EffectSpec>& specs() {
                  p.ocv_v[k] += x[0] * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
          },
          "parameters_wrong"},
+        {"initial_soc",
+         // The recording did not start at the SOC its first voltage implies: the cell sat on another hysteresis
+         // branch than the table's, or had not rested. Everything after the start then runs at the wrong SOC,
+         // which a capacity or OCV correction would otherwise absorb.
+         {{"soc_offset", -0.15, 0.15, false, true}},
+         {{0.0}, {-0.02}, {0.02}},
+         [](ParameterSet&, const std::vector<double>&) {},
+         "parameters_wrong",
+         nullptr,
+         [](const std::vector<double>& x) { return x[0]; }},
         {"ocv_offset",
          // a plain offset: a slope along SOC is what a capacity error looks like on a drive that discharges
          // steadily (the two cannot be told apart there), and a local error is ocv_band's
@@ -172,6 +184,7 @@ double from_u(const ParamSpec& s, double u) { return s.log ? std::exp(u) : u; }
 // The data a search needs: the merged recording, which rows train, the baseline's mean squared errors.
 struct Problem {
     const Recording* rec = nullptr;  // merged copy
+    double start_soc_offset = 0.0;   // the accepted initial_soc correction (the current base's start)
     double ms_v = kNaN, ms_t = kNaN, ms_q = kNaN;  // baseline mean squared errors (normalisation)
     // The instruments' accuracy (DiagnoseOptions' floors), squared.
     double floor2_v = 0, floor2_t = 0, floor2_q = 0;
@@ -182,9 +195,16 @@ struct Errors {
     std::vector<double> v, t, q;  // per row, NaN where not measured
 };
 
-Errors errors_of(const ParameterSet& p, const Recording& rec) {
+// The recording's initial-SOC correction with candidate x on top of the current base.
+double start_offset(const Problem& pb, const EffectSpec& spec, const std::vector<double>& x) {
+    return pb.start_soc_offset + (spec.start_soc_offset ? spec.start_soc_offset(x) : 0.0);
+}
+
+Errors errors_of(const ParameterSet& p, const Recording& rec, double start_soc_offset = 0.0) {
     const CellModel model(p);
-    const auto tr = simulate(model, rec);
+    SimulationOptions so;
+    so.initial_soc_offset = start_soc_offset;
+    const auto tr = simulate(model, rec, so);
     Errors e;
     const std::size_t n = rec.size();
     e.v.resize(n);
@@ -244,7 +264,7 @@ public:
         spec_.apply(p, x);
         Errors e;
         try {
-            e = errors_of(p, *pb_.rec);
+            e = errors_of(p, *pb_.rec, start_offset(pb_, spec_, x));
         } catch (const std::exception&) {
             return false;
         }
@@ -281,7 +301,7 @@ double objective_at(const Problem& pb, const ParameterSet& base, const EffectSpe
     ParameterSet p = base;
     spec.apply(p, x);
     try {
-        return objective(pb, errors_of(p, *pb.rec), mask, use);
+        return objective(pb, errors_of(p, *pb.rec, start_offset(pb, spec, x)), mask, use);
     } catch (const std::exception&) {
         return INFINITY;
     }
@@ -332,9 +352,12 @@ Fit fit_effect(const Problem& pb, const ParameterSet& base, const EffectSpec& sp
 
 // ------------------------------------------------------------------------------------------------ metrics
 
-QuantityRms rms_of(const ParameterSet& p, const Recording& rec, SimulationTrace* trace_out = nullptr) {
+QuantityRms rms_of(const ParameterSet& p, const Recording& rec, SimulationTrace* trace_out = nullptr,
+                   double start_soc_offset = 0.0) {
     const CellModel model(p);
-    auto tr = simulate(model, rec);
+    SimulationOptions so;
+    so.initial_soc_offset = start_soc_offset;
+    auto tr = simulate(model, rec, so);
     const auto m = compare(p, rec, tr);
     if (trace_out) *trace_out = std::move(tr);
     return {m.voltage_v.rms, m.temperature_c.rms, m.heat_flux_w.rms};
@@ -408,6 +431,11 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
         what = "the OCV table is off in one SOC band (parameters wrong, re-identified on this recording): " +
                num("%+.1f", x[0] * 1e3) + " mV at SOC " + pct(x[1]) + ", fading to 0 at SOC " +
                pct(std::max(0.0, x[1] - x[2])) + " and " + pct(std::min(1.0, x[1] + x[2]));
+    else if (id == "initial_soc")
+        what = "the recording starts at a SOC " + num("%+.1f", x[0] * 100.0) +
+               " % of the capacity from the one its first voltage implies (its history: the cell sat on another "
+               "hysteresis branch than the OCV table's, or had not rested; a state of this recording, not written "
+               "to the improved parameter set)";
     else if (id == "ocv_offset") {
         what = "the OCV table is off by " + num("%+.1f", x[0] * 1e3) +
                " mV over the whole SOC range (parameters wrong, re-identified on this recording)";
@@ -693,7 +721,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         ++round;
         const double round_start = 0.05 + round_share * static_cast<double>(round - 1);
         progress(round_start, "round " + std::to_string(round) + " candidates");
-        const Errors base_e = errors_of(current, rec);
+        const Errors base_e = errors_of(current, rec, pb.start_soc_offset);
         // Evidence comes from the quantities the current base misses by more than the instrument's accuracy
         // (DiagnoseOptions' floors): a change that only moves an error already inside the accuracy class (a
         // 1.5 mV voltage residual against a cycler's 5 mV) is not evidence of physics, however large its share
@@ -801,7 +829,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     }
                     ParameterSet p = current;
                     spec.apply(p, full.x);
-                    fd.improved = rms_of(p, rec_full);
+                    fd.improved = rms_of(p, rec_full, nullptr, start_offset(pb, spec, full.x));
                     fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
                     if (within_capacity_sd)
                         fd.explanation += "; within twice the characterization's capacity uncertainty (+-" +
@@ -863,6 +891,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         const auto& spec =
             *std::find_if(specs().begin(), specs().end(), [&](const auto& s) { return s.id == round_findings[best].effect; });
         spec.apply(current, round_x[best]);
+        pb.start_soc_offset = start_offset(pb, spec, round_x[best]);
         current_rms = round_findings[best].improved;
         d.accepted.push_back(round_findings[best].effect);
         d.findings.push_back(round_findings[best]);
@@ -877,7 +906,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     std::stable_sort(d.findings.begin(), d.findings.end(), [](const auto& a, const auto& b) { return a.score > b.score; });
     progress(0.95, "simulating the improved model");
     d.improved_params = current;
-    d.improved = rms_of(current, rec_full, &d.improved_trace);
+    d.improved = rms_of(current, rec_full, &d.improved_trace, pb.start_soc_offset);
     // No false reassurance: compare what remains with the recording's own noise.
     d.noise = estimate_noise(rec_full, params.capacity_ah);
     if (d.noise.sigma.heat_flux_w) *d.noise.sigma.heat_flux_w *= params.thermal.area_m2;

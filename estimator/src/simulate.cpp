@@ -98,6 +98,7 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
         const double ohmic = ohmic_drop_v(p.rc_at(soc_guess, -1), p.rc_at(soc_guess, +1), rec.current_a[0]);
         s.soc = p.soc_from_ocv(rec.voltage_v[0] - ohmic - initial_hysteresis_v(soc_guess));
     }
+    s.soc = std::clamp(s.soc + options.initial_soc_offset, 0.0, 1.0);
     s.hysteresis_v = initial_hysteresis_v(s.soc);
     tr.initial_soc = s.soc;
     tr.ambient_c = ambient_const;

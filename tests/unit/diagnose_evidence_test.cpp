@@ -142,3 +142,35 @@ TEST(DiagnoseEvidence, AnOcvCorrectionTheCharacterizationRulesOutIsFlagged) {
     base.ocv_v_sd.assign(base.soc.size(), 10e-3);
     EXPECT_FALSE(band_finding(base, rec).implausible);
 }
+
+TEST(DiagnoseEvidence, ARecordingThatStartsAtAnotherSocThanItsVoltageImpliesIsTheStateNotTheCapacity) {
+    // The model's own hour from 60 % SOC; the first minute's rest reads 15 mV high (the cell sat on its charge
+    // branch), so the SOC inferred from the first voltage is too high and everything after runs at the wrong SOC.
+    const estimator::ParameterSet p = thesis();
+    Recording rec;
+    rec.source = "synthetic";
+    for (int k = 0; k <= 3600; ++k) {
+        rec.time_s.push_back(k);
+        rec.current_a.push_back(k < 60 ? 0.0 : ((k / 60) % 3 == 2 ? 0.0 : -0.6 * p.capacity_ah));
+        rec.voltage_v.push_back(0.0);
+    }
+    estimator::SimulationOptions so;
+    so.initial_soc = 0.6;
+    so.ambient_c = 25.0;
+    const auto tr = estimator::simulate(estimator::CellModel(p), rec, so);
+    for (std::size_t k = 0; k < rec.size(); ++k) rec.voltage_v[k] = tr.voltage_v[k] + (k < 60 ? 0.015 : 0.0);
+    const double inferred = p.soc_from_ocv(rec.voltage_v[0]);
+    ASSERT_GT(inferred - 0.6, 0.01);
+
+    estimator::DiagnoseOptions o;
+    o.effects = {"initial_soc", "capacity_error"};
+    o.max_accepted = 1;
+    o.threads = 1;
+    const auto d = estimator::diagnose(p, rec, o);
+    ASSERT_FALSE(d.findings.empty());
+    const auto& f = d.findings.front();
+    EXPECT_EQ(f.effect, "initial_soc") << f.explanation;
+    EXPECT_TRUE(f.significant) << f.explanation;
+    EXPECT_EQ(f.kind, "parameters_wrong");
+    EXPECT_NEAR(f.parameters.at("soc_offset").get<double>(), 0.6 - inferred, 0.005);
+}

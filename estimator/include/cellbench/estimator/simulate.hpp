@@ -12,6 +12,7 @@ namespace cellbench::estimator {
 
 struct SimulationOptions {
     std::optional<double> initial_soc;        // default: from the first rested voltage (inverse OCV)
+    double initial_soc_offset = 0.0;          // added to that initial SOC (diagnose's initial_soc candidate)
     // default: measured ambient, else where a first rest's cooling settles, else the first surface reading
     std::optional<double> ambient_c;
     std::optional<double> initial_temperature_c;  // default: first surface reading, else ambient

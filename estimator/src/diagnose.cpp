@@ -200,11 +200,24 @@ double start_offset(const Problem& pb, const EffectSpec& spec, const std::vector
     return pb.start_soc_offset + (spec.start_soc_offset ? spec.start_soc_offset(x) : 0.0);
 }
 
-Errors errors_of(const ParameterSet& p, const Recording& rec, double start_soc_offset = 0.0) {
-    const CellModel model(p);
+// The model of p on rec, started start_soc_offset away from the SOC the first voltage implies.
+SimulationTrace simulate_from(const ParameterSet& p, const Recording& rec, double start_soc_offset) {
     SimulationOptions so;
     so.initial_soc_offset = start_soc_offset;
-    const auto tr = simulate(model, rec, so);
+    return simulate(CellModel(p), rec, so);
+}
+
+// Mean of the squares of the finite values (NaN when there are none).
+double mean_square(const std::vector<double>& v) {
+    double s = 0;
+    std::size_t n = 0;
+    for (double x : v)
+        if (std::isfinite(x)) s += x * x, ++n;
+    return n ? s / static_cast<double>(n) : kNaN;
+}
+
+Errors errors_of(const ParameterSet& p, const Recording& rec, double start_soc_offset = 0.0) {
+    const auto tr = simulate_from(p, rec, start_soc_offset);
     Errors e;
     const std::size_t n = rec.size();
     e.v.resize(n);
@@ -354,10 +367,7 @@ Fit fit_effect(const Problem& pb, const ParameterSet& base, const EffectSpec& sp
 
 QuantityRms rms_of(const ParameterSet& p, const Recording& rec, SimulationTrace* trace_out = nullptr,
                    double start_soc_offset = 0.0) {
-    const CellModel model(p);
-    SimulationOptions so;
-    so.initial_soc_offset = start_soc_offset;
-    auto tr = simulate(model, rec, so);
+    auto tr = simulate_from(p, rec, start_soc_offset);
     const auto m = compare(p, rec, tr);
     if (trace_out) *trace_out = std::move(tr);
     return {m.voltage_v.rms, m.temperature_c.rms, m.heat_flux_w.rms};
@@ -665,20 +675,13 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     pb.area_m2 = params.thermal.area_m2;
     {
         const Errors e = errors_of(params, rec);
-        auto ms = [](const std::vector<double>& v) {
-            double s = 0;
-            std::size_t n = 0;
-            for (double x : v)
-                if (std::isfinite(x)) s += x * x, ++n;
-            return n ? s / n : kNaN;
-        };
         auto floor2 = [](double x) { return x * x; };
         pb.floor2_v = floor2(options.voltage_floor_v);
         pb.floor2_t = floor2(options.temperature_floor_c);
         pb.floor2_q = floor2(options.heat_flux_floor_w);
-        pb.ms_v = std::max(ms(e.v), pb.floor2_v);
-        pb.ms_t = std::max(ms(e.t), pb.floor2_t);
-        pb.ms_q = std::max(ms(e.q), pb.floor2_q);
+        pb.ms_v = std::max(mean_square(e.v), pb.floor2_v);
+        pb.ms_t = std::max(mean_square(e.t), pb.floor2_t);
+        pb.ms_q = std::max(mean_square(e.q), pb.floor2_q);
     }
     const std::size_t n = rec.size();
     std::vector<char> all(n, 1);
@@ -726,16 +729,9 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         // (DiagnoseOptions' floors): a change that only moves an error already inside the accuracy class (a
         // 1.5 mV voltage residual against a cycler's 5 mV) is not evidence of physics, however large its share
         // of that small error. With none left, no candidate can be significant.
-        const Quantities evidence = [&] {
-            auto above = [&](const std::vector<double>& v, double floor2) {
-                double s = 0;
-                std::size_t k = 0;
-                for (double x : v)
-                    if (std::isfinite(x)) s += x * x, ++k;
-                return k > 0 && s / static_cast<double>(k) > floor2;
-            };
-            return Quantities{above(base_e.v, pb.floor2_v), above(base_e.t, pb.floor2_t), above(base_e.q, pb.floor2_q)};
-        }();
+        // (mean_square is NaN for a quantity the recording does not measure: never above its floor)
+        const Quantities evidence{mean_square(base_e.v) > pb.floor2_v, mean_square(base_e.t) > pb.floor2_t,
+                                  mean_square(base_e.q) > pb.floor2_q};
         if (round == 1) {
             auto names = nlohmann::json::array();
             if (evidence.v && rec.size()) names.push_back("voltage");

@@ -7,18 +7,24 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <fstream>
 
 #include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/simulate.hpp"
+#include "unit/thesis_params.hpp"
 
 using namespace cellbench;
 
 namespace {
 
-estimator::ParameterSet thesis() {
-    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/config/cells/p45b-thesis.json");
-    return estimator::ParameterSet::from_json(nlohmann::json::parse(in), "p45b-thesis.json");
+estimator::ParameterSet thesis() { return test::thesis_parameter_set(); }
+
+// The voltage `truth` gives on r's current from initial_soc at 25 degC, quantized to 0.1 mV like a cycler's reading.
+void voltage_of(const estimator::ParameterSet& truth, Recording& r, double initial_soc) {
+    estimator::SimulationOptions so;
+    so.initial_soc = initial_soc;
+    so.ambient_c = 25.0;
+    const auto tr = estimator::simulate(estimator::CellModel(truth), r, so);
+    for (std::size_t k = 0; k < r.size(); ++k) r.voltage_v[k] = std::round(tr.voltage_v[k] * 1e4) / 1e4;
 }
 
 // 40 minutes at 1 s of 1C-4C discharge and charge pulses with rests, simulated by the model with an extra series
@@ -35,11 +41,7 @@ Recording with_series_resistance(double extra_ohm) {
         r.current_a.push_back(k < 60 ? 0.0 : pattern[(k / 45) % 11] * c1);
         r.voltage_v.push_back(0.0);
     }
-    estimator::SimulationOptions so;
-    so.initial_soc = 0.7;
-    so.ambient_c = 25.0;
-    const auto tr = estimator::simulate(estimator::CellModel(truth), r, so);
-    for (std::size_t k = 0; k < r.size(); ++k) r.voltage_v[k] = std::round(tr.voltage_v[k] * 1e4) / 1e4;
+    voltage_of(truth, r, 0.7);
     return r;
 }
 
@@ -103,11 +105,7 @@ Recording with_ocv_band() {
         r.current_a.push_back(k < 120 ? 0.0 : (phase == 5 ? 0.0 : phase == 4 ? 0.5 * c1 : -1.0 * c1));
         r.voltage_v.push_back(0.0);
     }
-    estimator::SimulationOptions so;
-    so.initial_soc = 0.65;
-    so.ambient_c = 25.0;
-    const auto tr = estimator::simulate(estimator::CellModel(truth), r, so);
-    for (std::size_t k = 0; k < r.size(); ++k) r.voltage_v[k] = std::round(tr.voltage_v[k] * 1e4) / 1e4;
+    voltage_of(truth, r, 0.65);
     return r;
 }
 

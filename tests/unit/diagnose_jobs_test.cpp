@@ -8,12 +8,12 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <fstream>
 #include <future>
 #include <thread>
 
 #include "cellbench/daemon/api.hpp"
 #include "cellbench/estimator/diagnose.hpp"
+#include "unit/thesis_params.hpp"
 
 using namespace cellbench;
 using daemon::DiagnoseInput;
@@ -35,10 +35,7 @@ json wait_done(const DiagnoseJobs& jobs, std::int64_t id, std::chrono::seconds l
     return j;
 }
 
-estimator::ParameterSet thesis() {
-    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/config/cells/p45b-thesis.json");
-    return estimator::ParameterSet::from_json(json::parse(in), "p45b-thesis.json");
-}
+estimator::ParameterSet thesis() { return test::thesis_parameter_set(); }
 
 // 10 minutes at 1 s: rest, 1C discharge pulses and rests; the voltage a crude OCV minus IR (so the model misses).
 Recording synthetic() {

@@ -5,19 +5,16 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <fstream>
 
 #include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/simulate.hpp"
+#include "unit/thesis_params.hpp"
 
 using namespace cellbench;
 
 namespace {
 
-estimator::ParameterSet thesis() {
-    std::ifstream in(std::string(CELLBENCH_SOURCE_DIR) + "/config/cells/p45b-thesis.json");
-    return estimator::ParameterSet::from_json(nlohmann::json::parse(in), "p45b-thesis.json");
-}
+estimator::ParameterSet thesis() { return test::thesis_parameter_set(); }
 
 // 0.1 s rows; the set current changes between rows at times that are not multiples of the 1 s merge step.
 Recording stepped_profile() {

@@ -16,7 +16,7 @@ namespace cellbench::daemon {
 
 namespace {
 
-constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr double kNoLimit = std::numeric_limits<double>::infinity();
 // A wait for equilibrium in the replay: reached only by the synthetic readings placed at the stored
 // "equilibrium" event (exactly at the target), never by a stored sample.
 constexpr double kReplayTolerance = 1e-12;
@@ -83,7 +83,7 @@ sequencer::Program replay_program(const Program& p) {
         if (s.kind == sequencer::Segment::Kind::WaitEquilibrium) {
             s.tolerance_c = kReplayTolerance;
             s.hold_s = 0.0;
-            s.timeout_s = kInf;
+            s.timeout_s = kNoLimit;
         }
     return out;
 }
@@ -137,12 +137,12 @@ ReplayedRun replay_run_fits(const RunStore& store, RunId run) {
     out.chamber_rows = chamber.size();
 
     sequencer::SequencerOptions so;
-    so.limits.max_temperature_c = kInf;
-    so.limits.min_voltage_v = -kInf;
-    so.limits.max_voltage_v = kInf;
-    so.limits.max_current_a = kInf;
-    so.limits.chamber_deviation_c = kInf;
-    so.limits.instrument_loss_grace_s = kInf;
+    so.limits.max_temperature_c = kNoLimit;
+    so.limits.min_voltage_v = -kNoLimit;
+    so.limits.max_voltage_v = kNoLimit;
+    so.limits.max_current_a = kNoLimit;
+    so.limits.chamber_deviation_c = kNoLimit;
+    so.limits.instrument_loss_grace_s = kNoLimit;
     so.capacity_ah = capacity_ah;
     if (cell.surface_area_m2 > 0) so.area_m2 = cell.surface_area_m2;
     NullCycler null_cycler;
@@ -215,7 +215,7 @@ ReplayedRun replay_run_fits(const RunStore& store, RunId run) {
         cs.status = "working";
         seq.on_cycler(cs);
     }
-    flush_until(kInf);
+    flush_until(kNoLimit);
     seq.wait_for_fits();
     sink.take(out);
 

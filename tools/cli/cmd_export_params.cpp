@@ -41,7 +41,7 @@ namespace {
 
 constexpr double kZeroCelsiusK = 273.15;
 
-std::string num(double v) {
+std::string python_float(double v) {
     if (!std::isfinite(v)) throw std::runtime_error("export-params: a value is not finite");
     if (v == 0.0) return "0.0";
     char buf[32];
@@ -56,7 +56,7 @@ std::string py_list(const std::vector<double>& v) {
     std::string s = "[";
     for (std::size_t i = 0; i < v.size(); ++i) {
         if (i) s += i % 8 == 0 ? ",\n    " : ", ";
-        s += num(v[i]);
+        s += python_float(v[i]);
     }
     return s + "]";
 }
@@ -188,18 +188,18 @@ int run_export_params(const ExportParamsOptions& o) {
        << "    \"\"\"Parameters of " << params.cell << " for pybamm.equivalent_circuit.Thevenin (2 RC elements).\"\"\"\n"
        << "    return {\n"
        << "        \"chemistry\": \"ecm\",\n"
-       << "        \"Initial SoC\": " << num(o.initial_soc) << ",\n"
-       << "        \"Initial temperature [K]\": " << num(t_ref_k) << ",\n"
-       << "        \"Cell capacity [A.h]\": " << num(model.capacity_ah()) << ",\n"
-       << "        \"Nominal cell capacity [A.h]\": " << num(params.capacity_ah) << ",\n"
-       << "        \"Ambient temperature [K]\": " << num(t_ref_k) << ",\n"
-       << "        \"Current function [A]\": " << num(c_a) << ",  # 1C discharge\n"
-       << "        \"Upper voltage cut-off [V]\": " << num(o.upper_cutoff_v) << ",\n"
-       << "        \"Lower voltage cut-off [V]\": " << num(o.lower_cutoff_v) << ",\n"
-       << "        \"Cell thermal mass [J/K]\": " << num(c_th) << ",\n"
-       << "        \"Cell-jig heat transfer coefficient [W/K]\": " << num(k_cell_jig) << ",\n"
-       << "        \"Jig thermal mass [J/K]\": " << num(c_jig) << ",\n"
-       << "        \"Jig-air heat transfer coefficient [W/K]\": " << num(k_jig_air) << ",\n"
+       << "        \"Initial SoC\": " << python_float(o.initial_soc) << ",\n"
+       << "        \"Initial temperature [K]\": " << python_float(t_ref_k) << ",\n"
+       << "        \"Cell capacity [A.h]\": " << python_float(model.capacity_ah()) << ",\n"
+       << "        \"Nominal cell capacity [A.h]\": " << python_float(params.capacity_ah) << ",\n"
+       << "        \"Ambient temperature [K]\": " << python_float(t_ref_k) << ",\n"
+       << "        \"Current function [A]\": " << python_float(c_a) << ",  # 1C discharge\n"
+       << "        \"Upper voltage cut-off [V]\": " << python_float(o.upper_cutoff_v) << ",\n"
+       << "        \"Lower voltage cut-off [V]\": " << python_float(o.lower_cutoff_v) << ",\n"
+       << "        \"Cell thermal mass [J/K]\": " << python_float(c_th) << ",\n"
+       << "        \"Cell-jig heat transfer coefficient [W/K]\": " << python_float(k_cell_jig) << ",\n"
+       << "        \"Jig thermal mass [J/K]\": " << python_float(c_jig) << ",\n"
+       << "        \"Jig-air heat transfer coefficient [W/K]\": " << python_float(k_jig_air) << ",\n"
        << "        \"Open-circuit voltage [V]\": ocv,\n"
        << "        \"R0 [Ohm]\": r0,\n"
        << "        \"Element-1 initial overpotential [V]\": 0.0,\n"
@@ -209,7 +209,7 @@ int run_export_params(const ExportParamsOptions& o) {
        << "        \"R2 [Ohm]\": r2,\n"
        << "        \"C2 [F]\": c2,\n"
        << "        \"Entropic change [V/K]\": dUdT,\n"
-       << "        \"RCR lookup limit [A]\": " << num(lookup_limit_a) << ",\n"
+       << "        \"RCR lookup limit [A]\": " << python_float(lookup_limit_a) << ",\n"
        << "    }\n";
 
     outputs.write(o.output, [&](std::ostream& out) { out << py.str(); });

@@ -6,7 +6,7 @@
 namespace cellbench::sim {
 
 namespace {
-double seconds(PaceGate::WallClock::duration d) { return std::chrono::duration<double>(d).count(); }
+double elapsed_s(PaceGate::WallClock::duration d) { return std::chrono::duration<double>(d).count(); }
 }  // namespace
 
 PaceGate::PaceGate(double time_scale, double slow_scale)
@@ -23,7 +23,7 @@ PaceGate::Decision PaceGate::decide(double bench_now_s, const std::vector<Source
         const double f = lag / s.grace_bench_s;
         if (f > worst) worst = f, worst_grace = s.grace_bench_s, d.waiting_for = s.name, d.lag_bench_s = lag;
     }
-    if (last_gated_ && wall > last_wall_) gated_wall_s_ += seconds(wall - last_wall_);
+    if (last_gated_ && wall > last_wall_) gated_wall_s_ += elapsed_s(wall - last_wall_);
     last_wall_ = wall;
 
     // A bench that runs no faster than the slow scale has nothing to slow down.
@@ -35,7 +35,7 @@ PaceGate::Decision PaceGate::decide(double bench_now_s, const std::vector<Source
         gave_up_ = false;
         episode_start_ = wall;
         ++episodes_;
-    } else if (!gave_up_ && seconds(wall - episode_start_) > worst_grace / time_scale_) {
+    } else if (!gave_up_ && elapsed_s(wall - episode_start_) > worst_grace / time_scale_) {
         gave_up_ = true;  // silent for a whole grace of wall time while gated: a silent peer, not a slow reader
         ++expired_;
     }

@@ -191,7 +191,7 @@ using json_fields::member;
 using json_fields::string_value;
 
 // Every integer of the layout may also be a string: CAN identifiers are written "0x310" in every data sheet.
-std::uint64_t unsigned_value(const json& j, std::uint64_t max, const std::string& source, const std::string& path) {
+std::uint64_t layout_unsigned(const json& j, std::uint64_t max, const std::string& source, const std::string& path) {
     return json_fields::unsigned_value(j, max, source, path, json_fields::IntegerText::accepted);
 }
 
@@ -236,11 +236,11 @@ CanValueType type_of(const json& j, const std::string& source, const std::string
 CanField field_of(const json& j, CanValueType default_type, bool allow_type, const std::string& source,
                   const std::string& path) {
     CanField f;
-    f.byte_offset = static_cast<std::size_t>(unsigned_value(member(j, "byte_offset", source, path), 7, source, path + ".byte_offset"));
+    f.byte_offset = static_cast<std::size_t>(layout_unsigned(member(j, "byte_offset", source, path), 7, source, path + ".byte_offset"));
     f.type = default_type;
     if (allow_type && j.contains("type")) f.type = type_of(j["type"], source, path + ".type");
     if (j.contains("length"))
-        f.length_bytes = static_cast<std::size_t>(unsigned_value(j["length"], 8, source, path + ".length"));
+        f.length_bytes = static_cast<std::size_t>(layout_unsigned(j["length"], 8, source, path + ".length"));
     else if (f.type == CanValueType::float32)
         f.length_bytes = 4;
     else
@@ -277,7 +277,7 @@ DeweCanLayout DeweCanLayout::from_json(const json& j, const std::string& source)
         const std::string path = "$.frames[" + std::to_string(i) + "]";
         const json& fj = frames[i];
         DeweFrameSpec f;
-        const auto id = unsigned_value(member(fj, "can_id", source, path), kCanEffMask, source, path + ".can_id");
+        const auto id = layout_unsigned(member(fj, "can_id", source, path), kCanEffMask, source, path + ".can_id");
         f.can_id = static_cast<std::uint32_t>(id);
         f.extended = extended_of(fj, id, source, path);
         check_id(f.can_id, f.extended, source, path);
@@ -298,7 +298,7 @@ DeweCanLayout DeweCanLayout::from_json(const json& j, const std::string& source)
                 known = true;
             }
         if (!known) fail(source, path, "unknown channel (expected thermopile_v, type_t_c, t1_c or t2_c)");
-        const auto id = unsigned_value(member(cj, "can_id", source, path), kCanEffMask, source, path + ".can_id");
+        const auto id = layout_unsigned(member(cj, "can_id", source, path), kCanEffMask, source, path + ".can_id");
         c.can_id = static_cast<std::uint32_t>(id);
         c.extended = extended_of(cj, id, source, path);
         c.field = field_of(cj, CanValueType::unsigned_int, true, source, path);

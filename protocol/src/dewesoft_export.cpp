@@ -74,7 +74,7 @@ double volt_scale(std::string_view name) {
     return 1.0;
 }
 
-struct Column {
+struct DeweColumn {
     std::size_t index = SIZE_MAX;
     std::string name;
     double scale = 1.0;
@@ -95,12 +95,12 @@ DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& s
 
     DewesoftExport out;
     out.source = source;
-    Column time, thermopile, heat_flux, type_t, t1, t2;
+    DeweColumn time, thermopile, heat_flux, type_t, t1, t2;
     std::vector<std::size_t> unnumbered_type_k;  // thermocouple columns without a 1/2 in the name
     const std::size_t width = fields.size();
-    auto claim = [&](Column& c, std::size_t index, std::vector<double>* values, double scale = 1.0) {
+    auto claim = [&](DeweColumn& c, std::size_t index, std::vector<double>* values, double scale = 1.0) {
         if (c.present()) return false;
-        c = Column{index, std::string(fields[index]), scale, values};
+        c = DeweColumn{index, std::string(fields[index]), scale, values};
         return true;
     };
     for (std::size_t i = 0; i < width; ++i) {
@@ -131,16 +131,16 @@ DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& s
                     "(W/m^2)\" (the header has " +
                     csv::quote_cells(fields) + ")");
 
-    std::vector<Column*> data_columns;
-    for (Column* c : {&thermopile, &type_t, &heat_flux, &t1, &t2})
+    std::vector<DeweColumn*> data_columns;
+    for (DeweColumn* c : {&thermopile, &type_t, &heat_flux, &t1, &t2})
         if (c->present()) data_columns.push_back(c);
 
     const auto expected_rows = static_cast<std::size_t>(std::count(text.begin(), text.end(), '\n')) + 1;
     out.time_s.reserve(expected_rows);
-    for (Column* c : data_columns) c->values->reserve(expected_rows);
+    for (DeweColumn* c : data_columns) c->values->reserve(expected_rows);
 
     std::vector<csv::PhysicalRange> ranges;
-    for (const Column* c : data_columns)
+    for (const DeweColumn* c : data_columns)
         ranges.push_back(c == &thermopile  ? csv::kVoltageRangeV
                          : c == &heat_flux ? csv::kHeatFluxRangeWPerM2
                                            : csv::kTemperatureRangeC);
@@ -152,7 +152,7 @@ DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& s
         guard.check(t, reader);
         out.time_s.push_back(t);
         for (std::size_t k = 0; k < data_columns.size(); ++k) {
-            const Column* c = data_columns[k];
+            const DeweColumn* c = data_columns[k];
             const double v = csv::read_number(reader, fields[c->index], c->name, false) * c->scale;
             c->values->push_back(dropped.check(v, ranges[k], reader, c->name));
         }

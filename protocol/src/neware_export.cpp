@@ -48,7 +48,7 @@ constexpr std::array kAliases{
     Alias{"charge_capacity(mah)", Role::nda_marker, 1.0},
 };
 
-struct Column {
+struct NewareColumn {
     std::size_t index = SIZE_MAX;  // SIZE_MAX: absent
     std::string name;              // as in the header, for messages
     double scale = 1.0;
@@ -168,20 +168,20 @@ Recording parse_neware_export(std::string_view text, const std::string& source, 
                          ":1: empty file: expected the header row of a Neware record export (\"Step Type\", "
                          "\"Time(s)\", \"Total Time\" or \"Cumulative Time\", \"Current(A)\", \"Voltage(V)\", ...)");
 
-    std::array<Column, static_cast<std::size_t>(Role::count)> cols;
-    auto col = [&cols](Role r) -> Column& { return cols[static_cast<std::size_t>(r)]; };
+    std::array<NewareColumn, static_cast<std::size_t>(Role::count)> cols;
+    auto col = [&cols](Role r) -> NewareColumn& { return cols[static_cast<std::size_t>(r)]; };
     const std::size_t width = fields.size();
     for (std::size_t c = 0; c < width; ++c) {
         double scale = 1.0;
         const auto role = role_of(csv::normalize_column_name(fields[c]), scale);
         if (!role || col(*role).present()) continue;  // unknown, or a later alias of a mapped channel
-        col(*role) = Column{c, std::string(fields[c]), scale};
+        col(*role) = NewareColumn{c, std::string(fields[c]), scale};
     }
 
     // Which export this is, and where its test time comes from. Time(s) is preferred (Total Time has only
     // 1 s resolution in exports sampled faster), then Total Time, Cumulative Time, and the wall clock.
     NewareExportLayout layout;
-    const Column* time_col = nullptr;
+    const NewareColumn* time_col = nullptr;
     if (col(Role::nda_marker).present() && col(Role::date).present()) {
         layout = NewareExportLayout::newarenda;
         time_col = &col(Role::date);
@@ -209,13 +209,13 @@ Recording parse_neware_export(std::string_view text, const std::string& source, 
     if (!col(Role::voltage).present())
         reader.fail("missing required column \"Voltage(V)\" (the header has " + csv::quote_cells(fields) + ")");
 
-    const Column& current_col = col(Role::current);
-    const Column& voltage_col = col(Role::voltage);
-    const Column& type_col = col(Role::step_type);
-    const Column& step_id_col = col(Role::step_id);
-    const Column& step_time_col = col(Role::step_time);
-    const Column& cycle_col = col(Role::cycle);
-    const Column& date_col = col(Role::date);
+    const NewareColumn& current_col = col(Role::current);
+    const NewareColumn& voltage_col = col(Role::voltage);
+    const NewareColumn& type_col = col(Role::step_type);
+    const NewareColumn& step_id_col = col(Role::step_id);
+    const NewareColumn& step_time_col = col(Role::step_time);
+    const NewareColumn& cycle_col = col(Role::cycle);
+    const NewareColumn& date_col = col(Role::date);
     // Steps are counted from type changes and step-time resets only when no step id column says so.
     const bool count_steps = !step_id_col.present() && (type_col.present() || step_time_col.present());
 

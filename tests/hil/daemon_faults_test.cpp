@@ -125,8 +125,12 @@ public:
                   std::chrono::seconds limit = 30s) {
         return eventually([&] { return has(kind, instrument, fault); }, limit);
     }
+    // The run aborted; the API shows the state at once, the store commits the abort's events with its next batch,
+    // so wait for that commit before the events are read.
     bool wait_failed(std::chrono::seconds limit = 60s) {
-        return eventually([&] { return state() == "aborted"; }, limit);
+        if (!eventually([&] { return state() == "aborted"; }, limit)) return false;
+        d_->store().flush();
+        return true;
     }
     // Current off: the tester stopped (0 A plus the simulated sensor noise).
     bool wait_current_off(std::chrono::seconds limit = 30s) {

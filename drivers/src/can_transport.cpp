@@ -272,19 +272,12 @@ public:
         error_code result;
         for (auto it = subscribers_.begin(); it != subscribers_.end();) {
             if (it->backlog.empty()) {
-                const error_code ec = send_to(it->endpoint, bytes);
-                if (peer_gone(ec)) {
-                    it = subscribers_.erase(it);
-                    continue;
-                }
-                if (!ec) {
-                    ++it;
-                    continue;
-                }
-                if (!would_block(ec)) {
-                    result = ec;
-                    ++it;
-                    continue;
+                error_code ec;
+                switch (try_send(it->endpoint, bytes, ec)) {
+                    case Delivery::sent: ++it; continue;
+                    case Delivery::gone: it = subscribers_.erase(it); continue;
+                    case Delivery::failed: result = ec; ++it; continue;
+                    case Delivery::full: break;  // keep it in the backlog
                 }
             }
             if (it->backlog.size() >= kBacklogFrames) {
@@ -322,14 +315,22 @@ private:
         std::uint64_t lost = 0;                          // dropped from a full backlog
     };
 
-    static bool would_block(const error_code& ec) {
-        return ec == asio::error::would_block || ec == asio::error::try_again || ec == asio::error::no_buffer_space;
-    }
+    // What became of one record sent to one listener.
+    enum class Delivery {
+        sent,    // the listener's socket took it
+        full,    // its receive queue is full: keep the record and retry
+        gone,    // the listener's socket is gone: forget the listener
+        failed,  // another error, which retrying will not mend
+    };
 
-    error_code send_to(const asio::local::datagram_protocol::endpoint& to, std::span<const std::uint8_t> bytes) {
-        error_code ec;
+    Delivery try_send(const asio::local::datagram_protocol::endpoint& to, std::span<const std::uint8_t> bytes,
+                      error_code& ec) {
         socket_.send_to(asio::buffer(bytes.data(), bytes.size()), to, 0, ec);
-        return ec;
+        if (!ec) return Delivery::sent;
+        if (peer_gone(ec)) return Delivery::gone;
+        if (ec == asio::error::would_block || ec == asio::error::try_again || ec == asio::error::no_buffer_space)
+            return Delivery::full;
+        return Delivery::failed;
     }
 
     void arm_retry_locked() {
@@ -348,13 +349,21 @@ private:
         bool waiting = false;
         for (auto it = subscribers_.begin(); it != subscribers_.end();) {
             auto& q = it->backlog;
-            error_code ec;
-            while (!q.empty() && !(ec = send_to(it->endpoint, q.front()))) q.pop_front();
-            if (peer_gone(ec)) {
+            Delivery d = Delivery::sent;
+            while (!q.empty()) {
+                error_code ec;
+                d = try_send(it->endpoint, q.front(), ec);
+                if (d == Delivery::sent || d == Delivery::failed) q.pop_front();  // a failure retrying will not mend
+                if (d == Delivery::gone || d == Delivery::full) break;
+            }
+            if (d == Delivery::gone) {
                 it = subscribers_.erase(it);
                 continue;
             }
-            if (!q.empty() && !would_block(ec)) q.pop_front();  // an error that retrying will not mend
+            if (q.empty() && it->lost > 0) {
+                spdlog::warn("can-dgram {}: a listener caught up after losing {} frames", path_, it->lost);
+                it->lost = 0;
+            }
             waiting = waiting || !q.empty();
             ++it;
         }

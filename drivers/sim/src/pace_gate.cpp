@@ -5,10 +5,6 @@
 
 namespace cellbench::sim {
 
-namespace {
-double elapsed_s(PaceGate::WallClock::duration d) { return std::chrono::duration<double>(d).count(); }
-}  // namespace
-
 PaceGate::PaceGate(double time_scale, double slow_scale)
     : time_scale_(time_scale > 0 && std::isfinite(time_scale) ? time_scale : 1.0),
       slow_scale_(std::clamp(slow_scale > 0 && std::isfinite(slow_scale) ? slow_scale : 1.0, 0.0, time_scale_)) {}
@@ -23,7 +19,7 @@ PaceGate::Decision PaceGate::decide(double bench_now_s, const std::vector<Source
         const double f = lag / s.grace_bench_s;
         if (f > worst) worst = f, worst_grace = s.grace_bench_s, d.waiting_for = s.name, d.lag_bench_s = lag;
     }
-    if (last_gated_ && wall > last_wall_) gated_wall_s_ += elapsed_s(wall - last_wall_);
+    if (last_gated_ && wall > last_wall_) gated_wall_s_ += wall_seconds(wall - last_wall_);
     last_wall_ = wall;
 
     // A bench that runs no faster than the slow scale has nothing to slow down.
@@ -35,7 +31,7 @@ PaceGate::Decision PaceGate::decide(double bench_now_s, const std::vector<Source
         gave_up_ = false;
         episode_start_ = wall;
         ++episodes_;
-    } else if (!gave_up_ && elapsed_s(wall - episode_start_) > worst_grace / time_scale_) {
+    } else if (!gave_up_ && wall_seconds(wall - episode_start_) > worst_grace / time_scale_) {
         gave_up_ = true;  // silent for a whole grace of wall time while gated: a silent peer, not a slow reader
         ++expired_;
     }

@@ -7,6 +7,7 @@
 #include <random>
 
 #include "cellbench/protocol/heat_flux.hpp"
+#include "cellbench/sim/pace_gate.hpp"
 
 namespace cellbench::sim {
 
@@ -213,7 +214,6 @@ double BenchPlant::now_s() const {
 // ---- BenchClock -------------------------------------------------------------------------------------------
 
 namespace {
-double seconds(BenchClock::WallClock::duration d) { return std::chrono::duration<double>(d).count(); }
 constexpr std::size_t kTrail = 2048;  // pace()/hold() calls kept for at() (about 20 s at the daemon's 10 ms)
 constexpr std::size_t kHistory = 11;  // about 10 s of (wall, bench) pairs at 1 s spacing
 }  // namespace
@@ -240,7 +240,7 @@ double BenchClock::max_step_s() const {
 double BenchClock::read_locked(WallClock::time_point wall) const {
     if (wall >= anchor_wall_) {
         // at the last step's rate (0 when held): no reader runs ahead of the pacer by more than one step
-        return anchor_bench_ + std::min(seconds(wall - anchor_wall_), max_step_wall_s_) * rate_;
+        return anchor_bench_ + std::min(wall_seconds(wall - anchor_wall_), max_step_wall_s_) * rate_;
     }
     // An instant before the last pace(): between the two pace()/hold() calls around it (every call of the last
     // ~20 s is kept): linear at the scale when that step was whole, squeezed when it was bounded, flat when held.
@@ -248,17 +248,17 @@ double BenchClock::read_locked(WallClock::time_point wall) const {
                                         [](WallClock::time_point w, const auto& p) { return w < p.first; });
     if (after == trail_.begin()) {
         const auto& [w0, b0] = trail_.empty() ? std::pair{anchor_wall_, anchor_bench_} : trail_.front();
-        return b0 - seconds(w0 - wall) * time_scale_;  // older than the trail: extrapolated
+        return b0 - wall_seconds(w0 - wall) * time_scale_;  // older than the trail: extrapolated
     }
     const auto& [w1, b1] = *std::prev(after);
     if (after == trail_.end()) return b1;
     const auto& [w2, b2] = *after;
-    const double span = seconds(w2 - w1);
-    return span > 0 ? b1 + (b2 - b1) * std::min(1.0, seconds(wall - w1) / span) : b1;
+    const double span = wall_seconds(w2 - w1);
+    return span > 0 ? b1 + (b2 - b1) * std::min(1.0, wall_seconds(wall - w1) / span) : b1;
 }
 
 double BenchClock::at(WallClock::time_point wall) const {
-    if (!paced_) return bench_start_s_ + time_scale_ * seconds(wall - wall_start_);
+    if (!paced_) return bench_start_s_ + time_scale_ * wall_seconds(wall - wall_start_);
     std::lock_guard lock(mutex_);
     const double v = read_locked(wall);
     if (wall >= anchor_wall_) {  // "now": never earlier than what a reader saw before
@@ -300,7 +300,7 @@ double BenchClock::advance_locked(WallClock::time_point wall, double rate) {
         rate_ = std::min(rate_, rate);
         return anchor_bench_;
     }
-    const double dt = seconds(wall - anchor_wall_);
+    const double dt = wall_seconds(wall - anchor_wall_);
     const double step = std::min(dt, max_step_wall_s_);
     const double next = std::max(anchor_bench_ + step * rate, last_read_);
     lost_wall_s_ += dt - (next - anchor_bench_) / time_scale_;
@@ -311,7 +311,7 @@ double BenchClock::advance_locked(WallClock::time_point wall, double rate) {
     anchor_bench_ = next;
     last_read_ = anchor_bench_;
     rate_ = rate;
-    if (seconds(wall - history_.back().first) >= 1.0) {
+    if (wall_seconds(wall - history_.back().first) >= 1.0) {
         history_.emplace_back(wall, anchor_bench_);
         while (history_.size() > kHistory) history_.pop_front();
     }
@@ -321,7 +321,7 @@ double BenchClock::advance_locked(WallClock::time_point wall, double rate) {
 double BenchClock::achieved_scale() const {
     if (!paced_) return time_scale_;
     std::lock_guard lock(mutex_);
-    const double span = seconds(anchor_wall_ - history_.front().first);
+    const double span = wall_seconds(anchor_wall_ - history_.front().first);
     if (span < 1.0) return time_scale_;
     return (anchor_bench_ - history_.front().second) / span;
 }

@@ -20,6 +20,9 @@
 
 namespace cellbench::sim {
 
+// Seconds of a span of the simulated bench's wall clock (the pace gate's and the bench clock's).
+inline double wall_seconds(std::chrono::steady_clock::duration d) { return std::chrono::duration<double>(d).count(); }
+
 class PaceGate {
 public:
     using WallClock = std::chrono::steady_clock;

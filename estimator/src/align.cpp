@@ -10,17 +10,13 @@
 #include "cellbench/estimator/thermal_fit.hpp"
 
 #include "median.hpp"
+#include "printf_text.hpp"
 
 namespace cellbench::estimator {
 namespace {
 
 bool finite(double v) { return std::isfinite(v); }
 
-std::string fmt(const char* format, double v) {
-    char buf[64];
-    std::snprintf(buf, sizeof buf, format, v);
-    return buf;
-}
 
 // Weights of the local-linear derivative seen as a smoother: the slope of a least-squares line over
 // [t-h, t+h] equals the derivative smoothed with the parabolic kernel K(s) = 3/(4h) (1 - s^2/h^2). Applying K to
@@ -306,8 +302,8 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
     for (std::size_t i = 1; i < coarse.size(); ++i)
         if (coarse[i].r > coarse[gi].r) gi = i;
     if (!finite(coarse[gi].offset_s))
-        throw InputError("clock alignment: no offset within +-" + fmt("%.0f", max_offset_s) +
-                         " s gives an overlap of at least " + fmt("%.0f", min_overlap) + " s");
+        throw InputError("clock alignment: no offset within +-" + printf_text("%.0f", max_offset_s) +
+                         " s gives an overlap of at least " + printf_text("%.0f", min_overlap) + " s");
     const double global_offset = coarse[gi].offset_s;
 
     // 2) Every lag in 1 s steps: coarse offsets near the ridge (+-15 s around the interpolated coarse optimum,
@@ -357,13 +353,13 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
     out.start_mismatch_s = daq_time_s.front() + out.offset_s - cycler_time_s.front();
     out.end_mismatch_s = daq_time_s.back() + out.offset_s - cycler_time_s.back();
 
-    out.note = "heat balance correlation r = " + fmt("%.3f", out.correlation) + " at offset " +
-               fmt("%+.2f", out.offset_s) + " s with a " + fmt("%.0f", out.lag_s) +
+    out.note = "heat balance correlation r = " + printf_text("%.3f", out.correlation) + " at offset " +
+               printf_text("%+.2f", out.offset_s) + " s with a " + printf_text("%.0f", out.lag_s) +
                " s first-order response lag (effective Joule resistance " +
-               fmt("%.1f", 1e3 * out.joule_resistance_ohm) + " mOhm); plain I^2 cross-correlation gives " +
-               fmt("%+.2f", out.offset_no_lag_s) + " s (r = " + fmt("%.3f", out.correlation_no_lag) +
-               "); offset and lag trade off: offsets within " + fmt("%.1f", out.uncertainty_s) +
-               " s fit as well; overlap " + fmt("%.0f", out.overlap_s) + " s";
+               printf_text("%.1f", 1e3 * out.joule_resistance_ohm) + " mOhm); plain I^2 cross-correlation gives " +
+               printf_text("%+.2f", out.offset_no_lag_s) + " s (r = " + printf_text("%.3f", out.correlation_no_lag) +
+               "); offset and lag trade off: offsets within " + printf_text("%.1f", out.uncertainty_s) +
+               " s fit as well; overlap " + printf_text("%.0f", out.overlap_s) + " s";
     if (out.correlation < 0.5)
         out.note += "; WEAK correlation: little current variation, or the two files are not of the same test";
     if (out.at_search_limit) out.note += "; best offset at the search limit: widen max_offset_s";
@@ -371,23 +367,23 @@ ClockAlignment estimate_clock_offset(const std::vector<double>& cycler_time_s, c
 }
 
 void check_clock_alignment(const ClockAlignment& al, const std::string& what, const AlignOptions& options) {
-    const std::string found = "best offset " + fmt("%+.1f", al.offset_s) + " s, correlation r = " +
-                              fmt("%.3f", al.correlation) + ", offsets within " + fmt("%.1f", al.uncertainty_s) +
-                              " s fit as well; the DAQ record would start " + fmt("%+.1f", al.start_mismatch_s) +
-                              " s and end " + fmt("%+.1f", al.end_mismatch_s) + " s from the cycler's";
+    const std::string found = "best offset " + printf_text("%+.1f", al.offset_s) + " s, correlation r = " +
+                              printf_text("%.3f", al.correlation) + ", offsets within " + printf_text("%.1f", al.uncertainty_s) +
+                              " s fit as well; the DAQ record would start " + printf_text("%+.1f", al.start_mismatch_s) +
+                              " s and end " + printf_text("%+.1f", al.end_mismatch_s) + " s from the cycler's";
     auto refuse = [&](const std::string& why) {
         throw InputError(what + ": clock alignment refused: " + why + " (" + found +
                          "); check that both files are complete exports of the same test");
     };
     if (!finite(al.offset_s) || !finite(al.correlation)) refuse("no alignment found");
     if (al.correlation < options.min_correlation)
-        refuse("weak evidence: correlation below " + fmt("%.2f", options.min_correlation));
+        refuse("weak evidence: correlation below " + printf_text("%.2f", options.min_correlation));
     if (al.at_search_limit) refuse("the best offset is at the edge of the search range (widen --max-offset)");
     if (al.uncertainty_s > options.max_uncertainty_s)
-        refuse("ambiguous: a ridge of equally good offsets wider than " + fmt("%.0f", options.max_uncertainty_s) + " s");
+        refuse("ambiguous: a ridge of equally good offsets wider than " + printf_text("%.0f", options.max_uncertainty_s) + " s");
     if (std::abs(al.start_mismatch_s) > options.max_end_mismatch_s &&
         std::abs(al.end_mismatch_s) > options.max_end_mismatch_s)
-        refuse("neither end of the DAQ record lands within " + fmt("%.0f", options.max_end_mismatch_s) +
+        refuse("neither end of the DAQ record lands within " + printf_text("%.0f", options.max_end_mismatch_s) +
                " s of the cycler's own first and last timestamps");
 }
 

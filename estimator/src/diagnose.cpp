@@ -1,4 +1,5 @@
 #include "cellbench/estimator/diagnose.hpp"
+#include "printf_text.hpp"
 
 #include <algorithm>
 #include <atomic>
@@ -383,11 +384,6 @@ std::string pct(double x) {
     std::snprintf(b, sizeof b, "%.0f %%", 100.0 * x);
     return b;
 }
-std::string num(const char* fmt, double x) {
-    char b[64];
-    std::snprintf(b, sizeof b, fmt, x);
-    return b;
-}
 
 double reduction(const std::optional<double>& before, const std::optional<double>& after) {
     if (!before || !after || !(*before > 0)) return 0.0;
@@ -404,63 +400,63 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
         what = (has_entropic_table(base) ? "the entropic coefficient table is off (parameters wrong, corrected on this "
                                            "recording): dU/dT "
                                          : "reversible (entropic) heat I*T*dU/dT was missing: dU/dT ") +
-               num("%+.3f", x[0] * 1e3) + " mV/K at 50 % SOC (" + num("%+.3f", x[1] * 1e3) + " mV/K per unit SOC)" +
+               printf_text("%+.3f", x[0] * 1e3) + " mV/K at 50 % SOC (" + printf_text("%+.3f", x[1] * 1e3) + " mV/K per unit SOC)" +
                (has_entropic_table(base) ? " added to the table" : "");
     else if (id == "thermal_second_order")
         what = "the cell is not one lump: a core node holding " + pct(x[0]) + " of the heat capacity behind " +
-               num("%.2f", x[1]) + " K/W lags the surface the sensors see (with it, C_th " +
-               num("%.1f", x[2] * base.thermal.c_th_j_per_k) + " J/K and R_th " +
-               num("%.2f", x[3] * base.thermal.r_th_k_per_w) + " K/W)";
+               printf_text("%.2f", x[1]) + " K/W lags the surface the sensors see (with it, C_th " +
+               printf_text("%.1f", x[2] * base.thermal.c_th_j_per_k) + " J/K and R_th " +
+               printf_text("%.2f", x[3] * base.thermal.r_th_k_per_w) + " K/W)";
     else if (id == "resistance_temperature") {
         const double f10 = std::exp(x[0] / 8.314462618 *
                                     (1.0 / (base.reference_temperature_c + 283.15) - 1.0 / (base.reference_temperature_c + 273.15)));
         what = "resistances depend on cell temperature: they fall " + pct(1.0 - f10) + " per 10 K (Ea = " +
-               num("%.0f", x[0] / 1e3) + " kJ/mol), coupling the heat back into the voltage";
+               printf_text("%.0f", x[0] / 1e3) + " kJ/mol), coupling the heat back into the voltage";
     } else if (id == "resistance_current") {
         const double x4 = 4.0 * base.capacity_ah / (2 * x[0]), x1 = base.capacity_ah / (2 * x[0]);
         what = "polarization is not linear in current (Butler-Volmer): at 4C the RC resistances are " +
-               pct(std::asinh(x4) / x4 / (std::asinh(x1) / x1)) + " of their 1C value (I0 = " + num("%.1f", x[0]) + " A)";
+               pct(std::asinh(x4) / x4 / (std::asinh(x1) / x1)) + " of their 1C value (I0 = " + printf_text("%.1f", x[0]) + " A)";
     } else if (id == "ocv_hysteresis") {
-        what = "the OCV depends on the direction of the last current: +-" + num("%.1f", x[0] * 1e3) +
+        what = "the OCV depends on the direction of the last current: +-" + printf_text("%.1f", x[0] * 1e3) +
                " mV, settling over " + pct(1.0 / x[1]) + " of the capacity";
         if (std::abs(x[2]) > 0.25 * x[0])
-            what += "; the parameter set's OCV lies " + num("%.1f", std::abs(x[2]) * 1e3) + " mV " +
+            what += "; the parameter set's OCV lies " + printf_text("%.1f", std::abs(x[2]) * 1e3) + " mV " +
                     (x[2] > 0 ? "below" : "above") + " the centre between the branches (measured on the " +
                     (x[2] > 0 ? "discharge" : "charge") + " branch)";
     }
     else if (id == "extra_rc")
-        what = "a slow diffusion time constant beyond the two RC pairs: " + num("%.2f", x[0] * 1e3) + " mOhm with tau " +
-               num("%.0f", x[1]) + " s (with it, the second pair's R2 x" + num("%.2f", x[2]) + " and tau2 x" +
-               num("%.2f", x[3]) + ")";
+        what = "a slow diffusion time constant beyond the two RC pairs: " + printf_text("%.2f", x[0] * 1e3) + " mOhm with tau " +
+               printf_text("%.0f", x[1]) + " s (with it, the second pair's R2 x" + printf_text("%.2f", x[2]) + " and tau2 x" +
+               printf_text("%.2f", x[3]) + ")";
     else if (id == "thermal_parameters")
         what = "the lumped thermal parameters are off (parameters wrong, re-identified on this recording): C_th " +
-               num("%.1f", x[0] * base.thermal.c_th_j_per_k) + " J/K instead of " + num("%.1f", base.thermal.c_th_j_per_k) +
-               ", R_th " + num("%.2f", x[1] * base.thermal.r_th_k_per_w) + " K/W instead of " +
-               num("%.2f", base.thermal.r_th_k_per_w);
+               printf_text("%.1f", x[0] * base.thermal.c_th_j_per_k) + " J/K instead of " + printf_text("%.1f", base.thermal.c_th_j_per_k) +
+               ", R_th " + printf_text("%.2f", x[1] * base.thermal.r_th_k_per_w) + " K/W instead of " +
+               printf_text("%.2f", base.thermal.r_th_k_per_w);
     else if (id == "ocv_band")
         what = "the OCV table is off in one SOC band (parameters wrong, re-identified on this recording): " +
-               num("%+.1f", x[0] * 1e3) + " mV at SOC " + pct(x[1]) + ", fading to 0 at SOC " +
+               printf_text("%+.1f", x[0] * 1e3) + " mV at SOC " + pct(x[1]) + ", fading to 0 at SOC " +
                pct(std::max(0.0, x[1] - x[2])) + " and " + pct(std::min(1.0, x[1] + x[2]));
     else if (id == "initial_soc")
-        what = "the recording starts at a SOC " + num("%+.1f", x[0] * 100.0) +
+        what = "the recording starts at a SOC " + printf_text("%+.1f", x[0] * 100.0) +
                " % of the capacity from the one its first voltage implies (its history: the cell sat on another "
                "hysteresis branch than the OCV table's, or had not rested; a state of this recording, not written "
                "to the improved parameter set)";
     else if (id == "ocv_offset") {
-        what = "the OCV table is off by " + num("%+.1f", x[0] * 1e3) +
+        what = "the OCV table is off by " + printf_text("%+.1f", x[0] * 1e3) +
                " mV over the whole SOC range (parameters wrong, re-identified on this recording)";
     } else if (id == "capacity_error")
-        what = "the usable capacity is " + pct(x[0]) + " of the parameter set's (" + num("%.3f", x[0] * base.capacity_ah) +
-               " Ah instead of " + num("%.3f", base.capacity_ah) + " Ah): the SOC drifts";
+        what = "the usable capacity is " + pct(x[0]) + " of the parameter set's (" + printf_text("%.3f", x[0] * base.capacity_ah) +
+               " Ah instead of " + printf_text("%.3f", base.capacity_ah) + " Ah): the SOC drifts";
     else if (id == "series_resistance_offset")
-        what = x[0] >= 0 ? "extra series resistance of " + num("%.2f", x[0] * 1e3) +
+        what = x[0] >= 0 ? "extra series resistance of " + printf_text("%.2f", x[0] * 1e3) +
                                " mOhm (harness, contacts) that was not there in characterization"
-                         : "series resistance " + num("%.2f", -x[0] * 1e3) +
+                         : "series resistance " + printf_text("%.2f", -x[0] * 1e3) +
                                " mOhm lower than the parameter set's (its R0 is too high for this cell or set-up)";
     else if (id == "heat_flux_sensor_gain")
         what = "the heat flux sensor reads " + pct(x[0]) + " of the heat leaving the cell (sensitivity or coverage)";
     else if (id == "ambient_drift")
-        what = "the ambient was not constant: offset " + num("%+.2f", x[0]) + " K and drift " + num("%+.2f", x[1]) + " K/h";
+        what = "the ambient was not constant: offset " + printf_text("%+.2f", x[0]) + " K and drift " + printf_text("%+.2f", x[1]) + " K/h";
     std::string fixed;
     auto add = [&](const char* name, double r) {
         if (r > 0.02) fixed += (fixed.empty() ? "" : ", ") + std::string(name) + " " + pct(r);
@@ -829,7 +825,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                     fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
                     if (within_capacity_sd)
                         fd.explanation += "; within twice the characterization's capacity uncertainty (+-" +
-                                          num("%.2f", 100.0 * params.capacity_ah_sd / params.capacity_ah) +
+                                          printf_text("%.2f", 100.0 * params.capacity_ah_sd / params.capacity_ah) +
                                           " % at 1 sd): not evidence that the capacity is wrong";
                     // An OCV correction the characterization's own rests rule out: where the parameter set states
                     // its OCV uncertainty (ocv_v_sd), a correction beyond 5 sd there and beyond the instrument's
@@ -855,8 +851,8 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                         if (std::isfinite(sd) && std::abs(full.x[0]) > allowed) {
                             fd.implausible = true;
                             fd.parameters["offset_v_flags"] = {"contradicts_characterization", "implausible"};
-                            fd.explanation += "; but the characterization measured this OCV to +-" + num("%.1f", sd * 1e3) +
-                                              " mV (1 sd): a correction beyond " + num("%.1f", allowed * 1e3) +
+                            fd.explanation += "; but the characterization measured this OCV to +-" + printf_text("%.1f", sd * 1e3) +
+                                              " mV (1 sd): a correction beyond " + printf_text("%.1f", allowed * 1e3) +
                                               " mV contradicts it unless the cell changed since (otherwise its history, "
                                               "e.g. a hysteresis, or its SOC differs)";
                         }
@@ -934,18 +930,18 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                 if (std::find(u.above_noise.begin(), u.above_noise.end(), name) == u.above_noise.end()) return;
                 const std::string words = name == "heat_flux" ? "heat flux" : name;
                 q += (q.empty() ? "" : ", ") + words;
-                numbers += (numbers.empty() ? "" : "; ") + words + " " + num(fmt_r, *r * scale) + " " + unit +
-                           " RMS against " + num(fmt_n, *sg * scale) + " " + unit + " noise";
+                numbers += (numbers.empty() ? "" : "; ") + words + " " + printf_text(fmt_r, *r * scale) + " " + unit +
+                           " RMS against " + printf_text(fmt_n, *sg * scale) + " " + unit + " noise";
             };
             quote("voltage", u.rms.voltage_v, u.noise.voltage_v, 1e3, "mV", "%.2f", "%.2g");
             quote("temperature", u.rms.temperature_c, u.noise.temperature_c, 1.0, "degC", "%.3f", "%.2g");
             quote("heat_flux", u.rms.heat_flux_w, u.noise.heat_flux_w, 1.0, "W", "%.4f", "%.2g");
-            u.summary = "after the findings the " + q + " error stays above " + num("%.0f", options.noise_factor) +
+            u.summary = "after the findings the " + q + " error stays above " + printf_text("%.0f", options.noise_factor) +
                         "x the measurement noise estimated from the recording's rests (" + numbers + ")";
             if (!u.where.empty())
                 u.summary += "; the voltage error sits most in " + u.where.front().condition + " (" +
                              pct(u.where.front().share_of_voltage_error) + " of it squared, bias " +
-                             num("%+.1f", u.where.front().voltage_bias_v * 1e3) + " mV)";
+                             printf_text("%+.1f", u.where.front().voltage_bias_v * 1e3) + " mV)";
             if (!u.voltage.terms.empty() && u.voltage.explained >= 0.2) {
                 u.summary += "; a sparse model of the voltage residual explains " + pct(u.voltage.explained) + " with";
                 for (const auto& t : u.voltage.terms) u.summary += " " + t.term;
@@ -958,12 +954,12 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         d.summary = "No candidate passes the significance test (held-out error reduction >= " +
                     pct(options.min_cv_improvement) + " on average and in " + std::to_string(folds - 1) + " of " +
                     std::to_string(folds) + " interleaved folds, BIC improvement > " +
-                    num("%.0f", -options.bic_threshold) + ")";
+                    printf_text("%.0f", -options.bic_threshold) + ")";
         if (d.holdout.contains("evidence_quantities") && d.holdout["evidence_quantities"].empty())
             d.summary += "; every error is within its instrument's accuracy (voltage " +
-                         num("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
-                         num("%.2f", options.temperature_floor_c) + " degC, heat flux " +
-                         num("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
+                         printf_text("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
+                         printf_text("%.2f", options.temperature_floor_c) + " degC, heat flux " +
+                         printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         d.summary += d.unexplained ? ", but the model is NOT adequate: " + d.unexplained->summary + "."
                                    : " and the residual is at the noise level: the model is adequate for this recording.";
     } else {

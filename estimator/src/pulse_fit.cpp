@@ -1,4 +1,5 @@
 #include "cellbench/estimator/pulse_fit.hpp"
+#include "printf_text.hpp"
 
 #include <algorithm>
 #include <array>
@@ -30,11 +31,6 @@ RcValues to_rc_values(const Rc2Params<double>& p) {
 
 namespace {
 
-std::string fmt(const char* f, double a, double b = 0.0, double c = 0.0) {
-    char buf[256];
-    std::snprintf(buf, sizeof buf, f, a, b, c);
-    return buf;
-}
 
 double finite_mean(std::initializer_list<double> xs) {
     double s = 0.0;
@@ -322,8 +318,8 @@ void thesis_fits(const Recording& rec, const PulseSet& ps, const Window& w, std:
         } else if (f->at_bound) {
             out.warnings.push_back(std::string("thesis method: the ") + name +
                                    " fit ended on a bound of Scripts 3.3-3.6" +
-                                   fmt(" (a = %.4g V, tau1 = %.3g s, ", f->a_v, f->tau1_s) +
-                                   fmt("b = %.4g V, tau2 = %.3g s)", f->b_v, f->tau2_s));
+                                   printf_text(" (a = %.4g V, tau1 = %.3g s, ", f->a_v, f->tau1_s) +
+                                   printf_text("b = %.4g V, tau2 = %.3g s)", f->b_v, f->tau2_s));
         }
         if (std::isfinite(f->r1_ohm) && (!(f->r1_ohm > 0.0) || !(f->r2_ohm > 0.0)))
             out.warnings.push_back(std::string("thesis method: the ") + name +
@@ -888,14 +884,19 @@ Candidate candidate_of(const JointResult& r) {
     return c;
 }
 
-void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
-    std::vector<std::size_t> rows;
-    std::vector<double> y;
+// The rows of w with a voltage and a time, and the overpotential V - OCV at each (what the joint model fits).
+void overpotential_rows(const Window& w, std::vector<std::size_t>& rows, std::vector<double>& y) {
     for (std::size_t k = 0; k < w.n(); ++k) {
         if (!std::isfinite(w.v[k]) || !std::isfinite(w.t[k])) continue;
         rows.push_back(k);
         y.push_back(w.v[k] - w.ocv[k]);
     }
+}
+
+void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
+    std::vector<std::size_t> rows;
+    std::vector<double> y;
+    overpotential_rows(w, rows, y);
     if (rows.size() < 4 * kNumJoint) {
         out.warnings.push_back("joint method: too few valid rows to fit");
         return;
@@ -1002,7 +1003,7 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
         if (near(p.tau1_s, o.tau1_min_s) || near(p.tau1_s, o.tau1_max_s) || near(p.tau2_s, o.tau2_min_s) ||
             near(p.tau2_s, o.tau2_max_s))
             out.warnings.push_back(std::string("joint method: a ") + name +
-                                   fmt(" time constant is on its bound (tau1 = %.3g s, tau2 = %.3g s)",
+                                   printf_text(" time constant is on its bound (tau1 = %.3g s, tau2 = %.3g s)",
                                        p.tau1_s, p.tau2_s));
         if (!(p.r1_ohm > 0.0) || !(p.r2_ohm > 0.0) || !(p.r0_ohm > 0.0))
             out.warnings.push_back(std::string("joint method: a ") + name + " resistance is zero (on its bound)");
@@ -1017,11 +1018,7 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
 double joint_search_cost(const Window& w, const PulseFitOptions& o) {
     std::vector<std::size_t> rows;
     std::vector<double> y;
-    for (std::size_t k = 0; k < w.n(); ++k) {
-        if (!std::isfinite(w.v[k]) || !std::isfinite(w.t[k])) continue;
-        rows.push_back(k);
-        y.push_back(w.v[k] - w.ocv[k]);
-    }
+    overpotential_rows(w, rows, y);
     if (rows.size() < 4 * kNumJoint) return std::numeric_limits<double>::infinity();
     const auto g1 = log_grid(o.tau1_min_s, o.tau1_max_s, o.tau1_grid);
     const auto g2 = log_grid(o.tau2_min_s, o.tau2_max_s, o.tau2_grid);
@@ -1140,7 +1137,7 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     if (o.docv_dah_v_per_ah == 0.0 && o.estimate_unknown_ocv_slope && o.joint_method && !extended_requested) {
         o.docv_dah_v_per_ah = estimate_ocv_slope(rec, ps, first, end, out.ocv_v, out.r0.discharge_ohm, o);
         if (o.docv_dah_v_per_ah > 0.0)
-            out.warnings.push_back(fmt("OCV slope unknown (docv_dah_v_per_ah = 0): estimated from the pulse set itself, %.4f V/Ah",
+            out.warnings.push_back(printf_text("OCV slope unknown (docv_dah_v_per_ah = 0): estimated from the pulse set itself, %.4f V/Ah",
                                        o.docv_dah_v_per_ah));
     }
     const Window w = make_window(rec, first, end, out.ocv_v, o.docv_dah_v_per_ah);
@@ -1160,19 +1157,19 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
 
     if (ps.charge_cv)
         out.warnings.push_back(
-            fmt("the charge pulse hit the upper voltage limit and turned CV (current fell from %.2f A to %.2f A): "
+            printf_text("the charge pulse hit the upper voltage limit and turned CV (current fell from %.2f A to %.2f A): "
                 "its charge parameters (and R0 GH) are not those of a constant-current pulse",
                 std::abs(rec.current_a[ps.charge_begin]), std::abs(rec.current_a[ps.charge_end - 1])));
     if (ps.discharge_cv)
         out.warnings.push_back(
-            fmt("the discharge pulse hit the lower voltage limit and turned CV (current fell from %.2f A to "
+            printf_text("the discharge pulse hit the lower voltage limit and turned CV (current fell from %.2f A to "
                 "%.2f A): its discharge parameters are not those of a constant-current pulse",
                 std::abs(rec.current_a[ps.pulse_begin]), std::abs(rec.current_a[ps.discharge_end - 1])));
     if (o.docv_dah_v_per_ah == 0.0)
         out.warnings.push_back("OCV slope unknown (docv_dah_v_per_ah = 0): the OCV is held at V_A during the "
                                "pulse set");
     if (ps.charge_relaxation_s > 0.0 && ps.charge_relaxation_s < 30.0)
-        out.warnings.push_back(fmt("the charge relaxation lasts only %.1f s", ps.charge_relaxation_s));
+        out.warnings.push_back(printf_text("the charge relaxation lasts only %.1f s", ps.charge_relaxation_s));
 
     if (o.thesis_method) thesis_fits(rec, ps, w, end, o, out);
     const bool extended = o.extended_end > ps.end && o.extended_end <= n && std::isfinite(o.extended_end_ocv_v);
@@ -1210,7 +1207,7 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
         if (against_rms)
             out.warnings.push_back(std::string("chose the ") + to_string(out.chosen) +
                                    " result although the other predicts the pulse set better" +
-                                   fmt(" (%.2f mV vs %.2f mV RMS): the other's parameters are on a bound or not "
+                                   printf_text(" (%.2f mV vs %.2f mV RMS): the other's parameters are on a bound or not "
                                        "positive",
                                        1e3 * std::min(out.joint_rms_v, out.thesis_rms_v),
                                        1e3 * std::max(out.joint_rms_v, out.thesis_rms_v)));

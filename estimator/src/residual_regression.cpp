@@ -211,19 +211,18 @@ ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace&
     Eigen::VectorXd beta = Eigen::VectorXd::Zero(static_cast<long>(p));
     const Eigen::MatrixXd G = X.transpose() * X / static_cast<double>(m);
     const Eigen::VectorXd b = X.transpose() * y / static_cast<double>(m);
+    // The least-squares coefficients of the columns idx alone (ridge 1e-6 on the diagonal).
+    auto solve_on = [&](const std::vector<long>& idx) -> Eigen::VectorXd {
+        Eigen::MatrixXd g = G(idx, idx);
+        g.diagonal().array() += 1e-6;
+        return g.ldlt().solve(Eigen::VectorXd(b(idx)));
+    };
     for (int it = 0; it < 12; ++it) {
         std::vector<long> idx;
         for (std::size_t j = 0; j < p; ++j)
             if (active[j]) idx.push_back(static_cast<long>(j));
         if (idx.empty()) break;
-        Eigen::MatrixXd g(idx.size(), idx.size());
-        Eigen::VectorXd bb(idx.size());
-        for (std::size_t a = 0; a < idx.size(); ++a) {
-            bb(static_cast<long>(a)) = b(idx[a]);
-            for (std::size_t c = 0; c < idx.size(); ++c) g(static_cast<long>(a), static_cast<long>(c)) = G(idx[a], idx[c]);
-            g(static_cast<long>(a), static_cast<long>(a)) += 1e-6;
-        }
-        const Eigen::VectorXd sol = g.ldlt().solve(bb);
+        const Eigen::VectorXd sol = solve_on(idx);
         beta.setZero();
         bool changed = false;
         for (std::size_t a = 0; a < idx.size(); ++a) beta(idx[a]) = sol(static_cast<long>(a));
@@ -248,14 +247,7 @@ ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace&
         for (std::size_t j = 0; j < p; ++j)
             if (active[j] && static_cast<long>(j) != drop) idx.push_back(static_cast<long>(j));
         if (idx.empty()) return y.squaredNorm();
-        Eigen::MatrixXd g(idx.size(), idx.size());
-        Eigen::VectorXd bb(idx.size());
-        for (std::size_t a = 0; a < idx.size(); ++a) {
-            bb(static_cast<long>(a)) = b(idx[a]);
-            for (std::size_t c = 0; c < idx.size(); ++c) g(static_cast<long>(a), static_cast<long>(c)) = G(idx[a], idx[c]);
-            g(static_cast<long>(a), static_cast<long>(a)) += 1e-6;
-        }
-        const Eigen::VectorXd sol = g.ldlt().solve(bb);
+        const Eigen::VectorXd sol = solve_on(idx);
         Eigen::VectorXd fit = Eigen::VectorXd::Zero(static_cast<long>(m));
         for (std::size_t a = 0; a < idx.size(); ++a) fit += sol(static_cast<long>(a)) * X.col(idx[a]);
         return (y - fit).squaredNorm();

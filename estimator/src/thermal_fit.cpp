@@ -1,6 +1,7 @@
 // Thermal parameter fits (thesis chapter 4): derivative, C_th from rests (eq. 4.7-4.8), R_th two ways (eq. 4.9
 // and the cooling time constant), entropic heat coefficient (eq. 4.4-4.6), charge throughput and capacity.
 #include "cellbench/estimator/thermal_fit.hpp"
+#include "printf_text.hpp"
 
 #include <algorithm>
 #include <array>
@@ -18,11 +19,6 @@ namespace {
 
 bool finite(double v) { return std::isfinite(v); }
 
-std::string fmt(const char* format, double v) {
-    char buf[64];
-    std::snprintf(buf, sizeof buf, format, v);
-    return buf;
-}
 
 void require_thermal_channels(const Recording& rec, const char* who) {
     if (!rec.has_surface())
@@ -261,7 +257,7 @@ RestCoolingFit fit_rest_cooling(const Recording& rec, RowRange range, const Ther
     if (std::abs(dt0) < opt.min_delta_t_k) {
         out.delta_t_k = dt0;
         out.t_inf_c = t_inf0;
-        out.reason = "excess temperature " + fmt("%.3f", dt0) + " K below " + fmt("%.3f", opt.min_delta_t_k) + " K";
+        out.reason = "excess temperature " + printf_text("%.3f", dt0) + " K below " + printf_text("%.3f", opt.min_delta_t_k) + " K";
         return out;
     }
 
@@ -337,12 +333,12 @@ RestCoolingFit fit_rest_cooling(const Recording& rec, RowRange range, const Ther
     out.tau_se_s = std::sqrt(std::max(0.0, cov(2, 2)));
 
     if (std::abs(out.delta_t_k) < opt.min_delta_t_k) {
-        out.reason = "fitted excess temperature " + fmt("%.3f", out.delta_t_k) + " K below " +
-                     fmt("%.3f", opt.min_delta_t_k) + " K";
+        out.reason = "fitted excess temperature " + printf_text("%.3f", out.delta_t_k) + " K below " +
+                     printf_text("%.3f", opt.min_delta_t_k) + " K";
         return out;
     }
     if (tau < 5.0 || tau > 20.0 * std::max(duration, 1.0)) {
-        out.reason = "time constant " + fmt("%.0f", tau) + " s outside [5 s, 20 x rest]";
+        out.reason = "time constant " + printf_text("%.0f", tau) + " s outside [5 s, 20 x rest]";
         return out;
     }
     if (!(out.tau_se_s < 0.5 * tau)) {
@@ -511,8 +507,8 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
     for (std::size_t n : rows) total_rows += n;
     out.points = total_rows;
     if (xs.size() < 3) {
-        out.note = "no usable rest rows (rests shorter than skip " + fmt("%.0f", skip_s) + " s + a chunk of " +
-                   fmt("%.0f", chunk_s) + " s, or no thermal data in them)";
+        out.note = "no usable rest rows (rests shorter than skip " + printf_text("%.0f", skip_s) + " s + a chunk of " +
+                   printf_text("%.0f", chunk_s) + " s, or no thermal data in them)";
         return out;
     }
     const auto reg = robust_origin_regression(xs, ys, cl, vx);
@@ -532,12 +528,12 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
         out.c_th_j_per_k = kNaN;
         return out;
     }
-    out.note = "C_th " + fmt("%.2f", out.c_th_j_per_k) + " +- " + fmt("%.2f", out.c_th_se_j_per_k) +
+    out.note = "C_th " + printf_text("%.2f", out.c_th_j_per_k) + " +- " + printf_text("%.2f", out.c_th_se_j_per_k) +
                " J/K from the energy balance of " + std::to_string(out.rests_used) + " rest(s) in " +
-               std::to_string(xs.size()) + " chunks of " + fmt("%.0f", chunk_s) + " s, " + std::to_string(out.points) +
-               " rows (skip " + fmt("%.0f", skip_s) + " s), R^2 " + fmt("%.4f", out.r_squared) +
+               std::to_string(xs.size()) + " chunks of " + printf_text("%.0f", chunk_s) + " s, " + std::to_string(out.points) +
+               " rows (skip " + printf_text("%.0f", skip_s) + " s), R^2 " + printf_text("%.4f", out.r_squared) +
                "; robust weights dropped " +
-               fmt("%.1f", 100.0 * static_cast<double>(out.points_rejected) / static_cast<double>(std::max<std::size_t>(out.points, 1))) +
+               printf_text("%.1f", 100.0 * static_cast<double>(out.points_rejected) / static_cast<double>(std::max<std::size_t>(out.points, 1))) +
                " % of the rows";
     if (finite(out.r_squared) && out.r_squared < 0.9)
         out.note += "; low R^2: the rests hold little cooling (small excess temperature) or the data are noisy";
@@ -675,7 +671,7 @@ ThermalResistanceFit fit_thermal_resistance(const Recording& rec, const std::vec
             const double rel = std::hypot(out.tau_se_s / out.tau_s, opt.c_th_se_j_per_k / c_th_j_per_k);
             out.r_th_tau_se_k_per_w = out.r_th_tau_k_per_w * rel;
         } else if (!out.rests.empty()) {
-            notes.push_back("(b) no rest cools measurably (excess temperature >= " + fmt("%.2f", opt.min_delta_t_k) +
+            notes.push_back("(b) no rest cools measurably (excess temperature >= " + printf_text("%.2f", opt.min_delta_t_k) +
                             " K after the skip)");
         } else {
             notes.push_back("(b) no rest among the ranges: the cooling time constant needs a rest");
@@ -686,11 +682,11 @@ ThermalResistanceFit fit_thermal_resistance(const Recording& rec, const std::vec
         const double a = out.r_th_flux_k_per_w, b = out.r_th_tau_k_per_w;
         out.relative_difference = (a - b) / (0.5 * (a + b));
         out.disagree = std::abs(out.relative_difference) > opt.disagree_fraction;
-        std::string s = "R_th from heat flow " + fmt("%.2f", a) + " K/W vs from cooling time constant " +
-                        fmt("%.2f", b) + " K/W (tau " + fmt("%.0f", out.tau_s) + " s / C_th " +
-                        fmt("%.1f", c_th_j_per_k) + " J/K): " + fmt("%+.1f", 100 * out.relative_difference) + " %";
+        std::string s = "R_th from heat flow " + printf_text("%.2f", a) + " K/W vs from cooling time constant " +
+                        printf_text("%.2f", b) + " K/W (tau " + printf_text("%.0f", out.tau_s) + " s / C_th " +
+                        printf_text("%.1f", c_th_j_per_k) + " J/K): " + printf_text("%+.1f", 100 * out.relative_difference) + " %";
         if (out.disagree)
-            s += " - they DISAGREE by more than " + fmt("%.0f", 100 * opt.disagree_fraction) +
+            s += " - they DISAGREE by more than " + printf_text("%.0f", 100 * opt.disagree_fraction) +
                  " %. Likely causes: the sensor sees the flux of one patch of the can, not the terminals and "
                  "cables (flux-based R_th too high) or a sensor gain error; core hotter than the surface "
                  "(two-node cooling: tau/C_th too high); C_th error; ambient drift during the rests";
@@ -785,7 +781,7 @@ EntropicFit fit_entropic_coefficient(const Recording& rec, RowRange cc_discharge
     for (std::size_t j = 0; j < m; ++j) {
         out.samples[j] = bins[j].size();
         if (bins[j].size() < opt.min_samples || bins[j].empty()) {
-            empty_bins.push_back(fmt("%.2f", soc_grid[j]));
+            empty_bins.push_back(printf_text("%.2f", soc_grid[j]));
             continue;
         }
         const double med = median_of(bins[j]);
@@ -795,17 +791,17 @@ EntropicFit fit_entropic_coefficient(const Recording& rec, RowRange cc_discharge
         out.ehc_v_per_k[j] = med;
         out.spread_v_per_k[j] = mad_sigma_about_zero(dev);
         out.has_data[j] = true;
-        if (out.extrapolated_ocv[j]) extrap_bins.push_back(fmt("%.2f", soc_grid[j]));
+        if (out.extrapolated_ocv[j]) extrap_bins.push_back(printf_text("%.2f", soc_grid[j]));
     }
 
     std::vector<std::string> notes;
     if (out.rows_used == 0) notes.push_back("no usable rows in the discharge range");
     if (finite(out.joule_share) && out.joule_share > 0.6)
-        notes.push_back("Joule heat dominates (median " + fmt("%.0f", 100 * out.joule_share) + " % of |Q_irr|+|Q_rev| at " +
-                        fmt("%.1f", out.mean_abs_current_a) +
+        notes.push_back("Joule heat dominates (median " + printf_text("%.0f", 100 * out.joule_share) + " % of |Q_irr|+|Q_rev| at " +
+                        printf_text("%.1f", out.mean_abs_current_a) +
                         " A): dU/dT is a small difference of large terms, sensitive to OCV (10 mV -> ~0.03 mV/K at "
                         "4C), C_th and the heat flux sensor gain; estimate kept robust (per-row bound +-" +
-                        fmt("%.1f", 1e3 * opt.max_abs_v_per_k) +
+                        printf_text("%.1f", 1e3 * opt.max_abs_v_per_k) +
                         " mV/K, medians per SOC bin). Prefer a C/2 or slower discharge (thesis 4.1.2)");
     if (!empty_bins.empty()) {
         std::string s = "no data at SOC";

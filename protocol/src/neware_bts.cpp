@@ -312,12 +312,17 @@ void attr(std::string& out, std::string_view name, std::string_view value) {
 }
 void attr(std::string& out, std::string_view name, int value) { attr(out, name, std::to_string(value)); }
 
-void channel_attrs_out(std::string& out, const ChannelAddress& a, std::string_view chlid_name = "chlid") {
-    attr(out, "ip", a.ip);
+// A channel's address without the ip: what public clients send and what the tester's test-level answers carry.
+void device_attrs_out(std::string& out, const ChannelAddress& a, std::string_view chlid_name = "chlid") {
     attr(out, "devtype", a.devtype);
     attr(out, "devid", a.devid);
     attr(out, "subdevid", a.subdevid);
     attr(out, chlid_name, a.chlid);
+}
+
+void channel_attrs_out(std::string& out, const ChannelAddress& a, std::string_view chlid_name = "chlid") {
+    attr(out, "ip", a.ip);
+    device_attrs_out(out, a, chlid_name);
 }
 
 constexpr std::string_view kRequestProlog = R"(<?xml version="1.0" encoding="UTF-8" ?><bts version="1.0">)";
@@ -605,10 +610,7 @@ std::string encode_request(const Request& request) {
                     out += '<';
                     out += tag;
                     if (r.command == Command::inquiredf) {  // public clients: no ip, testid 0 = latest test
-                        attr(out, "devtype", c.devtype);
-                        attr(out, "devid", c.devid);
-                        attr(out, "subdevid", c.subdevid);
-                        attr(out, "chlid", c.chlid);
+                        device_attrs_out(out, c);
                         out += " testid=\"0\" />";
                         continue;
                     }
@@ -632,10 +634,7 @@ std::string encode_request(const Request& request) {
                 if (r.command != Command::downloadlog && r.command != Command::downloadStepLayer)
                     throw ProtocolError("a test request cannot carry command " + std::string(command_name(r.command)));
                 out += r.command == Command::downloadlog ? "<download" : "<downloadStepLayer";
-                attr(out, "devtype", r.channel.devtype);
-                attr(out, "devid", r.channel.devid);
-                attr(out, "subdevid", r.channel.subdevid);
-                attr(out, "chlid", r.channel.chlid);
+                device_attrs_out(out, r.channel);
                 attr(out, "testid", std::to_string(r.testid));
                 out += " />";
             } else if constexpr (std::is_same_v<T, DownloadRequest>) {
@@ -747,10 +746,7 @@ std::string encode_response(const Response& response) {
                 out += "  </list>\r\n";
             } else if constexpr (std::is_same_v<T, DownloadResponse>) {
                 out += "  <download";
-                attr(out, "devtype", r.channel.devtype);
-                attr(out, "devid", r.channel.devid);
-                attr(out, "subdevid", r.channel.subdevid);
-                attr(out, "chlid", r.channel.chlid);
+                device_attrs_out(out, r.channel);
                 attr(out, "testid", std::to_string(r.testid));
                 attr(out, "startpos", std::to_string(r.startpos));
                 attr(out, "count", r.count);
@@ -775,10 +771,7 @@ std::string encode_response(const Response& response) {
                 out += "  <list count=\"" + std::to_string(r.channels.size()) + "\">\r\n";
                 for (const auto& c : r.channels) {
                     out += "    <chl";
-                    attr(out, "devtype", c.channel.devtype);
-                    attr(out, "devid", c.channel.devid);
-                    attr(out, "subdevid", c.channel.subdevid);
-                    attr(out, "chlid", c.channel.chlid);
+                    device_attrs_out(out, c.channel);
                     attr(out, "testid", std::to_string(c.testid));
                     attr(out, "count", std::to_string(c.count));
                     out += c.flag ? ">true</chl>\r\n" : ">false</chl>\r\n";
@@ -786,10 +779,7 @@ std::string encode_response(const Response& response) {
                 out += "  </list>\r\n";
             } else if constexpr (std::is_same_v<T, DownloadLogResponse>) {
                 out += "  <download";
-                attr(out, "devtype", r.channel.devtype);
-                attr(out, "devid", r.channel.devid);
-                attr(out, "subdevid", r.channel.subdevid);
-                attr(out, "chlid", r.channel.chlid);
+                device_attrs_out(out, r.channel);
                 attr(out, "testid", std::to_string(r.testid));
                 attr(out, "log_lever", r.log_level);
                 out += " />\r\n  <list count=\"" + std::to_string(r.entries.size()) + "\">\r\n";
@@ -803,10 +793,7 @@ std::string encode_response(const Response& response) {
                 out += "  </list>\r\n";
             } else if constexpr (std::is_same_v<T, StepLayerResponse>) {
                 out += "  <downloadStepLayer";
-                attr(out, "devtype", r.channel.devtype);
-                attr(out, "devid", r.channel.devid);
-                attr(out, "subdevid", r.channel.subdevid);
-                attr(out, "chlid", r.channel.chlid);
+                device_attrs_out(out, r.channel);
                 attr(out, "testid", std::to_string(r.testid));
                 out += " />\r\n  <list count=\"" + std::to_string(r.steps.size()) + "\">\r\n";
                 for (const auto& d : r.steps) {

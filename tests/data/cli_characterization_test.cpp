@@ -11,7 +11,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "data/cli_run.hpp"
+#include "support/command.hpp"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -21,9 +21,9 @@ namespace {
 const fs::path kData = fs::path(CELLBENCH_SHARED_DIR) / "data" / "p45b";
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 
-using cellbench::test::CliRun;
+using CliRun = cellbench::test::CommandRun;
 using cellbench::test::read_json;
-CliRun run(const std::string& args) { return cellbench::test::run_cli(args); }
+CliRun run(const std::string& args) { return cellbench::test::run_cellbench(args); }
 
 // One pipeline run shared by the tests of this file (it takes a few seconds).
 class Characterization : public ::testing::Test {

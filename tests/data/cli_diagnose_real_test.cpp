@@ -12,6 +12,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "support/command.hpp"
+
 namespace fs = std::filesystem;
 using nlohmann::json;
 
@@ -20,20 +22,14 @@ namespace {
 const fs::path kData = fs::path(CELLBENCH_SHARED_DIR) / "data" / "p45b";
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 
+// `cellbench ARGS`: its exit status; *out gets what it printed.
 int sh(const std::string& args, std::string* out = nullptr) {
-    FILE* p = popen((kBin.string() + " " + args + " 2>&1").c_str(), "r");
-    char buf[4096];
-    std::string s;
-    while (p && fgets(buf, sizeof buf, p)) s += buf;
-    const int st = p ? pclose(p) : -1;
-    if (out) *out = s;
-    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+    auto r = cellbench::test::run_cellbench(args);
+    if (out) *out = std::move(r.output);
+    return r.status;
 }
 
-json read(const fs::path& p) {
-    std::ifstream in(p);
-    return json::parse(in);
-}
+using cellbench::test::read_json;
 
 }  // namespace
 
@@ -51,7 +47,7 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
     ASSERT_EQ(sh("-q diagnose --params " + o + "p.json " + o + "rw.bdf.csv --json " + o + "d.json --improved " + o +
                      "pi.json --report " + o + "report.html", &out), 0) << out;
     std::printf("%s\n", out.c_str());
-    const auto dg = read(dir / "d.json");
+    const auto dg = read_json(dir / "d.json");
     EXPECT_EQ(dg["schema"], "cellbench.diagnosis/1");
     EXPECT_EQ(dg["holdout"]["scheme"], "interleaved_blocks");
     for (const auto& id : dg["skipped_in_baseline"]) {
@@ -86,8 +82,8 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
     ASSERT_EQ(sh("-q simulate --params " + o + "pi.json " + d + "cc_4c_30degC.bdf.csv --json " + o + "cc.impr.json"), 0);
     ASSERT_EQ(sh("-q simulate --params " + o + "p.json " + o + "hppc.bdf.csv --json " + o + "h.base.json"), 0);
     ASSERT_EQ(sh("-q simulate --params " + o + "pi.json " + o + "hppc.bdf.csv --json " + o + "h.impr.json"), 0);
-    const auto cb = read(dir / "cc.base.json"), ci = read(dir / "cc.impr.json");
-    const auto hb = read(dir / "h.base.json"), hi = read(dir / "h.impr.json");
+    const auto cb = read_json(dir / "cc.base.json"), ci = read_json(dir / "cc.impr.json");
+    const auto hb = read_json(dir / "h.base.json"), hi = read_json(dir / "h.impr.json");
     std::printf("4C discharge: voltage RMS %.1f -> %.1f mV, temperature RMS %.2f -> %.2f degC, heat flux %s\n",
                 cb["voltage"]["rms_v"].get<double>() * 1e3, ci["voltage"]["rms_v"].get<double>() * 1e3,
                 cb["temperature"]["rms_c"].get<double>(), ci["temperature"]["rms_c"].get<double>(),

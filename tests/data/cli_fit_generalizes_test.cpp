@@ -20,7 +20,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "data/cli_run.hpp"
+#include "support/command.hpp"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -29,9 +29,9 @@ namespace {
 
 const fs::path kShared = fs::path(CELLBENCH_SHARED_DIR) / "data";
 
-using cellbench::test::CliRun;
+using CliRun = cellbench::test::CommandRun;
 using cellbench::test::read_json;
-CliRun run(const std::string& args) { return cellbench::test::run_cli(args); }
+CliRun run(const std::string& args) { return cellbench::test::run_cellbench(args); }
 
 fs::path temp_dir(const std::string& name) {
     auto d = fs::temp_directory_path() / ("cellbench-" + name + "-" + std::to_string(::getpid()));

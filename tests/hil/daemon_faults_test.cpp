@@ -18,6 +18,7 @@
 #include <fstream>
 #include <functional>
 #include <memory>
+#include <sstream>
 #include <string>
 #include <thread>
 
@@ -53,12 +54,8 @@ public:
     explicit FaultBench(const std::string& tag, const std::function<void(daemon::BenchConfig&)>& tweak = {},
                         double chamber_setpoint_c = 30.0, double equilibrium_hold_s = 0.0)
         : tmp_("faults-" + tag), dir_(tmp_.path) {
-        fs::create_directories(dir_ / "cells");
-        fs::create_directories(dir_ / "programs");
-        fs::copy_file(kSource / "config/bench.sim.json", dir_ / "bench.sim.json");
-        fs::copy_file(kSource / "config/cells/p45b.json", dir_ / "cells/p45b.json");
-        fs::copy_file(kSource / "config/cells/p45b-thesis.json", dir_ / "cells/p45b-thesis.json");
-        std::ofstream(dir_ / "programs/hold.json") << R"({
+        std::ostringstream program;
+        program << R"({
           "schema": "cellbench.bench-program/1", "name": "hold",
           "segments": [
             {"type": "chamber_setpoint", "setpoint_c": )" << chamber_setpoint_c << R"(},)"
@@ -71,6 +68,7 @@ public:
               {"type": "cc_discharge", "current_a": 2.0, "cutoff_voltage_v": 2.9, "time_s": 3000},
               {"type": "rest", "time_s": 10},
               {"type": "end"}]}]})";
+        test::write_bench_folder(dir_, "hold", program.str());
         cfg_ = test::sim_bench_config(dir_ / "bench.sim.json");
         cfg_.cycler.response_timeout_ms = 300;  // wall: a stalled answer is declared lost quickly
         cfg_.faults.cycler.grace_s = cfg_.faults.chamber.grace_s = cfg_.faults.daq.grace_s = kLongGraceS;

@@ -19,6 +19,7 @@
 #include "cellbench/daemon/api.hpp"
 #include "cellbench/daemon/bench_daemon.hpp"
 #include "hil/hil_support.hpp"
+#include "support/command.hpp"
 
 using namespace cellbench;
 using namespace std::chrono_literals;
@@ -31,21 +32,9 @@ namespace {
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 
-struct CliRun {
-    int status;
-    std::string output;
-};
+using CliRun = cellbench::test::CommandRun;
 
-CliRun run_cli(const std::string& command) {
-    FILE* p = popen(("timeout 600 " + command + " 2>&1").c_str(), "r");
-    CliRun r{-1, {}};
-    if (!p) return r;
-    char buf[4096];
-    while (fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = pclose(p);
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
+CliRun run_cli(const std::string& command) { return cellbench::test::run_command(command, 600); }
 
 bool terminal(const std::string& s) { return !test::live_run_state(s); }
 

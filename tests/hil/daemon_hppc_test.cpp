@@ -312,12 +312,7 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
 TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
     // A config folder of our own: the bench file, the cell, and a program that heats the cell with 40 A.
     TempDir dir("daemon-safety");
-    fs::create_directories(dir.path / "cells");
-    fs::create_directories(dir.path / "programs");
-    fs::copy_file(kSource / "config/bench.sim.json", dir.path / "bench.sim.json");
-    fs::copy_file(kSource / "config/cells/p45b.json", dir.path / "cells/p45b.json");
-    fs::copy_file(kSource / "config/cells/p45b-thesis.json", dir.path / "cells/p45b-thesis.json");
-    std::ofstream(dir.path / "programs/heat.json") << R"({
+    test::write_bench_folder(dir.path, "heat", R"({
       "schema": "cellbench.bench-program/1", "name": "heat",
       "segments": [
         {"type": "chamber_setpoint", "setpoint_c": 30.0},
@@ -325,7 +320,7 @@ TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
           {"type": "rest", "time_s": 5},
           {"type": "cc_discharge", "current_a": 40.0, "cutoff_voltage_v": 2.9, "time_s": 600},
           {"type": "rest", "time_s": 60},
-          {"type": "end"}]}]})";
+          {"type": "end"}]}]})");
 
     auto cfg = test::sim_bench_config(dir.path / "bench.sim.json");
     const double max_c = 33.0;  // 3 K above the start: the 40 A discharge gets there in about 10 bench s

@@ -38,12 +38,7 @@ const fs::path kSource = CELLBENCH_SOURCE_DIR;
 
 // A config folder with the bench file, the cell and a long, gentle discharge.
 void write_bench_folder(const fs::path& dir) {
-    fs::create_directories(dir / "cells");
-    fs::create_directories(dir / "programs");
-    fs::copy_file(kSource / "config/bench.sim.json", dir / "bench.sim.json");
-    fs::copy_file(kSource / "config/cells/p45b.json", dir / "cells/p45b.json");
-    fs::copy_file(kSource / "config/cells/p45b-thesis.json", dir / "cells/p45b-thesis.json");
-    std::ofstream(dir / "programs/hold.json") << R"({
+    test::write_bench_folder(dir, "hold", R"({
       "schema": "cellbench.bench-program/1", "name": "hold",
       "segments": [
         {"type": "chamber_setpoint", "setpoint_c": 30},
@@ -51,7 +46,7 @@ void write_bench_folder(const fs::path& dir) {
           {"type": "rest", "time_s": 2},
           {"type": "cc_discharge", "current_a": 0.5, "cutoff_voltage_v": 2.9, "time_s": 30000},
           {"type": "rest", "time_s": 10},
-          {"type": "end"}]}]})";
+          {"type": "end"}]}]})");
 }
 
 TEST(DaemonPaced, AStarvedDaemonDoesNotAbortAHealthyRun) {

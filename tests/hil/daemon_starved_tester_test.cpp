@@ -56,12 +56,7 @@ bool has_fault(const json& events, const std::string& instrument) {
 TEST(DaemonHil, CccvChargeStaysWithinItsVoltageLimitWhenTheTestersHostIsStarved) {
     test::TempDir tmp("daemon-starved-tester");
     const fs::path dir = tmp.path;
-    fs::create_directories(dir / "cells");
-    fs::create_directories(dir / "programs");
-    fs::copy_file(kSource / "config/bench.sim.json", dir / "bench.sim.json");
-    fs::copy_file(kSource / "config/cells/p45b.json", dir / "cells/p45b.json");
-    fs::copy_file(kSource / "config/cells/p45b-thesis.json", dir / "cells/p45b-thesis.json");
-    std::ofstream(dir / "programs/charge.json") << R"({
+    test::write_bench_folder(dir, "charge", R"({
       "schema": "cellbench.bench-program/1", "name": "charge",
       "segments": [
         {"type": "chamber_setpoint", "setpoint_c": 30},
@@ -69,7 +64,7 @@ TEST(DaemonHil, CccvChargeStaysWithinItsVoltageLimitWhenTheTestersHostIsStarved)
           {"type": "rest", "time_s": 10},
           {"type": "cccv_charge", "current_a": "one_c_a", "voltage_v": "max_voltage_v", "cutoff_current_a": 0.05},
           {"type": "rest", "time_s": 120},
-          {"type": "end"}]}]})";
+          {"type": "end"}]}]})");
     auto cfg = test::sim_bench_config(dir / "bench.sim.json");
     ASSERT_TRUE(cfg.simulation);
     cfg.simulation->initial_soc = 0.6;  // a CC phase of about 1000 bench s at 1C

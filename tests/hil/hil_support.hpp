@@ -5,6 +5,7 @@
 
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 #include <functional>
 #include <string>
 #include <system_error>
@@ -34,6 +35,20 @@ struct TempDir {
     TempDir(const TempDir&) = delete;
     TempDir& operator=(const TempDir&) = delete;
 };
+
+// A config folder of the test's own: the shipped simulated bench (bench.sim.json), the P45B cell and the parameter
+// set its simulation runs (cells/), and one program, programs/NAME.json. Returns the bench file.
+inline std::filesystem::path write_bench_folder(const std::filesystem::path& dir, const std::string& program_name,
+                                                const std::string& program_json) {
+    const auto config = std::filesystem::path(CELLBENCH_SOURCE_DIR) / "config";
+    std::filesystem::create_directories(dir / "cells");
+    std::filesystem::create_directories(dir / "programs");
+    std::filesystem::copy_file(config / "bench.sim.json", dir / "bench.sim.json");
+    std::filesystem::copy_file(config / "cells/p45b.json", dir / "cells/p45b.json");
+    std::filesystem::copy_file(config / "cells/p45b-thesis.json", dir / "cells/p45b-thesis.json");
+    std::ofstream(dir / "programs" / (program_name + ".json")) << program_json;
+    return dir / "bench.sim.json";
+}
 
 // Waits (polling) until pred holds; the limit only bounds a broken test's runtime, it is no timing claim.
 inline bool eventually(const std::function<bool()>& pred, std::chrono::milliseconds limit,

@@ -13,6 +13,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "support/command.hpp"
+
 namespace fs = std::filesystem;
 
 namespace {
@@ -20,21 +22,9 @@ namespace {
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 const fs::path kConfig = fs::path(CELLBENCH_SOURCE_DIR) / "config";
 
-struct CliRun {
-    int status;
-    std::string output;  // stdout and stderr
-};
+using CliRun = cellbench::test::CommandRun;
 
-CliRun run(const std::string& command) {
-    FILE* p = popen(("timeout 60 " + command + " 2>&1").c_str(), "r");
-    CliRun r{-1, {}};
-    if (!p) return r;
-    char buf[4096];
-    while (fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = pclose(p);
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
+CliRun run(const std::string& command) { return cellbench::test::run_command(command); }
 
 std::string check(const std::string& args) {
     return kBin.string() + " check --config " + (kConfig / "bench.sim.json").string() + " " + args;

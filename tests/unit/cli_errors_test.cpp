@@ -2,6 +2,8 @@
 // what was expected, no output file left behind; exit 2 for usage errors.
 #include <gtest/gtest.h>
 
+#include "support/command.hpp"
+
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -15,20 +17,10 @@ namespace {
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 const fs::path kThesis = fs::path(CELLBENCH_SOURCE_DIR) / "config/cells/p45b-thesis.json";
 
-struct CliRun {
-    int status;
-    std::string output;
-};
+using CliRun = cellbench::test::CommandRun;
 
-CliRun run(const std::string& args) {
-    FILE* p = popen((kBin.string() + " " + args + " 2>&1").c_str(), "r");
-    CliRun r{0, {}};
-    char buf[4096];
-    while (p && fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = p ? pclose(p) : -1;
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
+// `cellbench ARGS`, stdout and stderr.
+CliRun run(const std::string& args) { return cellbench::test::run_cellbench(args, 60); }
 
 class CliErrors : public ::testing::Test {
 protected:

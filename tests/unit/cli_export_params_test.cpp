@@ -15,6 +15,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "support/command.hpp"
+
 namespace fs = std::filesystem;
 using nlohmann::json;
 
@@ -110,20 +112,9 @@ out["probe"] = {
 print(json.dumps(out))
 )PY";
 
-struct Run {
-    int status;
-    std::string output;
-};
+using Run = cellbench::test::CommandRun;
 
-Run run(const std::string& cmd) {
-    FILE* p = popen((cmd + " 2>&1").c_str(), "r");
-    Run r{0, {}};
-    char buf[4096];
-    while (p && fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = p ? pclose(p) : -1;
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
+Run run(const std::string& cmd) { return cellbench::test::run_command(cmd, 120); }
 
 // A python3 that has numpy and scipy (Debian's /usr/bin/python3 after `make deps`; a pyenv shim first on PATH
 // may lack them).

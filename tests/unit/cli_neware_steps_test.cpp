@@ -3,6 +3,8 @@
 // layout it read.
 #include <gtest/gtest.h>
 
+#include "support/command.hpp"
+
 #include <sys/wait.h>
 
 #include <cstdio>
@@ -22,21 +24,9 @@ namespace {
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 const fs::path kConfig = fs::path(CELLBENCH_SOURCE_DIR) / "config";
 
-struct CliRun {
-    int status;
-    std::string output;  // stdout and stderr
-};
+using CliRun = cellbench::test::CommandRun;
 
-CliRun run(const std::string& command) {
-    FILE* p = popen(("timeout 60 " + command + " 2>&1").c_str(), "r");
-    CliRun r{-1, {}};
-    if (!p) return r;
-    char buf[4096];
-    while (fgets(buf, sizeof buf, p)) r.output += buf;
-    const int st = pclose(p);
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
-}
+CliRun run(const std::string& command) { return cellbench::test::run_command(command); }
 
 std::string read(const fs::path& path) {
     std::ifstream in(path, std::ios::binary);

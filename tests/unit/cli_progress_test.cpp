@@ -3,6 +3,8 @@
 // checked both ways on the same input.
 #include <gtest/gtest.h>
 
+#include "support/command.hpp"
+
 #include <pty.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -27,14 +29,8 @@ struct CliRun {
 
 // stdout and stderr into one pipe: what a script or `| tee log` sees.
 CliRun run_piped(const std::string& args) {
-    FILE* p = popen((kBin.string() + " " + args + " 2>&1").c_str(), "r");
-    CliRun r;
-    char buf[4096];
-    std::size_t n;
-    while (p && (n = fread(buf, 1, sizeof buf, p)) > 0) r.output.append(buf, n);
-    const int st = p ? pclose(p) : -1;
-    r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-    return r;
+    const auto r = cellbench::test::run_cellbench(args);
+    return {r.status, r.output};
 }
 
 // stdout and stderr on a pseudo-terminal: what an operator at a shell sees.

@@ -20,6 +20,7 @@
 #include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/fit.hpp"
 #include "cellbench/plant/plant.hpp"
+#include "validation/plant_recording.hpp"
 
 namespace {
 
@@ -27,19 +28,7 @@ using cellbench::Recording;
 namespace est = cellbench::estimator;
 namespace plant = cellbench::plant;
 
-Recording to_recording(const plant::Recording& p, const std::string& name) {
-    Recording r;
-    r.source = name;
-    r.time_s = p.time_s;
-    r.voltage_v = p.voltage_v;
-    r.current_a = p.current_a;
-    r.ambient_c = p.ambient_c;
-    r.surface_c = p.surface_c;
-    r.heat_flux_w_per_m2 = p.heat_flux_w_per_m2;
-    r.step_type = p.step_type;
-    r.step_count.assign(p.step_count.begin(), p.step_count.end());
-    return r;
-}
+using cellbench::test::to_recording;
 
 int seeds() {
     if (const char* e = std::getenv("CELLBENCH_DIAGNOSE_SEEDS")) return std::max(1, std::atoi(e));

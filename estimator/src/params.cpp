@@ -4,6 +4,7 @@
 #include <cmath>
 #include <sstream>
 
+#include "cellbench/core/json_fields.hpp"
 #include "cellbench/core/recording.hpp"
 
 namespace cellbench::estimator {
@@ -12,33 +13,17 @@ namespace {
 
 using nlohmann::json;
 
-[[noreturn]] void fail(const std::string& source, const std::string& path, const std::string& what) {
-    throw InputError(source + ": " + path + ": " + what);
-}
-
-const json& member(const json& j, const std::string& key, const std::string& source, const std::string& path) {
-    if (!j.is_object()) fail(source, path, "expected an object");
-    auto it = j.find(key);
-    if (it == j.end()) fail(source, path + "." + key, "missing (required)");
-    return *it;
-}
-
-double number(const json& j, const std::string& source, const std::string& path) {
-    if (!j.is_number()) fail(source, path, "expected a number, got " + std::string(j.type_name()));
-    const double v = j.get<double>();
-    if (!std::isfinite(v)) fail(source, path, "expected a finite number");
-    return v;
-}
+using json_fields::fail, json_fields::finite_number, json_fields::member;  // errors read "SOURCE: PATH: what"
 
 double number_member(const json& j, const std::string& key, const std::string& source, const std::string& path) {
-    return number(member(j, key, source, path), source, path + "." + key);
+    return finite_number(member(j, key, source, path), source, path + "." + key);
 }
 
 std::vector<double> number_array(const json& j, const std::string& source, const std::string& path) {
     if (!j.is_array()) fail(source, path, "expected an array of numbers");
     std::vector<double> out;
     out.reserve(j.size());
-    for (std::size_t i = 0; i < j.size(); ++i) out.push_back(number(j[i], source, path + "[" + std::to_string(i) + "]"));
+    for (std::size_t i = 0; i < j.size(); ++i) out.push_back(finite_number(j[i], source, path + "[" + std::to_string(i) + "]"));
     return out;
 }
 

@@ -8,7 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cellbench/core/recording.hpp"
-#include "json_fields.hpp"
+#include "cellbench/core/json_fields.hpp"
 
 namespace cellbench::protocol {
 

@@ -5,7 +5,7 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/protocol/neware_bts.hpp"
-#include "json_fields.hpp"
+#include "cellbench/core/json_fields.hpp"
 #include "neware_xml.hpp"
 
 #include <algorithm>
@@ -859,7 +859,7 @@ StepProgram parse_step_file(std::string_view xml) {
         const auto id = id_text ? parse_int(*id_text) : std::nullopt;
         if (key.rfind("Step", 0) != 0 || !id)
             throw ProtocolError("step file: <Step_Info>: unexpected element <" + key.substr(0, 40) + "> (expected StepK with Step_ID)");
-        nodes.emplace_back(*id, &node);
+        nodes.emplace_back(id.value_or(0), &node);  // checked above (value_or: GCC 12 warns on *id)
     }
     std::sort(nodes.begin(), nodes.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
     if (const auto num = attr(*info, "Num"); num && parse_int(*num) != static_cast<int>(nodes.size()))

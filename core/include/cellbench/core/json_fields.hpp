@@ -1,13 +1,13 @@
 #pragma once
-// Field readers for the protocol library's JSON files (the chamber register map, the DEWE CAN layout, step
-// programs). Internal to protocol/src: one copy of the checks, so that every file reports a bad field the same
-// way, as InputError "SOURCE: JSON.PATH: what was expected" (the tests and the users read these messages).
+// Field readers for the project's JSON files (the chamber register map, the DEWE CAN layout, step programs, the
+// cell parameter set): one copy of the checks, so that every file reports a bad field the same way, as
+// InputError "SOURCE: JSON.PATH: what was expected" (the tests and the users read these messages).
 #include <cstdint>
 #include <string>
 
 #include <nlohmann/json.hpp>
 
-namespace cellbench::protocol::json_fields {
+namespace cellbench::json_fields {
 
 using nlohmann::json;
 
@@ -29,4 +29,4 @@ double finite_number(const json& j, const std::string& source, const std::string
 std::string string_value(const json& j, const std::string& source, const std::string& path);
 bool bool_value(const json& j, const std::string& source, const std::string& path);
 
-}  // namespace cellbench::protocol::json_fields
+}  // namespace cellbench::json_fields

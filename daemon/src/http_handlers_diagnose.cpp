@@ -59,19 +59,16 @@ Reply Router::diagnose_run(RunId id) {
 Reply Router::diagnose_upload(std::string_view query) {
     DiagnoseRequest dr;
     dr.body = nlohmann::json::object();
-    for (const auto part : split(query, '&')) {
-        if (part.empty()) continue;
-        const auto eq = part.find('=');
-        const auto key = percent_decode(part.substr(0, eq), true);
-        const auto value = percent_decode(eq == std::string_view::npos ? "" : part.substr(eq + 1), true);
-        if (!key || !value) return error(http::status::bad_request, "malformed query string");
-        if (*key == "params") {
-            dr.params = *value;
-        } else if (*key == "effects") {
-            for (const auto e : split(*value, ','))
+    const auto params = query_params(query);
+    if (!params) return error(http::status::bad_request, "malformed query string");
+    for (const auto& [key, value] : *params) {
+        if (key == "params") {
+            dr.params = value;
+        } else if (key == "effects") {
+            for (const auto e : split(value, ','))
                 if (!e.empty()) dr.effects.emplace_back(e);
-        } else if (*key == "name") {
-            dr.body["name"] = value->substr(0, 200);  // the file's name, for the job's description
+        } else if (key == "name") {
+            dr.body["name"] = value.substr(0, 200);  // the file's name, for the job's description
         }
     }
     if (dr.params.empty())

@@ -68,32 +68,25 @@ Reply Router::start_run() {
 Reply Router::samples(RunId id, std::string_view query) {
     SampleQuery sq;
     sq.max_points = kDefaultSamplePoints;
-    if (!query.empty()) {
-        for (const auto part : split(query, '&')) {
-            if (part.empty()) continue;
-            const auto eq = part.find('=');
-            const auto key = percent_decode(part.substr(0, eq), true);
-            const auto value = percent_decode(eq == std::string_view::npos ? "" : part.substr(eq + 1), true);
-            if (!key || !value) return error(http::status::bad_request, "malformed query string");
-            if (*key == "from" || *key == "to") {
-                double v = 0;
-                const auto [p, ec] = std::from_chars(value->data(), value->data() + value->size(), v);
-                if (value->empty() || ec != std::errc() || p != value->data() + value->size() || !std::isfinite(v))
-                    return error(http::status::bad_request,
-                                 "\"" + *key + "\": expected a number of seconds of test time, got \"" + *value + "\"");
-                (*key == "from" ? sq.from_s : sq.to_s) = v;
-            } else if (*key == "max_points") {
-                std::size_t v = 0;
-                const auto [p, ec] = std::from_chars(value->data(), value->data() + value->size(), v);
-                if (value->empty() || ec != std::errc() || p != value->data() + value->size() || v < 1 ||
-                    v > kMaxSamplePoints)
-                    return error(http::status::bad_request, "\"max_points\": expected an integer from 1 to " +
-                                                                std::to_string(kMaxSamplePoints) + ", got \"" +
-                                                                *value + "\"");
-                sq.max_points = v;
-            }
-            // Other parameters are ignored (room for later options).
+    const auto params = query_params(query);
+    if (!params) return error(http::status::bad_request, "malformed query string");
+    for (const auto& [key, value] : *params) {
+        if (key == "from" || key == "to") {
+            double v = 0;
+            const auto [p, ec] = std::from_chars(value.data(), value.data() + value.size(), v);
+            if (value.empty() || ec != std::errc() || p != value.data() + value.size() || !std::isfinite(v))
+                return error(http::status::bad_request,
+                             "\"" + key + "\": expected a number of seconds of test time, got \"" + value + "\"");
+            (key == "from" ? sq.from_s : sq.to_s) = v;
+        } else if (key == "max_points") {
+            std::size_t v = 0;
+            const auto [p, ec] = std::from_chars(value.data(), value.data() + value.size(), v);
+            if (value.empty() || ec != std::errc() || p != value.data() + value.size() || v < 1 || v > kMaxSamplePoints)
+                return error(http::status::bad_request, "\"max_points\": expected an integer from 1 to " +
+                                                            std::to_string(kMaxSamplePoints) + ", got \"" + value + "\"");
+            sq.max_points = v;
         }
+        // Other parameters are ignored (room for later options).
     }
     if (sq.from_s && sq.to_s && *sq.from_s > *sq.to_s)
         return error(http::status::bad_request, "\"from\" is after \"to\"");

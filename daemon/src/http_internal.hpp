@@ -61,6 +61,8 @@ bool iequals(std::string_view a, std::string_view b);
 // Percent-decoding; `plus_is_space` for query strings. nullopt for a malformed escape.
 std::optional<std::string> percent_decode(std::string_view s, bool plus_is_space);
 std::vector<std::string_view> split(std::string_view s, char sep);
+// A query string's parameters, decoded, in order ("a=1&b" gives a = "1", b = ""); nullopt when one is malformed.
+std::optional<std::vector<std::pair<std::string, std::string>>> query_params(std::string_view query);
 // Content-Type of a static file by its extension.
 const char* mime_type(const fs::path& p);
 // True when `p` is `root` or lies below it (both canonical).

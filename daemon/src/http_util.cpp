@@ -55,6 +55,19 @@ std::vector<std::string_view> split(std::string_view s, char sep) {
     return parts;
 }
 
+std::optional<std::vector<std::pair<std::string, std::string>>> query_params(std::string_view query) {
+    std::vector<std::pair<std::string, std::string>> params;
+    for (const auto part : split(query, '&')) {
+        if (part.empty()) continue;
+        const auto eq = part.find('=');
+        auto key = percent_decode(part.substr(0, eq), true);
+        auto value = percent_decode(eq == std::string_view::npos ? "" : part.substr(eq + 1), true);
+        if (!key || !value) return std::nullopt;
+        params.emplace_back(std::move(*key), std::move(*value));
+    }
+    return params;
+}
+
 const char* mime_type(const fs::path& p) {
     static const std::unordered_map<std::string, const char*> types = {
         {".html", "text/html; charset=utf-8"},

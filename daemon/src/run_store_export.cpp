@@ -39,7 +39,7 @@ std::vector<double> interpolate_with_gaps(const std::vector<double>& t, const st
 Recording RunStore::export_recording(RunId run, std::optional<double> from_s, std::optional<double> to_s,
                                      double max_gap_s) const {
     auto lease = impl_->acquire();
-    sqlite3* db = lease.db();
+    StmtCache& db = lease.stmts();
     return guarded_read(impl_->path, [&] {
         ReadTxn txn(db);
         Recording rec;

@@ -93,6 +93,7 @@ struct WriterStatements {
 
 struct RunStore::Impl {
     using Conn = store::Conn;
+    using StmtCache = store::StmtCache;
     using Batch = store::Batch;
     using Control = store::Control;
     using WriterStatements = store::WriterStatements;
@@ -137,7 +138,10 @@ struct RunStore::Impl {
     // Reader pool.
     mutable std::mutex pool_mu;
     mutable std::condition_variable pool_cv;
-    mutable std::vector<sqlite3*> idle;
+    // Reader connections: each open one has its statement cache in `readers` (destroyed before its
+    // connection is closed); `idle` holds the ones not leased.
+    mutable std::vector<std::pair<Conn, std::unique_ptr<StmtCache>>> readers;
+    mutable std::vector<StmtCache*> idle;
     mutable std::size_t readers_open = 0;
     mutable bool pool_closed = false;
 
@@ -216,25 +220,27 @@ struct RunStore::Impl {
     // -- reader pool ----------------------------------------------------------------------------------------
     class Lease {
     public:
-        Lease(const Impl& impl, sqlite3* db) : impl_(impl), db_(db) {}
-        ~Lease() { impl_.release(db_); }
+        Lease(const Impl& impl, StmtCache& conn) : impl_(impl), conn_(conn) {}
+        ~Lease() { impl_.release(conn_); }
         Lease(const Lease&) = delete;
         Lease& operator=(const Lease&) = delete;
-        [[nodiscard]] sqlite3* db() const { return db_; }
+        [[nodiscard]] sqlite3* db() const { return conn_.db(); }
+        // The connection's prepared statements (Stmt(lease.stmts(), sql)).
+        [[nodiscard]] StmtCache& stmts() const { return conn_; }
 
     private:
         const Impl& impl_;
-        sqlite3* db_;
+        StmtCache& conn_;
     };
 
     // A reader connection from the pool (opened on demand up to opt.read_connections); blocks while all are
     // leased. Throws StoreError when the store is closed.
     [[nodiscard]] Lease acquire() const;
 
-    void release(sqlite3* db) const {
+    void release(StmtCache& conn) const {
         {
             std::lock_guard lk(pool_mu);
-            idle.push_back(db);
+            idle.push_back(&conn);
         }
         pool_cv.notify_all();
     }

@@ -57,7 +57,7 @@ EventRecord read_event_row(const Stmt& s) {
 std::vector<RunInfo> RunStore::list_runs(std::size_t limit) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(), std::string("SELECT ") + kRunColumns + " FROM runs ORDER BY id DESC LIMIT ?1");
+        Stmt s(lease.stmts(), std::string("SELECT ") + kRunColumns + " FROM runs ORDER BY id DESC LIMIT ?1");
         s.integer(1, static_cast<std::int64_t>(std::min<std::size_t>(limit, INT64_MAX)));
         std::vector<RunInfo> out;
         while (s.step()) out.push_back(read_run_row(s, false));
@@ -69,7 +69,7 @@ std::optional<RunInfo> RunStore::get_run(RunId run, RunRead what) const {
     auto lease = impl_->acquire();
     const bool with_config = what == RunRead::with_config;
     return guarded_read(impl_->path, [&]() -> std::optional<RunInfo> {
-        Stmt s(lease.db(), std::string("SELECT ") + kRunColumns + (with_config ? ", config_json" : "") +
+        Stmt s(lease.stmts(), std::string("SELECT ") + kRunColumns + (with_config ? ", config_json" : "") +
                                " FROM runs WHERE id = ?1");
         s.integer(1, run);
         if (!s.step()) return std::nullopt;
@@ -80,7 +80,7 @@ std::optional<RunInfo> RunStore::get_run(RunId run, RunRead what) const {
 std::vector<StepRecord> RunStore::steps(RunId run) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT step_index, segment, step_id, cycle, type, started_t_s, started_unix_s, ended_t_s, ended_unix_s, "
                "capacity_ah, energy_wh, end_reason FROM steps WHERE run_id = ?1 ORDER BY step_index");
         s.integer(1, run);
@@ -108,7 +108,7 @@ std::vector<StepRecord> RunStore::steps(RunId run) const {
 std::vector<EventRecord> RunStore::events(RunId run, std::int64_t after_id, std::size_t limit) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT id, run_id, unix_s, t_s, level, kind, step, message, detail_json FROM events "
                "WHERE run_id = ?1 AND id > ?2 ORDER BY id LIMIT ?3");
         s.integer(1, run).integer(2, after_id).integer(3, static_cast<std::int64_t>(std::min<std::size_t>(limit, INT64_MAX)));
@@ -121,7 +121,7 @@ std::vector<EventRecord> RunStore::events(RunId run, std::int64_t after_id, std:
 std::vector<EventRecord> RunStore::bench_events(std::int64_t after_id, std::size_t limit) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT id, run_id, unix_s, t_s, level, kind, step, message, detail_json FROM events "
                "WHERE run_id IS NULL AND id > ?1 ORDER BY id LIMIT ?2");
         s.integer(1, after_id).integer(2, static_cast<std::int64_t>(std::min<std::size_t>(limit, INT64_MAX)));
@@ -134,7 +134,7 @@ std::vector<EventRecord> RunStore::bench_events(std::int64_t after_id, std::size
 std::vector<PulseFitRecord> RunStore::pulse_fits(RunId run) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT id, run_id, pulse_set, t_s, unix_s, soc, ocv_v, temperature_c, "
                "discharge_r0_ohm, discharge_r1_ohm, discharge_c1_f, discharge_r2_ohm, discharge_c2_f, "
                "charge_r0_ohm, charge_r1_ohm, charge_c1_f, charge_r2_ohm, charge_c2_f, method, rms_v, detail_json "
@@ -166,7 +166,7 @@ std::vector<PulseFitRecord> RunStore::pulse_fits(RunId run) const {
 std::optional<ParameterSetRecord> RunStore::latest_parameter_set(std::optional<RunId> run) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&]() -> std::optional<ParameterSetRecord> {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT id, run_id, created_unix_s, cell, params_json FROM parameter_sets "
                "WHERE ?1 IS NULL OR run_id = ?1 ORDER BY id DESC LIMIT 1");
         if (run) s.integer(1, *run); else s.null(1);
@@ -185,7 +185,7 @@ SampleWindow RunStore::samples(RunId run, std::optional<double> from_s, std::opt
                                std::size_t max_points) const {
     max_points = std::max<std::size_t>(2, max_points);
     auto lease = impl_->acquire();
-    sqlite3* db = lease.db();
+    StmtCache& db = lease.stmts();
     return guarded_read(impl_->path, [&] {
         ReadTxn txn(db);
         SampleWindow w;
@@ -317,7 +317,7 @@ SampleWindow RunStore::samples(RunId run, std::optional<double> from_s, std::opt
 std::vector<CyclerSample> RunStore::cycler_rows(RunId run) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT t_s, unix_s, voltage_v, current_a, capacity_ah, energy_wh, soc, step_id, cycle, step_type, status "
                "FROM cycler_samples WHERE run_id = ?1 ORDER BY rowid");
         s.integer(1, run);
@@ -344,7 +344,7 @@ std::vector<CyclerSample> RunStore::cycler_rows(RunId run) const {
 std::vector<DaqSample> RunStore::daq_rows(RunId run) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT t_s, unix_s, thermopile_v, surface_c, t1_c, t2_c, heat_flux_w_per_m2, sequence "
                "FROM daq_samples WHERE run_id = ?1 ORDER BY rowid");
         s.integer(1, run);
@@ -368,7 +368,7 @@ std::vector<DaqSample> RunStore::daq_rows(RunId run) const {
 std::vector<ChamberSample> RunStore::chamber_rows(RunId run) const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(),
+        Stmt s(lease.stmts(),
                "SELECT t_s, unix_s, ambient_c, setpoint_c, running, alarm_bits FROM chamber_samples "
                "WHERE run_id = ?1 ORDER BY rowid");
         s.integer(1, run);
@@ -390,7 +390,7 @@ std::vector<ChamberSample> RunStore::chamber_rows(RunId run) const {
 std::string RunStore::integrity_check() const {
     auto lease = impl_->acquire();
     return guarded_read(impl_->path, [&] {
-        Stmt s(lease.db(), "PRAGMA integrity_check");
+        Stmt s(lease.stmts(), "PRAGMA integrity_check");
         std::string out;
         while (s.step()) {
             if (!out.empty()) out += '\n';

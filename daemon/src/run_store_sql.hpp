@@ -13,6 +13,7 @@
 #include <stdexcept>
 #include <string>
 #include <string_view>
+#include <unordered_map>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -38,6 +39,50 @@ struct SqlError : std::runtime_error {
 std::string sqlite_message(sqlite3* db, int code);
 [[noreturn]] void throw_sql(sqlite3* db, int code, std::string_view what);
 
+// The statements one reader connection has prepared, kept for the connection's life: an API request's queries
+// are then prepared once per connection instead of once per request (preparing took more of a small query's
+// time than running it). The SQL texts are the store's own, a bounded set. Used by one lease at a time.
+class StmtCache {
+public:
+    explicit StmtCache(sqlite3* db) : db_(db) {}
+    ~StmtCache() {
+        for (auto& [sql, e] : stmts_) sqlite3_finalize(e.stmt);
+    }
+    StmtCache(const StmtCache&) = delete;
+    StmtCache& operator=(const StmtCache&) = delete;
+    [[nodiscard]] sqlite3* db() const { return db_; }
+    // The statement for `sql`, prepared on first use, marked in use until release(); nullptr while a statement of
+    // the same text is in use (the caller then prepares one of its own).
+    sqlite3_stmt* take(std::string_view sql) {
+        auto it = stmts_.find(std::string(sql));
+        if (it == stmts_.end()) {
+            sqlite3_stmt* s = nullptr;
+            const int rc = sqlite3_prepare_v3(db_, sql.data(), static_cast<int>(sql.size()),
+                                              SQLITE_PREPARE_PERSISTENT, &s, nullptr);
+            if (rc != SQLITE_OK) throw_sql(db_, rc, "prepare");
+            it = stmts_.emplace(std::string(sql), Entry{s, false}).first;
+        }
+        if (it->second.in_use) return nullptr;
+        it->second.in_use = true;
+        return it->second.stmt;
+    }
+    // Back into the cache, reset and unbound (so it holds no read snapshot).
+    void release(sqlite3_stmt* s) {
+        sqlite3_reset(s);
+        sqlite3_clear_bindings(s);
+        for (auto& [sql, e] : stmts_)
+            if (e.stmt == s) e.in_use = false;
+    }
+
+private:
+    struct Entry {
+        sqlite3_stmt* stmt;
+        bool in_use;
+    };
+    sqlite3* db_;
+    std::unordered_map<std::string, Entry> stmts_;
+};
+
 class Stmt {
 public:
     Stmt(sqlite3* db, std::string_view sql, bool persistent = false) : db_(db) {
@@ -45,7 +90,19 @@ public:
                                           persistent ? SQLITE_PREPARE_PERSISTENT : 0, &s_, nullptr);
         if (rc != SQLITE_OK) throw_sql(db, rc, "prepare");
     }
-    ~Stmt() { sqlite3_finalize(s_); }
+    // A statement of the connection's cache (one of its own while the cached one is in use), handed back reset.
+    Stmt(StmtCache& cache, std::string_view sql) : db_(cache.db()), s_(cache.take(sql)) {
+        if (s_) {
+            cache_ = &cache;
+            return;
+        }
+        const int rc = sqlite3_prepare_v2(db_, sql.data(), static_cast<int>(sql.size()), &s_, nullptr);
+        if (rc != SQLITE_OK) throw_sql(db_, rc, "prepare");
+    }
+    ~Stmt() {
+        if (cache_) cache_->release(s_);
+        else sqlite3_finalize(s_);
+    }
     Stmt(const Stmt&) = delete;
     Stmt& operator=(const Stmt&) = delete;
 
@@ -114,6 +171,7 @@ private:
     }
     sqlite3* db_;
     sqlite3_stmt* s_ = nullptr;
+    StmtCache* cache_ = nullptr;  // the statement is the cache's
 };
 
 // Runs a fixed script (schema) statement by statement, each prepared.
@@ -139,6 +197,7 @@ Conn open_connection(const fs::path& path, int flags, std::chrono::milliseconds 
 class ReadTxn {
 public:
     explicit ReadTxn(sqlite3* db) : db_(db) { exec(db_, "BEGIN"); }
+    explicit ReadTxn(const StmtCache& cache) : ReadTxn(cache.db()) {}
     ~ReadTxn() {
         try {
             exec(db_, "COMMIT");

@@ -519,8 +519,8 @@ void RunStore::Impl::shutdown() {
         std::unique_lock lk(pool_mu);
         pool_closed = true;
         pool_cv.wait(lk, [&] { return idle.size() == readers_open; });  // reads in progress finish
-        for (sqlite3* db : idle) sqlite3_close_v2(db);
         idle.clear();
+        readers.clear();  // each connection's statements, then the connection
         readers_open = 0;
     }
     pool_cv.notify_all();
@@ -533,9 +533,9 @@ RunStore::Impl::Lease RunStore::Impl::acquire() const {
     pool_cv.wait(lk, [&] { return pool_closed || !idle.empty() || readers_open < limit; });
     if (pool_closed) throw StoreError(StoreFaultKind::closed, path.string() + ": run store is closed");
     if (!idle.empty()) {
-        sqlite3* db = idle.back();
+        StmtCache* conn = idle.back();
         idle.pop_back();
-        return Lease(*this, db);
+        return Lease(*this, *conn);
     }
     ++readers_open;
     lk.unlock();
@@ -543,7 +543,13 @@ RunStore::Impl::Lease RunStore::Impl::acquire() const {
         const int flags = readonly ? SQLITE_OPEN_READONLY : SQLITE_OPEN_READWRITE;
         Conn c = open_connection(path, flags, opt.busy_timeout);
         if (!readonly) exec(c.get(), "PRAGMA query_only = ON");
-        return Lease(*this, c.release());
+        auto cache = std::make_unique<StmtCache>(c.get());
+        StmtCache& conn = *cache;
+        {
+            std::lock_guard relock(pool_mu);
+            readers.emplace_back(std::move(c), std::move(cache));
+        }
+        return Lease(*this, conn);
     } catch (...) {
         std::lock_guard relock(pool_mu);
         --readers_open;
@@ -758,7 +764,7 @@ std::future<void> RunStore::release_memory() {
         }, false);
     {
         std::lock_guard lk(impl_->pool_mu);
-        for (sqlite3* db : impl_->idle) sqlite3_db_release_memory(db);
+        for (StmtCache* conn : impl_->idle) sqlite3_db_release_memory(conn->db());
     }
     if (!writer_done.valid()) {  // read-only or closed: no writer cache to wait for
         std::promise<void> now;

@@ -1,6 +1,6 @@
 #pragma once
 // RunStore::Impl (internal to daemon/src): the writer queue and thread, the unsaved-record retry, and the
-// reader pool. The writer side is defined in run_store_writer.cpp, the reads in run_store_queries.cpp and
+// reader pool. The writer side is defined in run_store_writer.cpp, the pool and the reads in run_store_queries.cpp and
 // run_store_export.cpp. See run_store.hpp for the threading, durability and failure model.
 #include <array>
 #include <atomic>

@@ -527,37 +527,6 @@ void RunStore::Impl::shutdown() {
     wdb.reset();  // last connection: checkpoints the WAL into the database
 }
 
-RunStore::Impl::Lease RunStore::Impl::acquire() const {
-    std::unique_lock lk(pool_mu);
-    const std::size_t limit = std::max<std::size_t>(1, opt.read_connections);
-    pool_cv.wait(lk, [&] { return pool_closed || !idle.empty() || readers_open < limit; });
-    if (pool_closed) throw StoreError(StoreFaultKind::closed, path.string() + ": run store is closed");
-    if (!idle.empty()) {
-        StmtCache* conn = idle.back();
-        idle.pop_back();
-        return Lease(*this, *conn);
-    }
-    ++readers_open;
-    lk.unlock();
-    try {
-        const int flags = readonly ? SQLITE_OPEN_READONLY : SQLITE_OPEN_READWRITE;
-        Conn c = open_connection(path, flags, opt.busy_timeout);
-        if (!readonly) exec(c.get(), "PRAGMA query_only = ON");
-        auto cache = std::make_unique<StmtCache>(c.get());
-        StmtCache& conn = *cache;
-        {
-            std::lock_guard relock(pool_mu);
-            readers.emplace_back(std::move(c), std::move(cache));
-        }
-        return Lease(*this, conn);
-    } catch (...) {
-        std::lock_guard relock(pool_mu);
-        --readers_open;
-        pool_cv.notify_all();
-        throw;
-    }
-}
-
 // ---------------------------------------------------------------------------------------------------------
 // RunStore: open, close, writes
 

@@ -39,9 +39,10 @@ struct SqlError : std::runtime_error {
 std::string sqlite_message(sqlite3* db, int code);
 [[noreturn]] void throw_sql(sqlite3* db, int code, std::string_view what);
 
-// The statements one reader connection has prepared, kept for the connection's life: an API request's queries
-// are then prepared once per connection instead of once per request (preparing took more of a small query's
-// time than running it). The SQL texts are the store's own, a bounded set. Used by one lease at a time.
+// The statements one reader connection has prepared, kept until the store releases memory between runs: an API
+// request's queries are then prepared once per connection and run instead of once per request (preparing took
+// more of a small query's time than running it). The SQL texts are the store's own, a bounded set. Used by one
+// lease at a time.
 class StmtCache {
 public:
     explicit StmtCache(sqlite3* db) : db_(db) {}
@@ -65,6 +66,18 @@ public:
         if (it->second.in_use) return nullptr;
         it->second.in_use = true;
         return it->second.stmt;
+    }
+    // Finalizes the statements not in use (between runs, so that their memory goes back with the page caches:
+    // kept across a run's end they pinned heap that malloc_trim could otherwise return, +4 MiB in the soak).
+    void clear() {
+        for (auto it = stmts_.begin(); it != stmts_.end();) {
+            if (it->second.in_use) {
+                ++it;
+                continue;
+            }
+            sqlite3_finalize(it->second.stmt);
+            it = stmts_.erase(it);
+        }
     }
     // Back into the cache, reset and unbound (so it holds no read snapshot).
     void release(sqlite3_stmt* s) {

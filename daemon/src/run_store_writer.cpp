@@ -733,7 +733,10 @@ std::future<void> RunStore::release_memory() {
         }, false);
     {
         std::lock_guard lk(impl_->pool_mu);
-        for (StmtCache* conn : impl_->idle) sqlite3_db_release_memory(conn->db());
+        for (StmtCache* conn : impl_->idle) {
+            conn->clear();  // the kept statements too: re-prepared by the next run's first reads
+            sqlite3_db_release_memory(conn->db());
+        }
     }
     if (!writer_done.valid()) {  // read-only or closed: no writer cache to wait for
         std::promise<void> now;

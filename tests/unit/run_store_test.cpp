@@ -263,6 +263,38 @@ TEST_F(RunStoreTest, RawRowsReadBackInTheOrderTheyWereStored) {
     EXPECT_TRUE(store->cycler_rows(999).empty());
 }
 
+TEST_F(RunStoreTest, ReadsOnOneConnectionSeeEveryCommitAndTheirOwnArguments) {
+    // The reader connections keep their prepared statements between requests: a kept statement must hold no
+    // read snapshot (a later read sees what was committed since) and no argument of the read before it.
+    auto store = RunStore::open(db_);
+    const RunId a = store->create_run(new_run("hppc"));
+    const RunId b = store->create_run(new_run("cc"));
+    for (int round = 1; round <= 20; ++round) {
+        EXPECT_TRUE(store->push(a, cycler(round)));
+        EXPECT_TRUE(store->push(a, daq(round, 30.0 + round)));
+        if (round % 2 == 0) {
+            EXPECT_TRUE(store->push(b, cycler(100.0 + round)));
+        }
+        ASSERT_TRUE(store->flush());
+        const auto ca = store->cycler_rows(a), cb = store->cycler_rows(b);
+        ASSERT_EQ(ca.size(), static_cast<std::size_t>(round));
+        ASSERT_EQ(cb.size(), static_cast<std::size_t>(round / 2));
+        EXPECT_DOUBLE_EQ(ca.back().t_s, round);
+        if (!cb.empty()) {
+            EXPECT_DOUBLE_EQ(cb.back().t_s, 100.0 + 2 * (round / 2));
+        }
+        const auto w = store->samples(a, std::nullopt, std::nullopt, 1000);
+        const auto* daq_window = w.source("daq");
+        ASSERT_NE(daq_window, nullptr);
+        ASSERT_EQ(daq_window->size(), static_cast<std::size_t>(round));
+        const RunId asked = round % 2 ? a : b;
+        const auto info = store->get_run(asked);
+        ASSERT_TRUE(info);
+        EXPECT_EQ(info->id, asked);
+        EXPECT_EQ(info->cycler_samples, asked == a ? round : round / 2);
+    }
+}
+
 TEST_F(RunStoreTest, TheFirstTerminalStateWins) {
     auto store = RunStore::open(db_);
     const RunId id = store->create_run(new_run());

@@ -293,10 +293,11 @@ public:
 
     // Waits until everything queued before the call is committed (or failed). False on timeout.
     bool flush(std::chrono::milliseconds timeout = std::chrono::seconds(30));
-    // Between runs: the connections give back their page caches (the idle readers' now, the writer's once it
-    // has committed what is queued). Never blocks on the writer; the caches refill as they are used. The future
-    // is ready once the writer has freed its cache (up to cache_size, 16 MiB): only then is that memory free
-    // heap a malloc_trim can return to the system (it may hold a StoreError; nothing to do with it).
+    // Between runs: the connections give back their page caches and the readers their prepared statements (the
+    // idle readers now, the writer once it has committed what is queued). Never blocks on the writer; the caches
+    // refill as they are used. The future is ready once the writer has freed its cache (up to cache_size,
+    // 16 MiB): only then is that memory free heap a malloc_trim can return to the system (it may hold a
+    // StoreError; nothing to do with it).
     [[nodiscard]] std::future<void> release_memory();
 
     [[nodiscard]] StoreStats stats() const;

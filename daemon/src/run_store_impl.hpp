@@ -224,8 +224,7 @@ struct RunStore::Impl {
         ~Lease() { impl_.release(conn_); }
         Lease(const Lease&) = delete;
         Lease& operator=(const Lease&) = delete;
-        [[nodiscard]] sqlite3* db() const { return conn_.db(); }
-        // The connection's prepared statements (Stmt(lease.stmts(), sql)).
+        // The connection and its prepared statements (Stmt(lease.stmts(), sql)).
         [[nodiscard]] StmtCache& stmts() const { return conn_; }
 
     private:

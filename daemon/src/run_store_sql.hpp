@@ -39,12 +39,25 @@ struct SqlError : std::runtime_error {
 std::string sqlite_message(sqlite3* db, int code);
 [[noreturn]] void throw_sql(sqlite3* db, int code, std::string_view what);
 
+// A prepared statement of `sql` (flags: 0 or SQLITE_PREPARE_PERSISTENT). Throws SqlError.
+inline sqlite3_stmt* prepare_statement(sqlite3* db, std::string_view sql, unsigned flags) {
+    sqlite3_stmt* s = nullptr;
+    const int rc = sqlite3_prepare_v3(db, sql.data(), static_cast<int>(sql.size()), flags, &s, nullptr);
+    if (rc != SQLITE_OK) throw_sql(db, rc, "prepare");
+    return s;
+}
+
 // The statements one reader connection has prepared, kept until the store releases memory between runs: an API
 // request's queries are then prepared once per connection and run instead of once per request (preparing took
 // more of a small query's time than running it). The SQL texts are the store's own, a bounded set. Used by one
 // lease at a time.
 class StmtCache {
 public:
+    struct Entry {
+        sqlite3_stmt* stmt;
+        bool in_use;
+    };
+
     explicit StmtCache(sqlite3* db) : db_(db) {}
     ~StmtCache() {
         for (auto& [sql, e] : stmts_) sqlite3_finalize(e.stmt);
@@ -52,20 +65,16 @@ public:
     StmtCache(const StmtCache&) = delete;
     StmtCache& operator=(const StmtCache&) = delete;
     [[nodiscard]] sqlite3* db() const { return db_; }
-    // The statement for `sql`, prepared on first use, marked in use until release(); nullptr while a statement of
-    // the same text is in use (the caller then prepares one of its own).
-    sqlite3_stmt* take(std::string_view sql) {
+    // The entry for `sql`, prepared on first use, marked in use until release(); nullptr while the statement of
+    // that text is in use (the caller then prepares one of its own).
+    Entry* take(std::string_view sql) {
         auto it = stmts_.find(std::string(sql));
-        if (it == stmts_.end()) {
-            sqlite3_stmt* s = nullptr;
-            const int rc = sqlite3_prepare_v3(db_, sql.data(), static_cast<int>(sql.size()),
-                                              SQLITE_PREPARE_PERSISTENT, &s, nullptr);
-            if (rc != SQLITE_OK) throw_sql(db_, rc, "prepare");
-            it = stmts_.emplace(std::string(sql), Entry{s, false}).first;
-        }
+        if (it == stmts_.end())
+            it = stmts_.emplace(std::string(sql), Entry{prepare_statement(db_, sql, SQLITE_PREPARE_PERSISTENT), false})
+                     .first;
         if (it->second.in_use) return nullptr;
         it->second.in_use = true;
-        return it->second.stmt;
+        return &it->second;
     }
     // Finalizes the statements not in use (between runs, so that their memory goes back with the page caches:
     // kept across a run's end they pinned heap that malloc_trim could otherwise return, +4 MiB in the soak).
@@ -79,41 +88,28 @@ public:
             it = stmts_.erase(it);
         }
     }
-    // Back into the cache, reset and unbound (so it holds no read snapshot).
-    void release(sqlite3_stmt* s) {
-        sqlite3_reset(s);
-        sqlite3_clear_bindings(s);
-        for (auto& [sql, e] : stmts_)
-            if (e.stmt == s) e.in_use = false;
+    // Back into the cache, reset and unbound (so it holds no read snapshot). Entries are not moved by later
+    // inserts (node-based map) and clear() keeps the ones in use.
+    static void release(Entry& e) {
+        sqlite3_reset(e.stmt);
+        sqlite3_clear_bindings(e.stmt);
+        e.in_use = false;
     }
 
 private:
-    struct Entry {
-        sqlite3_stmt* stmt;
-        bool in_use;
-    };
     sqlite3* db_;
     std::unordered_map<std::string, Entry> stmts_;
 };
 
 class Stmt {
 public:
-    Stmt(sqlite3* db, std::string_view sql, bool persistent = false) : db_(db) {
-        const int rc = sqlite3_prepare_v3(db, sql.data(), static_cast<int>(sql.size()),
-                                          persistent ? SQLITE_PREPARE_PERSISTENT : 0, &s_, nullptr);
-        if (rc != SQLITE_OK) throw_sql(db, rc, "prepare");
-    }
+    Stmt(sqlite3* db, std::string_view sql, bool persistent = false)
+        : db_(db), s_(prepare_statement(db, sql, persistent ? SQLITE_PREPARE_PERSISTENT : 0)) {}
     // A statement of the connection's cache (one of its own while the cached one is in use), handed back reset.
-    Stmt(StmtCache& cache, std::string_view sql) : db_(cache.db()), s_(cache.take(sql)) {
-        if (s_) {
-            cache_ = &cache;
-            return;
-        }
-        const int rc = sqlite3_prepare_v2(db_, sql.data(), static_cast<int>(sql.size()), &s_, nullptr);
-        if (rc != SQLITE_OK) throw_sql(db_, rc, "prepare");
-    }
+    Stmt(StmtCache& cache, std::string_view sql)
+        : db_(cache.db()), entry_(cache.take(sql)), s_(entry_ ? entry_->stmt : prepare_statement(db_, sql, 0)) {}
     ~Stmt() {
-        if (cache_) cache_->release(s_);
+        if (entry_) StmtCache::release(*entry_);
         else sqlite3_finalize(s_);
     }
     Stmt(const Stmt&) = delete;
@@ -183,8 +179,8 @@ private:
         if (rc != SQLITE_OK) throw_sql(db_, rc, "bind");
     }
     sqlite3* db_;
+    StmtCache::Entry* entry_ = nullptr;  // set when the statement is the cache's
     sqlite3_stmt* s_ = nullptr;
-    StmtCache* cache_ = nullptr;  // the statement is the cache's
 };
 
 // Runs a fixed script (schema) statement by statement, each prepared.

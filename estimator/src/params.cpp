@@ -23,7 +23,8 @@ std::vector<double> number_array(const json& j, const std::string& source, const
     if (!j.is_array()) fail(source, path, "expected an array of numbers");
     std::vector<double> out;
     out.reserve(j.size());
-    for (std::size_t i = 0; i < j.size(); ++i) out.push_back(finite_number(j[i], source, path + "[" + std::to_string(i) + "]"));
+    for (std::size_t i = 0; i < j.size(); ++i)
+        out.push_back(finite_number(j[i], source, path + "[" + std::to_string(i) + "]"));
     return out;
 }
 

@@ -22,16 +22,10 @@ namespace {
 const fs::path kBin = fs::path(CELLBENCH_BIN_DIR) / "cellbench";
 const fs::path kThesis = fs::path(CELLBENCH_SOURCE_DIR) / "config/cells/p45b-thesis.json";
 
-struct CliRun {
-    int status = -1;
-    std::string output;  // stdout and stderr together
-};
+using CliRun = cellbench::test::CommandRun;  // output: stdout and stderr together
 
 // stdout and stderr into one pipe: what a script or `| tee log` sees.
-CliRun run_piped(const std::string& args) {
-    const auto r = cellbench::test::run_cellbench(args);
-    return {r.status, r.output};
-}
+CliRun run_piped(const std::string& args) { return cellbench::test::run_cellbench(args); }
 
 // stdout and stderr on a pseudo-terminal: what an operator at a shell sees.
 CliRun run_on_terminal(const std::string& args) {

@@ -6,6 +6,7 @@
 #include <limits>
 #include <memory>
 #include <numeric>
+#include <stdexcept>
 #include <thread>
 
 #include <ceres/ceres.h>
@@ -184,20 +185,15 @@ struct PassRange {
 // Below this (V per unit of a fitted variable) a derivative passed on through the RC voltages is taken as zero:
 // 1e-10 of a residual in units of a 1 mV noise, against entries of order 1 to 1e3.
 constexpr double kForgottenV = 1e-13;
-bool forgotten(double) { return true; }
-template <typename J>
-bool forgotten(const J& x) {
-    return x.v.cwiseAbs().maxCoeff() < kForgottenV;
-}
 
 // Simulates one window; writes (V_model - V_measured) / sigma for every tick with a measured voltage.
 // knots[j] for j in [knot_lo, knot_hi] (absolute table indices), ocv[j] the OCV knots [ocv_lo, ocv_hi],
-// global = {Ea/1e4, log I0}, slow = {log R3, log tau3} (used when g.slow). With `range`, only the ticks it
-// spans (a derivative pass); with `trace`, records every tick's start (a plain pass).
+// global = {Ea/1e4, log I0}, slow = {log R3, log tau3} (used when g.slow). With `trace`, records every tick's
+// start (the plain pass of WindowJacobian).
 template <typename T>
-void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv, T const* const* ocv_knots, const T* ea_scaled,
-                     const T* log_i0, const T* step_lag, const T* slow, const T* offset,
-                     T* residuals, double* model_v = nullptr, PassRange* range = nullptr, PassTrace* trace = nullptr) {
+void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv, T const* const* ocv_knots,
+                     const T* ea_scaled, const T* log_i0, const T* step_lag, const T* slow, const T* offset,
+                     T* residuals, double* model_v = nullptr, PassTrace* trace = nullptr) {
     using std::exp;
     const int lo = w.knot_lo, hi = w.knot_hi;
     // Linear interpolation inside [lo, hi] with hold outside (R, C) or linear extrapolation (OCV) at the
@@ -220,21 +216,11 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
     const double s_first = w.ticks.empty() ? 0.0 : w.ticks.front().soc_start;
     T v_prev(0.0);
     std::size_t rs = w.residuals;  // the step residuals follow the tick residuals
-    std::size_t k_begin = 0;
-    if (range) {
-        k_begin = range->begin;
-        v1d = T(range->state[0]), v2d = T(range->state[1]), v1c = T(range->state[2]), v2c = T(range->state[3]);
-        v3 = T(range->state[4]), v_prev = T(range->state[5]);
-        r = range->r, rs = range->rs;
-    }
     if (trace) {
         const std::size_t n = w.ticks.size();
         trace->state.resize(n), trace->r.resize(n), trace->rs.resize(n), trace->knot.resize(n), trace->ocv.resize(n);
     }
-    for (std::size_t k = k_begin; k < w.ticks.size(); ++k) {
-        if (range && k > range->direct_last && forgotten(v1d) && forgotten(v2d) && forgotten(v1c) && forgotten(v2c) &&
-            forgotten(v3) && forgotten(v_prev))
-            break;
+    for (std::size_t k = 0; k < w.ticks.size(); ++k) {
         if (trace) {
             trace->state[k] = {scalar(v1d), scalar(v2d), scalar(v1c), scalar(v2c), scalar(v3), scalar(v_prev)};
             trace->r[k] = r, trace->rs[k] = rs;
@@ -300,7 +286,6 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
             residuals[rs++] = ((v - v_prev) - (tk.voltage_v - w.ticks[k - 1].voltage_v)) / w.step_sigma_v;
         v_prev = v;
     }
-    if (range) range->r = r, range->rs = rs;
 }
 
 struct WindowCost {
@@ -319,19 +304,60 @@ struct WindowCost {
     }
 };
 
+// The direct dependence of one of a tick's quantities on the variables of a derivative pass: a short list of
+// (lane, partial derivative), duplicates allowed. A tick's quantities each depend directly on a few variables (the
+// two knots it interpolates between, the SOC offset, Ea, I0); only the RC voltages carry every lane (dense).
+struct Grad {
+    static constexpr int kMax = 24;
+    int n = 0;
+    std::array<int, kMax> lane{};
+    std::array<double, kMax> d{};
+    void add(int l, double c) {
+        if (l < 0) return;
+        if (n == kMax) throw std::logic_error("global fit: a tick's quantity depends on more variables than expected");
+        lane[n] = l, d[n] = c, ++n;
+    }
+    void add(const Grad& o, double s) {
+        if (s != 0.0)
+            for (int k = 0; k < o.n; ++k) add(o.lane[k], o.d[k] * s);
+    }
+    template <std::size_t L>
+    void scatter(std::array<double, L>& dense, double s) const {
+        for (int k = 0; k < n; ++k) dense[lane[k]] += d[k] * s;
+    }
+};
+
+// x + w (y - x) and its gradient, for values x, y of two knots (gx, gy) and a weight w (gw).
+inline double lerp_grad(double x, double y, const Grad& gx, const Grad& gy, double w, const Grad& gw, Grad& out) {
+    out.n = 0;
+    out.add(gx, 1.0 - w);
+    out.add(gy, w);
+    out.add(gw, y - x);
+    return x + w * (y - x);
+}
+
+// d asinh_ratio(x) / dx (asinh_ratio's two branches).
+inline double asinh_ratio_slope(double x) {
+    if (x < 1e-4) return -x / 3.0;
+    return (1.0 / std::sqrt(x * x + 1.0) - asinh_ratio(x)) / x;
+}
+
 // A window's residuals and their Jacobian, the same as DynamicAutoDiffCostFunction<WindowCost, 12> gives (the
-// reference, Builder::reference_cost; GlobalFitOptions::check_jacobian compares them) for a fraction of the work. Ceres' dynamic autodiff simulates
-// the whole window once per 12 variables, with every variable's derivative carried over every tick. But a knot's
-// values enter only where the SOC is within one knot interval of it, an OCV knot only there, and a slow discharge
-// over the whole SOC range touches every knot (the independent plant's C/20 discharge: 13 passes over 2500
-// ticks, 60 % of the fit). Here a plain pass records each tick's state and the intervals it reads; the variables
-// are then grouped, 12 to a derivative pass, in the order they first enter (a knot's two directions apart: a
-// direction enters with its first current), and each pass runs from the first tick any of its variables enters to
-// where the RC voltages have forgotten the last (PassRange). Before that tick the derivatives are zero exactly;
-// after it they are below kForgottenV.
+// reference, Builder::reference_cost; GlobalFitOptions::check_jacobian compares them) for a fraction of the work.
+// Ceres' dynamic autodiff simulates the whole window once per 12 variables, with every variable's derivative
+// carried through every operation of every tick. But a knot's values enter only where the SOC is within one knot
+// interval of it, an OCV knot only there, and a slow discharge over the whole SOC range touches every knot (the
+// independent plant's C/20 discharge: 13 passes over 2500 ticks, 60 % of the fit). Here a plain pass records each
+// tick's state and the intervals it reads; the variables are then grouped, 12 to a derivative pass, in the order
+// they first enter (a knot's two directions apart: a direction enters with its first current), and each pass runs
+// from the first tick any of its variables enters to where the RC voltages have forgotten the last (PassRange).
+// Before that tick the derivatives are zero exactly; after it they are below kForgottenV. A pass is forward
+// sensitivity by hand: only the RC voltages carry a derivative for every lane; a tick's other quantities depend
+// directly on a few variables each (Grad), so a tick costs a few multiplications per lane instead of one per lane
+// for every operation (the same passes with ceres::Jet<double, 12> took 1.6x the CPU of the whole P45B fit).
 class WindowJacobian final : public ceres::CostFunction {
 public:
-    static constexpr int kLanes = 12;
+    static constexpr int kLanes = 48;
     WindowJacobian(const Grid* grid, const WindowData* w) : grid_(grid), w_(w) {
         auto& sizes = *mutable_parameter_block_sizes();
         for (int j = w->knot_lo; j <= w->knot_hi; ++j) sizes.push_back(kKnotSize);
@@ -349,15 +375,175 @@ public:
         for (int j = 0; j < nk; ++j) kv.push_back(knot_values(p[j]));
         PassTrace trace;
         simulate_window(*grid_, w, kv.data(), p + nk, p[g], p[g + 1], p[g + 2], p[g + 3],
-                        w.fit_offset ? p[g + 4] : nullptr, residuals, nullptr, nullptr, jacobians ? &trace : nullptr);
-        if (jacobians) derivative_passes(p, jacobians, trace);
+                        w.fit_offset ? p[g + 4] : nullptr, residuals, nullptr, jacobians ? &trace : nullptr);
+        if (jacobians) derivative_passes(p, kv, jacobians, trace);
         return true;
     }
 
 private:
-    using J = ceres::Jet<double, kLanes>;
+    using Dense = std::array<double, kLanes>;
+    // The lane of the pass each variable has (-1: not in this pass).
+    struct Lanes {
+        std::vector<std::array<int, kKnotSize>> knot;  // per knot of the window
+        std::vector<int> ocv;                          // per OCV knot of the window
+        int ea = -1, i0 = -1, lag = -1;
+        std::array<int, 2> slow{-1, -1}, offset{-1, -1};
+        int count = 0;                       // lanes in use
+        std::array<double*, kLanes> column;  // where each lane's derivatives go: column[l][row * stride[l]]
+        std::array<int, kLanes> stride;
+    };
+    // Per knot of the window and direction: the gradients of R0, R1, C1, R2, C2 in the pass's lanes.
+    using KnotGrads = std::array<std::array<Grad, 5>, 2>;
 
-    void derivative_passes(double const* const* p, double** jacobians, const PassTrace& trace) const {
+    static KnotGrads knot_grads(const double* p, const KnotValues<double>& kv, const std::array<int, kKnotSize>& lane) {
+        KnotGrads out;
+        for (int d = 0; d < 2; ++d) {
+            const int* l = lane.data() + 5 * d;
+            const double r0 = d ? kv.r0c : kv.r0d, r1 = d ? kv.r1c : kv.r1d, c1 = d ? kv.c1c : kv.c1d;
+            const double r2 = d ? kv.r2c : kv.r2d, c2 = d ? kv.c2c : kv.c2d, e4 = std::exp(p[5 * d + 4]);
+            auto& gd = out[d];
+            gd[0].add(l[0], r0);                          // R0 = exp(p0)
+            gd[1].add(l[1], r1);                          // R1 = exp(p1)
+            gd[2].add(l[1], -c1), gd[2].add(l[2], c1);    // C1 = exp(p2) / R1
+            gd[3].add(l[3], r2);                          // R2 = exp(p3)
+            gd[4].add(l[2], c2), gd[4].add(l[3], -c2);    // C2 = exp(p2) (1 + exp(p4)) / R2
+            gd[4].add(l[4], c2 * e4 / (1.0 + e4));
+        }
+        return out;
+    }
+
+    // One exact ZOH step of an RC pair and its gradient: v' = decay v + R (1 - decay) I, decay = exp(-dt / tau),
+    // with R, tau depending directly on the variables in gr, gtau and dt on the step lag (ddt_dlag).
+    static void rc_step_grad(double& v, Dense& dv, int lanes, double r, const Grad& gr, double tau, const Grad& gtau,
+                             double current_a, double dt_s, int lag_lane, double ddt_dlag) {
+        const double decay = std::exp(-dt_s / tau);
+        const double m = (v - r * current_a) * decay;  // d v' / d (-dt / tau)
+        for (int l = 0; l < lanes; ++l) dv[l] *= decay;
+        gtau.scatter(dv, m * dt_s / (tau * tau));
+        gr.scatter(dv, current_a * (1.0 - decay));
+        if (lag_lane >= 0) dv[lag_lane] -= m / tau * ddt_dlag;
+        v = decay * v + r * (1.0 - decay) * current_a;
+    }
+
+    // One derivative pass over range: the model as simulate_window<double> computes it, and every residual's
+    // derivative by each lane, written to the Jacobian (Lanes::column). On exit range.r and range.rs are the
+    // counters where it stopped.
+    void sensitivity_pass(double const* const* p, const std::vector<KnotValues<double>>& kv, const Lanes& ln,
+                          const std::vector<KnotGrads>& kg, PassRange& range) const {
+        const Grid& g = *grid_;
+        const WindowData& w = *w_;
+        const int lo = w.knot_lo, hi = w.knot_hi, olo = w.ocv_lo, ohi = w.ocv_hi;
+        const int nk = hi - lo + 1, gb = nk + ohi - olo + 1;
+        const double ea_scaled = p[gb][0], i0 = std::exp(p[gb + 1][0]), lag = p[gb + 2][0];
+        const double off = w.fit_offset ? p[gb + 4][0] : 0.0, gain = w.fit_offset ? std::exp(p[gb + 4][1]) : 1.0;
+        const double x_ref = g.i_ref_a / (2.0 * i0);
+        const double ref_ratio = asinh_ratio(x_ref), ref_slope = asinh_ratio_slope(x_ref);
+        const double r3 = g.slow ? std::exp(p[gb + 3][0]) : 0.0, tau3 = g.slow ? std::exp(p[gb + 3][1]) : 1.0;
+        const double s_first = w.ticks.empty() ? 0.0 : w.ticks.front().soc_start;
+        std::array<double, 5> v{};  // v1d, v2d, v1c, v2c, v3
+        std::array<Dense, 5> dv{};
+        for (int s = 0; s < 5; ++s) v[s] = range.state[s];  // (the model voltage itself is not needed: only its derivative)
+        Dense dv_prev{}, dvm{};
+        std::size_t r = range.r, rs = range.rs;
+        Grad dsoc0, dsoc1, dwr, dwo, dft, dfi, dfr, gR, gC, gr, gtau, gocv, gr0;
+        const int nl = ln.count;
+        auto forgotten_all = [&] {
+            for (int l = 0; l < nl; ++l)
+                if (std::abs(dv[0][l]) >= kForgottenV || std::abs(dv[1][l]) >= kForgottenV || std::abs(dv[2][l]) >= kForgottenV ||
+                    std::abs(dv[3][l]) >= kForgottenV || std::abs(dv[4][l]) >= kForgottenV || std::abs(dv_prev[l]) >= kForgottenV)
+                    return false;
+            return true;
+        };
+        for (std::size_t k = range.begin; k < w.ticks.size(); ++k) {
+            if (k > range.direct_last && forgotten_all()) break;
+            const Tick& tk = w.ticks[k];
+            const double i = tk.current_a;
+            const double u0 = tk.soc_start - s_first, u1 = tk.soc_end - s_first;
+            const double soc0 = s_first + off + gain * u0, soc1 = s_first + off + gain * u1;
+            dsoc0.n = 0, dsoc0.add(ln.offset[0], 1.0), dsoc0.add(ln.offset[1], gain * u0);
+            dsoc1.n = 0, dsoc1.add(ln.offset[0], 1.0), dsoc1.add(ln.offset[1], gain * u1);
+            // R and C: linear between the tick's two knots, held outside the table.
+            const int idx = std::clamp(g.interval(soc0), lo, std::max(lo, hi - 1));
+            double wr = (soc0 - g.soc(idx)) / g.width(idx);
+            dwr.n = 0, dwr.add(dsoc0, 1.0 / g.width(idx));
+            if (wr < 0) wr = 0.0, dwr.n = 0;
+            if (wr > 1) wr = 1.0, dwr.n = 0;
+            if (lo == hi) wr = 0.0, dwr.n = 0;
+            const int ia = idx - lo, ib = std::min(idx + 1, hi) - lo;
+            const auto &a = kv[ia], &b = kv[ib];
+            double f_t = 1.0;
+            dft.n = 0;
+            if (g.temperature) {
+                const double c = kEaScale / kGasConstantJPerMolK * (1.0 / (tk.temperature_c + kZeroCelsiusK) - 1.0 / g.t_ref_k);
+                f_t = std::exp(ea_scaled * c);
+                dft.add(ln.ea, f_t * c);
+            }
+            const int dir0 = i < 0 ? 0 : 1;
+            const double r0_knots = lerp_grad(dir0 ? a.r0c : a.r0d, dir0 ? b.r0c : b.r0d, kg[ia][dir0][0], kg[ib][dir0][0],
+                                              wr, dwr, gR);
+            gr0.n = 0, gr0.add(gR, f_t), gr0.add(dft, r0_knots);
+            auto advance = [&](double ic_a, double dt_s, double ddt_dlag) {
+                double fi = 1.0;
+                dfi.n = 0;
+                if (g.current) {
+                    const double x = std::abs(ic_a) / (2.0 * i0), h = asinh_ratio(x);
+                    fi = h / ref_ratio;
+                    // x and x_ref both scale as 1 / I0: d x / d log I0 = -x.
+                    dfi.add(ln.i0, (-x * asinh_ratio_slope(x) * ref_ratio + x_ref * h * ref_slope) / (ref_ratio * ref_ratio));
+                }
+                const double fr = f_t * fi;  // C held: tau scales with R
+                dfr.n = 0, dfr.add(dft, fi), dfr.add(dfi, f_t);
+                auto pair = [&](int s, int d, int qr, int qc, double ra, double rb, double ca, double cb, double cur) {
+                    const double rk = lerp_grad(ra, rb, kg[ia][d][qr], kg[ib][d][qr], wr, dwr, gR);
+                    const double ck = lerp_grad(ca, cb, kg[ia][d][qc], kg[ib][d][qc], wr, dwr, gC);
+                    const double rr = rk * fr, tau = rr * ck;
+                    gr.n = 0, gr.add(gR, fr), gr.add(dfr, rk);
+                    gtau.n = 0, gtau.add(gr, ck), gtau.add(gC, rr);
+                    rc_step_grad(v[s], dv[s], nl, rr, gr, tau, gtau, cur, dt_s, ln.lag, ddt_dlag);
+                };
+                const double id = discharge_part(ic_a), icc = charge_part(ic_a);
+                pair(0, 0, 1, 2, a.r1d, b.r1d, a.c1d, b.c1d, id);
+                pair(1, 0, 3, 4, a.r2d, b.r2d, a.c2d, b.c2d, id);
+                pair(2, 1, 1, 2, a.r1c, b.r1c, a.c1c, b.c1c, icc);
+                pair(3, 1, 3, 4, a.r2c, b.r2c, a.c2c, b.c2c, icc);
+                if (g.slow) {  // the whole current, R and tau scaled by temperature only
+                    gr.n = 0, gr.add(ln.slow[0], r3 * f_t), gr.add(dft, r3);
+                    gtau.n = 0, gtau.add(ln.slow[1], tau3 * f_t), gtau.add(dft, tau3);
+                    rc_step_grad(v[4], dv[4], nl, r3 * f_t, gr, tau3 * f_t, gtau, ic_a, dt_s, ln.lag, ddt_dlag);
+                }
+            };
+            if (tk.step) {
+                advance(tk.current_before_a, (1.0 - lag) * tk.dt_s, -tk.dt_s);
+                advance(i, lag * tk.dt_s, tk.dt_s);
+            } else if (tk.dt_s > 0) {
+                advance(i, tk.dt_s, 0.0);
+            }
+            // OCV on its own grid, linear with linear extrapolation past the window's first and last OCV knots.
+            const int jo = std::clamp(g.ocv_interval(soc1), olo, std::max(olo, ohi - 1));
+            double wo = (soc1 - g.ocv_soc(jo)) / g.ocv_width(jo);
+            dwo.n = 0, dwo.add(dsoc1, 1.0 / g.ocv_width(jo));
+            if (olo == ohi) wo = 0.0, dwo.n = 0;
+            const int ja = jo - olo, jb = std::min(jo + 1, ohi) - olo;
+            const double oa = p[nk + ja][0], ob = p[nk + jb][0];
+            gocv.n = 0, gocv.add(ln.ocv[ja], 1.0 - wo), gocv.add(ln.ocv[jb], wo), gocv.add(dwo, ob - oa);
+            for (int l = 0; l < nl; ++l) dvm[l] = dv[0][l] + dv[1][l] + dv[2][l] + dv[3][l] + dv[4][l];
+            gocv.scatter(dvm, 1.0);
+            gr0.scatter(dvm, i);
+            if (std::isfinite(tk.voltage_v)) {
+                for (int l = 0; l < nl; ++l) ln.column[l][r * ln.stride[l]] = dvm[l] / g.sigma_v;
+                ++r;
+            }
+            if (tk.step && k > 0 && std::isfinite(tk.voltage_v) && std::isfinite(w.ticks[k - 1].voltage_v)) {
+                for (int l = 0; l < nl; ++l) ln.column[l][rs * ln.stride[l]] = (dvm[l] - dv_prev[l]) / w.step_sigma_v;
+                ++rs;
+            }
+            dv_prev = dvm;
+        }
+        range.r = r, range.rs = rs;
+    }
+
+    void derivative_passes(double const* const* p, const std::vector<KnotValues<double>>& kv, double** jacobians,
+                           const PassTrace& trace) const {
         const WindowData& w = *w_;
         const auto& sizes = parameter_block_sizes();
         const int nk = w.knot_hi - w.knot_lo + 1, no = w.ocv_hi - w.ocv_lo + 1, g = nk + no;
@@ -407,48 +593,42 @@ private:
             return units[a].first != units[c].first ? units[a].first < units[c].first : units[a].last < units[c].last;
         });
         // Derivative passes of up to kLanes variables, whole units, in that order.
-        std::vector<std::vector<J>> pj(nb);
-        std::vector<J const*> ocv_ptr(no);
-        std::vector<KnotValues<J>> kv(nk);
-        std::vector<J> res(n);
+        std::vector<KnotGrads> kg(nk);
+        Lanes ln;
         std::size_t next = 0;
         while (next < order.size()) {
             std::vector<int> chunk;
             int lanes = 0;
             while (next < order.size() && lanes + units[order[next]].size <= kLanes)
                 lanes += units[order[next]].size, chunk.push_back(order[next++]);
-            for (int b = 0; b < nb; ++b) {
-                pj[b].resize(sizes[b]);
-                for (int q = 0; q < sizes[b]; ++q) pj[b][q] = J(p[b][q]);
-            }
+            ln = Lanes{};
+            ln.knot.assign(nk, {});
+            for (auto& l : ln.knot) l.fill(-1);
+            ln.ocv.assign(no, -1);
             PassRange range;
             range.begin = kNone, range.direct_last = 0;
             int lane = 0;
             for (int u : chunk) {
                 const Unit& un = units[u];
-                for (int q = 0; q < un.size; ++q) pj[un.block][un.q0 + q].v[lane++] = 1.0;
+                for (int q = un.q0; q < un.q0 + un.size; ++q, ++lane) {
+                    const int b = un.block;
+                    if (b < nk) ln.knot[b][q] = lane;
+                    else if (b < g) ln.ocv[b - nk] = lane;
+                    else if (b == g) ln.ea = lane;
+                    else if (b == g + 1) ln.i0 = lane;
+                    else if (b == g + 2) ln.lag = lane;
+                    else if (b == g + 3) ln.slow[q] = lane;
+                    else ln.offset[q] = lane;
+                    ln.column[lane] = jacobians[b] + q, ln.stride[lane] = sizes[b];
+                }
                 range.begin = std::min(range.begin, un.first);
                 range.direct_last = std::max(range.direct_last, un.last);
             }
+            for (int j = 0; j < nk; ++j) kg[j] = knot_grads(p[j], kv[j], ln.knot[j]);
             range.state = trace.state[range.begin];
             range.r = trace.r[range.begin], range.rs = trace.rs[range.begin];
-            const std::size_t r0 = range.r, rs0 = range.rs;
-            for (int j = 0; j < nk; ++j) kv[j] = knot_values(pj[j].data());
-            for (int j = 0; j < no; ++j) ocv_ptr[j] = pj[nk + j].data();
-            simulate_window(*grid_, w, kv.data(), ocv_ptr.data(), pj[g].data(), pj[g + 1].data(), pj[g + 2].data(),
-                            pj[g + 3].data(), w.fit_offset ? pj[g + 4].data() : nullptr, res.data(), nullptr, &range);
-            auto copy_rows = [&](std::size_t from, std::size_t to) {
-                for (std::size_t row = from; row < to; ++row) {
-                    int l = 0;
-                    for (int u : chunk) {
-                        const Unit& un = units[u];
-                        double* jb = jacobians[un.block] + row * sizes[un.block] + un.q0;
-                        for (int q = 0; q < un.size; ++q) jb[q] = res[row].v[l++];
-                    }
-                }
-            };
-            copy_rows(r0, range.r);
-            copy_rows(rs0, range.rs);
+            ln.count = lane;
+            sensitivity_pass(p, kv, ln, kg, range);
         }
     }
 

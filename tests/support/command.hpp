@@ -23,12 +23,20 @@ struct CommandRun {
 
 enum class Capture { stdout_and_stderr, stderr_only };
 
-// `command` is a shell command line; its first word runs under `timeout timeout_s`.
+// `command` in single quotes for a shell (a ' in it closed, escaped and reopened).
+inline std::string shell_quoted(const std::string& command) {
+    std::string q = "'";
+    for (char c : command) q += c == '\'' ? std::string("'\\''") : std::string(1, c);
+    return q + "'";
+}
+
+// `command` is a shell command line; the whole of it (pipes, lists and redirections included) runs under
+// `timeout timeout_s`, in a shell of its own.
 inline CommandRun run_command(const std::string& command, int timeout_s = 60,
                               Capture capture = Capture::stdout_and_stderr) {
     const char* redirect = capture == Capture::stderr_only ? " 2>&1 1>/dev/null" : " 2>&1";
     CommandRun r;
-    FILE* p = popen(("timeout " + std::to_string(timeout_s) + " " + command + redirect).c_str(), "r");
+    FILE* p = popen(("timeout " + std::to_string(timeout_s) + " sh -c " + shell_quoted(command) + redirect).c_str(), "r");
     if (!p) return r;
     char buf[4096];
     for (std::size_t n; (n = fread(buf, 1, sizeof buf, p)) > 0;) r.output.append(buf, n);

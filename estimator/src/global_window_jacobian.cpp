@@ -74,15 +74,16 @@ double asinh_ratio_slope(double x) {
 // carried through every operation of every tick. But a knot's values enter only where the SOC is within one knot
 // interval of it, an OCV knot only there, and a slow discharge over the whole SOC range touches every knot (the
 // independent plant's C/20 discharge: 13 passes over 2500 ticks, 60 % of the fit). Here a plain pass records each
-// tick's state and the intervals it reads; the variables are then grouped, 12 to a derivative pass, in the order
+// tick's state and the intervals it reads; the variables are then grouped, kLanes to a derivative pass, in the order
 // they first enter (a knot's two directions apart: a direction enters with its first current), and each pass runs
 // from the first tick any of its variables enters to where the RC voltages have forgotten the last (PassRange).
 // Before that tick the derivatives are zero exactly; after it they are below kForgottenV. A pass is forward
 // sensitivity by hand: only the RC voltages carry a derivative for every lane; a tick's other quantities depend
 // directly on a few variables each (Grad), so a tick costs a few multiplications per lane instead of one per lane
-// for every operation (the same passes with ceres::Jet<double, 12> took 1.6x the CPU of the whole P45B fit).
+// for every operation (with ceres::Jet<double, 12> passes the whole P45B fit took twice the CPU; docs/model.md).
 class WindowJacobian final : public ceres::CostFunction {
 public:
+    // Variables per derivative pass: the P45B fit measured at 12 to 96, flat from 48 (docs/model.md).
     static constexpr int kLanes = 48;
     WindowJacobian(const Grid* grid, const WindowData* w) : grid_(grid), w_(w) {
         auto& sizes = *mutable_parameter_block_sizes();

@@ -34,6 +34,9 @@ constexpr double kForgottenV = 1e-13;
 // (lane, partial derivative), duplicates allowed. A tick's quantities each depend directly on a few variables (the
 // two knots it interpolates between, the SOC offset, Ea, I0); only the RC voltages carry every lane (dense).
 struct Grad {
+    // The longest list is a second pair's tau = R C: R from two knots' log R2 and the interpolation weight's two
+    // (SOC offset, capacity scale), times the temperature and current factors (2), plus C2 from two knots' three
+    // variables each and the weight's two: 14 entries. A longer one is a programming error (logic_error).
     static constexpr int kMax = 24;
     int n = 0;
     std::array<int, kMax> lane{};

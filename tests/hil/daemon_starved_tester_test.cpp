@@ -9,7 +9,7 @@
 // go on for longer than the whole CC phase. A real tester's current is its own hardware's, CV limit included,
 // whatever its PC and the client do: the run must complete with no reading above the CV limit.
 //
-// Time scale 400 (the HPPC's). Nothing waits on wall time except bounded waits that only end a broken test.
+// Time scale 400 (the full HPPC's until session 26). Nothing waits on wall time except bounded waits that only end a broken test.
 #include <gtest/gtest.h>
 
 #include <algorithm>

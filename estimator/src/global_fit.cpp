@@ -6,7 +6,6 @@
 #include <limits>
 #include <memory>
 #include <numeric>
-#include <stdexcept>
 #include <thread>
 
 #include <ceres/ceres.h>

@@ -164,9 +164,10 @@ T rc_step(const T& v, const T& r_ohm, const T& tau_s, const T& current_a, const 
 }
 
 // What a plain (double) pass of a window records at the start of every tick, so that a derivative pass can start
-// there (WindowJacobian): the state, the residual counters, and the knot and OCV intervals the tick reads.
+// there and read the same intervals (WindowJacobian): the RC voltages, the residual counters, and the knot and OCV
+// intervals the tick reads.
 struct PassTrace {
-    std::vector<std::array<double, 6>> state;  // v1d, v2d, v1c, v2c, v3 and the previous tick's voltage
+    std::vector<std::array<double, 5>> state;  // v1d, v2d, v1c, v2c, v3
     std::vector<std::size_t> r, rs;             // tick and step residual counters
     std::vector<int> knot, ocv;                 // the knot interval [knot, knot + 1] and the OCV interval read
 };
@@ -207,7 +208,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
     }
     for (std::size_t k = 0; k < w.ticks.size(); ++k) {
         if (trace) {
-            trace->state[k] = {scalar(v1d), scalar(v2d), scalar(v1c), scalar(v2c), scalar(v3), scalar(v_prev)};
+            trace->state[k] = {scalar(v1d), scalar(v2d), scalar(v1c), scalar(v2c), scalar(v3)};
             trace->r[k] = r, trace->rs[k] = rs;
         }
         const Tick& tk = w.ticks[k];

@@ -22,7 +22,7 @@ namespace {
 // (every derivative below kForgottenV). On exit `r` and `rs` are the counters where it stopped.
 struct PassRange {
     std::size_t begin = 0, direct_last = 0;
-    std::array<double, 6> state{};
+    std::array<double, 5> state{};  // the RC voltages at begin (the previous voltage's derivative starts at zero)
     std::size_t r = 0, rs = 0;
 };
 
@@ -155,11 +155,11 @@ private:
         v = decay * v + r * (1.0 - decay) * current_a;
     }
 
-    // One derivative pass over range: the model as simulate_window<double> computes it, and every residual's
-    // derivative by each lane, written to the Jacobian (Lanes::column). On exit range.r and range.rs are the
-    // counters where it stopped.
+    // One derivative pass over range: the model as simulate_window<double> computes it, on the knot and OCV
+    // intervals its plain pass read (trace), and every residual's derivative by each lane, written to the Jacobian
+    // (Lanes::column). On exit range.r and range.rs are the counters where it stopped.
     void sensitivity_pass(double const* const* p, const std::vector<KnotValues<double>>& kv, const Lanes& ln,
-                          const std::vector<KnotGrads>& kg, PassRange& range) const {
+                          const std::vector<KnotGrads>& kg, const PassTrace& trace, PassRange& range) const {
         const Grid& g = *grid_;
         const WindowData& w = *w_;
         const int lo = w.knot_lo, hi = w.knot_hi, olo = w.ocv_lo, ohi = w.ocv_hi;
@@ -170,9 +170,8 @@ private:
         const double ref_ratio = asinh_ratio(x_ref), ref_slope = asinh_ratio_slope(x_ref);
         const double r3 = g.slow ? std::exp(p[gb + 3][0]) : 0.0, tau3 = g.slow ? std::exp(p[gb + 3][1]) : 1.0;
         const double s_first = w.ticks.empty() ? 0.0 : w.ticks.front().soc_start;
-        std::array<double, 5> v{};  // v1d, v2d, v1c, v2c, v3
+        std::array<double, 5> v = range.state;  // v1d, v2d, v1c, v2c, v3 (the model voltage itself is not needed)
         std::array<Dense, 5> dv{};
-        for (int s = 0; s < 5; ++s) v[s] = range.state[s];  // (the model voltage itself is not needed: only its derivative)
         Dense dv_prev{}, dvm{};
         std::size_t r = range.r, rs = range.rs;
         Grad dsoc0, dsoc1, dwr, dwo, dft, dfi, dfr, gR, gC, gr, gtau, gocv, gr0;
@@ -193,7 +192,7 @@ private:
             dsoc0.n = 0, dsoc0.add(ln.offset[0], 1.0), dsoc0.add(ln.offset[1], gain * u0);
             dsoc1.n = 0, dsoc1.add(ln.offset[0], 1.0), dsoc1.add(ln.offset[1], gain * u1);
             // R and C: linear between the tick's two knots, held outside the table.
-            const int idx = std::clamp(g.interval(soc0), lo, std::max(lo, hi - 1));
+            const int idx = trace.knot[k];
             double wr = (soc0 - g.soc(idx)) / g.width(idx);
             dwr.n = 0, dwr.add(dsoc0, 1.0 / g.width(idx));
             if (wr < 0) wr = 0.0, dwr.n = 0;
@@ -249,7 +248,7 @@ private:
                 advance(i, tk.dt_s, 0.0);
             }
             // OCV on its own grid, linear with linear extrapolation past the window's first and last OCV knots.
-            const int jo = std::clamp(g.ocv_interval(soc1), olo, std::max(olo, ohi - 1));
+            const int jo = trace.ocv[k];
             double wo = (soc1 - g.ocv_soc(jo)) / g.ocv_width(jo);
             dwo.n = 0, dwo.add(dsoc1, 1.0 / g.ocv_width(jo));
             if (olo == ohi) wo = 0.0, dwo.n = 0;
@@ -358,7 +357,7 @@ private:
             range.state = trace.state[range.begin];
             range.r = trace.r[range.begin], range.rs = trace.rs[range.begin];
             ln.count = lane;
-            sensitivity_pass(p, kv, ln, kg, range);
+            sensitivity_pass(p, kv, ln, kg, trace, range);
         }
     }
 

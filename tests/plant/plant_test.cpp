@@ -398,6 +398,67 @@ TEST(PlantLayouts, MultiLayoutPulsesAtFiveCurrentsPerLevel) {
     EXPECT_GE(full_levels, 7);
 }
 
+// The random layout draws what labs run: over 60 seeds every option appears, and each recording follows its draw
+// (pulse lengths, a level every SOC step from one end to one step from the other).
+TEST(PlantLayouts, RandomLayoutsCoverWhatLabsRunAndFollowTheirDraw) {
+    std::set<double> steps, discharge_pulses;
+    std::set<int> currents;
+    std::set<bool> upward, pilot, charge_first, charge_pulse;
+    for (std::uint64_t seed = 1; seed <= 60; ++seed) {
+        const auto cell = plant::make_cell(options(seed, Layout::random));
+        const auto l = plant::draw_random_layout(seed, cell.measurement.sample_s);
+        steps.insert(l.soc_step), discharge_pulses.insert(l.discharge_pulse_s), currents.insert(l.currents_per_level);
+        upward.insert(l.upward), pilot.insert(l.pilot), charge_first.insert(l.charge_first);
+        charge_pulse.insert(l.charge_pulse_s > 0);
+        EXPECT_GE(l.discharge_pulse_s, 10.0 * cell.measurement.sample_s - 1e-9) << "seed " << seed;
+        EXPECT_TRUE(l.charge_pulse_s == 0.0 || l.charge_pulse_s >= 10.0 * cell.measurement.sample_s - 1e-9);
+        EXPECT_GT(l.charge_rate_c, 0.0);
+        EXPECT_LE(l.charge_rate_c, l.discharge_rate_c + 1e-9);
+    }
+    EXPECT_EQ(steps, (std::set<double>{0.05, 0.1, 0.2}));
+    EXPECT_GE(discharge_pulses.size(), 3u);
+    EXPECT_EQ(currents, (std::set<int>{1, 2}));
+    EXPECT_EQ(upward.size(), 2u);
+    EXPECT_EQ(pilot.size(), 2u);
+    EXPECT_EQ(charge_first.size(), 2u);
+    EXPECT_EQ(charge_pulse.size(), 2u);
+
+    for (std::uint64_t seed : {1u, 9u, 12u}) {  // upward, two currents; downward, two currents; downward, one
+        const auto o = options(seed, Layout::random);
+        const auto cell = plant::make_cell(o);
+        const auto l = plant::draw_random_layout(seed, cell.measurement.sample_s);
+        const auto r = plant::generate_hppc(cell, o);
+        std::vector<double> level_soc;  // the true SOC at the start of each level's first discharge pulse
+        int pulses = 0;
+        for (const auto& s : r.steps) {
+            if (s.type != "CCCV DChg" || s.end_reason != "time") continue;
+            const double length = s.end_s - s.start_s;
+            const bool first = std::abs(length - l.discharge_pulse_s) < 1e-6;
+            EXPECT_TRUE(first || l.currents_per_level == 2) << "seed " << seed << ": a " << length << " s pulse";
+            ++pulses;
+            const auto row = std::lower_bound(r.time_s.begin(), r.time_s.end(), s.start_s) - r.time_s.begin();
+            const double soc = r.true_soc[static_cast<std::size_t>(row)];
+            if (level_soc.empty() || std::abs(soc - level_soc.back()) > 0.5 * l.soc_step) level_soc.push_back(soc);
+        }
+        // Down: a level every step from full to one step from empty. Up: from one step above empty until a SOC
+        // step's charge meets the voltage limit (under current, some steps below full), as a cycler's limit ends it.
+        const int levels = static_cast<int>(std::lround(1.0 / l.soc_step));
+        EXPECT_EQ(pulses, static_cast<int>(level_soc.size()) * l.currents_per_level) << "seed " << seed;
+        if (l.upward) {
+            EXPECT_GE(static_cast<double>(level_soc.size()), 0.8 * levels) << "seed " << seed;
+            EXPECT_LE(static_cast<int>(level_soc.size()), levels) << "seed " << seed;
+        } else {
+            ASSERT_EQ(static_cast<int>(level_soc.size()), levels) << "seed " << seed;
+        }
+        const double step = l.soc_step * cell.nominal_capacity_ah / cell.capacity_ah;  // in the plant's SOC
+        for (std::size_t k = 1; k < level_soc.size(); ++k)
+            EXPECT_NEAR(std::abs(level_soc[k] - level_soc[k - 1]), step, 0.02) << "seed " << seed << " level " << k;
+        // one step from the end the test starts from, and at the other end one step from it
+        const double lowest = *std::min_element(level_soc.begin(), level_soc.end());
+        EXPECT_NEAR(lowest, l.upward ? step : 1.0 - (levels - 1) * step, 0.05) << "seed " << seed;
+    }
+}
+
 TEST(PlantLayouts, DriveProfileStaysInsideTheVoltageWindowAndSpansTheSocRange) {
     const auto o = options(13);
     const auto cell = plant::make_cell(o);

@@ -85,12 +85,13 @@ std::string_view layout_name(Layout l) {
         case Layout::thesis: return "thesis";
         case Layout::usabc: return "usabc";
         case Layout::multi: return "multi";
+        case Layout::random: return "random";
     }
     return "thesis";
 }
 
 std::optional<Layout> parse_layout(std::string_view name) {
-    for (Layout l : {Layout::thesis, Layout::usabc, Layout::multi})
+    for (Layout l : {Layout::thesis, Layout::usabc, Layout::multi, Layout::random})
         if (layout_name(l) == name) return l;
     return std::nullopt;
 }

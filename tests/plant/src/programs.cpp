@@ -52,17 +52,60 @@ Step cc_discharge(const CellSpec& c, double current_a, double seconds = kInf, bo
     s.fine_sampling = fine;
     return s;
 }
-// Ah of a 10 % SOC step: 10 % of `reference_ah` minus the net charge the pulse set since `first` removed.
+Step cc_charge(const CellSpec& c, double current_a, double seconds = kInf, bool fine = false) {
+    Step s;
+    s.type = "CC Chg";
+    s.mode = Mode::cc;
+    s.current_a = current_a;
+    s.voltage_limit_v = c.v_max_v;
+    s.duration_s = seconds;
+    s.fine_sampling = fine;
+    return s;
+}
+// Ah of a SOC step of `fraction` (10 % unless given) of `reference_ah`, less what the pulse set's last
+// `pulse_steps` steps already moved in the step's direction (`sign` -1: a discharging step, +1: a charging one).
 std::function<double(const std::vector<StepResult>&)> soc_step_ah(std::function<double(const std::vector<StepResult>&)> reference_ah,
-                                                                  std::size_t pulse_steps) {
-    return [reference_ah, pulse_steps](const std::vector<StepResult>& done) {
+                                                                  std::size_t pulse_steps, double fraction = 0.1,
+                                                                  double sign = -1.0) {
+    return [reference_ah, pulse_steps, fraction, sign](const std::vector<StepResult>& done) {
         double net = 0.0;  // signed, + charge
         for (std::size_t k = done.size() - std::min(done.size(), pulse_steps); k < done.size(); ++k) net += done[k].ah;
-        return std::max(0.0, 0.1 * reference_ah(done) + net);
+        return std::max(0.0, fraction * reference_ah(done) - sign * net);
     };
 }
 
 }  // namespace
+
+// The random layout: an HPPC whose structure is drawn by seed from what labs run (RandomLayout, plant.hpp).
+RandomLayout draw_random_layout(std::uint64_t seed, double sample_s) {
+    Rng rng(seed, 13);
+    RandomLayout l;
+    static constexpr double kSteps[] = {0.05, 0.1, 0.1, 0.2};
+    static constexpr double kStepRates[] = {1.0 / 3.0, 0.5, 1.0};
+    static constexpr double kRestsAfterStep[] = {900.0, 1800.0, 3600.0};
+    static constexpr double kDischargePulses[] = {2.0, 10.0, 18.0, 30.0};
+    static constexpr double kChargePulses[] = {0.0, 2.0, 10.0};
+    static constexpr double kPulseRests[] = {0.0, 20.0, 40.0};
+    l.upward = rng.uniform01() < 0.25;
+    l.soc_step = kSteps[rng.index(4)];
+    l.step_rate_c = kStepRates[rng.index(3)];
+    l.rest_after_step_s = kRestsAfterStep[rng.index(3)];
+    l.pilot = rng.index(2) == 0;
+    l.discharge_pulse_s = kDischargePulses[rng.index(4)];
+    l.charge_pulse_s = kChargePulses[rng.index(3)];
+    l.rest_between_s = kPulseRests[rng.index(3)];
+    // A lab logs a pulse with at least ten samples: shorter pulses become 10 samples long.
+    l.discharge_pulse_s = std::max(l.discharge_pulse_s, 10.0 * sample_s);
+    if (l.charge_pulse_s > 0.0) l.charge_pulse_s = std::max(l.charge_pulse_s, 10.0 * sample_s);
+    l.rest_after_pulses_s = rng.index(2) == 0 ? 0.0 : 40.0;
+    l.charge_first = rng.index(4) == 0;
+    l.discharge_rate_c = std::round(rng.uniform(0.5, 3.0) * 4.0) / 4.0;
+    l.charge_rate_c = std::round(rng.uniform(0.25, 1.0) * l.discharge_rate_c * 4.0) / 4.0;
+    if (l.charge_rate_c <= 0.0) l.charge_rate_c = 0.25;
+    l.currents_per_level = rng.index(3) == 0 ? 2 : 1;
+    return l;
+}
+
 
 Program hppc_program(const CellSpec& c, Layout layout, const PlantOptions& options) {
     const double i1c = c.current_1c_a();
@@ -118,6 +161,64 @@ Program hppc_program(const CellSpec& c, Layout layout, const PlantOptions& optio
             Step final_discharge = cc_discharge(c, i1c / 3.0);
             final_discharge.tail = true;
             p.push_back(final_discharge);
+            p.push_back(rest(1800.0));
+            break;
+        }
+        case Layout::random: {
+            const RandomLayout l = draw_random_layout(c.seed, c.measurement.sample_s);
+            const double rated = c.nominal_capacity_ah;
+            p.push_back(rest(10.0));
+            p.push_back(cccv_charge(c, i1c));
+            p.push_back(rest(1800.0));
+            if (l.pilot || l.upward) {  // a capacity test first (an upward test starts from empty after it anyway)
+                p.push_back(cc_discharge(c, l.step_rate_c * i1c));
+                p.push_back(rest(1800.0));
+                if (!l.upward) {
+                    p.push_back(cccv_charge(c, i1c));
+                    p.push_back(rest(1800.0));
+                }
+            }
+            const int levels = static_cast<int>(std::round(1.0 / l.soc_step));  // 100 % .. one step (or up to 100 %)
+            if (l.upward) {  // from empty: the first level one step up
+                Step first_step = cc_charge(c, l.step_rate_c * i1c, kInf, true);
+                first_step.ah_limit = soc_step_ah([rated](const std::vector<StepResult>&) { return rated; }, 0, l.soc_step, 1.0);
+                p.push_back(first_step);
+                p.push_back(rest(l.rest_after_step_s));
+            }
+            for (int level = 0; level < levels; ++level) {
+                std::size_t set_steps = 0;
+                for (int k = 0; k < l.currents_per_level; ++k) {
+                    const double scale = k == 0 ? 1.0 : 0.5;
+                    Step dis = cccv_discharge(c, scale * l.discharge_rate_c * i1c, l.discharge_pulse_s, true);
+                    dis.cutoff_current_a = 0.0;
+                    Step chg;
+                    const bool has_charge = l.charge_pulse_s > 0.0;
+                    if (has_charge) {
+                        chg = cccv_charge(c, scale * l.charge_rate_c * i1c, l.charge_pulse_s, true);
+                        chg.cutoff_current_a = 0.0;
+                    }
+                    const Step& first = l.charge_first && has_charge ? chg : dis;
+                    const Step& second = l.charge_first && has_charge ? dis : chg;
+                    p.push_back(first), ++set_steps;
+                    if (has_charge) {
+                        if (l.rest_between_s > 0.0) p.push_back(rest(l.rest_between_s, true)), ++set_steps;
+                        p.push_back(second), ++set_steps;
+                    }
+                    const bool last = k + 1 == l.currents_per_level;
+                    const double after = last ? l.rest_after_pulses_s : std::max(40.0, l.rest_after_pulses_s);
+                    if (after > 0.0) p.push_back(rest(after, true)), ++set_steps;
+                }
+                const auto reference = [rated](const std::vector<StepResult>&) { return rated; };
+                Step step = l.upward ? cc_charge(c, l.step_rate_c * i1c, kInf, true)
+                                     : cc_discharge(c, l.step_rate_c * i1c, kInf, true);
+                step.ah_limit = soc_step_ah(reference, set_steps, l.soc_step, l.upward ? 1.0 : -1.0);
+                step.end_loop_on_cutoff = true;
+                p.push_back(step);
+                p.push_back(rest(l.rest_after_step_s));
+            }
+            Step final_step = l.upward ? cccv_charge(c, i1c) : cc_discharge(c, i1c / 3.0);
+            final_step.tail = true;
+            p.push_back(final_step);
             p.push_back(rest(1800.0));
             break;
         }

@@ -31,7 +31,7 @@ inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 inline constexpr double kInf = std::numeric_limits<double>::infinity();
 
 enum class Chemistry { nmc, nca, lfp, lmo };
-enum class Layout { thesis, usabc, multi };
+enum class Layout { thesis, usabc, multi, random };
 enum class Direction { discharge, charge };
 
 // Hidden effects (INTERFACES.md effect ids). Physics effects apply to every recording of the cell, bench/ageing
@@ -194,6 +194,22 @@ struct StepResult {
 using Program = std::vector<Step>;
 
 Program hppc_program(const CellSpec& cell, Layout layout, const PlantOptions& options = {});
+
+// Layout::random: an HPPC whose structure the seed draws from what labs run, so that a fit tested on it cannot rely
+// on one layout's timing. Always from full charge at 1C CCCV; then, by seed: a capacity test at the step rate
+// (pilot), SOC levels `soc_step` apart (5-20 % of the rated capacity) stepped down by discharging or up by charging
+// from empty (`upward`, after a discharge to the cut-off), at each level one or two pulse pairs (the second at half
+// the current, 40 s rest between), discharge pulses of 2-30 s at 0.5-3C, charge pulses of 0 (none), 2 or 10 s at
+// 0.25-1x the discharge current, either first, 0-40 s rest between them and 0 or 40 s after, the SOC step at C/3-1C
+// right after, then 15 min - 1 h rest. A pulse lasts at least ten sample intervals. Pulses are held for their full time (clamped at the voltage limits).
+struct RandomLayout {
+    bool upward = false, pilot = false, charge_first = false;
+    double soc_step = 0.1, step_rate_c = 1.0, rest_after_step_s = 3600.0;
+    double discharge_pulse_s = 30.0, charge_pulse_s = 10.0, rest_between_s = 40.0, rest_after_pulses_s = 40.0;
+    double discharge_rate_c = 1.0, charge_rate_c = 0.75;
+    int currents_per_level = 1;
+};
+RandomLayout draw_random_layout(std::uint64_t seed, double sample_s);
 Program cc_discharge_program(const CellSpec& cell, double c_rate);  // Table 2.10: charge, rest, CC discharge, rest
 Program drive_program(const CellSpec& cell, std::uint64_t seed);    // ~1 h randomized profile from near full
 

@@ -60,7 +60,8 @@ std::pair<double, double> compared_soc_range(const plant::Dataset& d, plant::Lay
                                                   d.hppc.time_s.begin());
         lo = std::min(lo, d.hppc.true_soc[row]), hi = std::max(hi, d.hppc.true_soc[row]);
     }
-    return {std::max(0.1, lo), std::min(0.9, hi)};
+    // A level's pulses start a little off its nominal SOC (the 10 % level of a 10 % step test at 10.3 %): 2.5 % slack.
+    return {std::max(0.1, lo - 0.025), std::min(0.9, hi + 0.025)};
 }
 
 Errors compare(const est::Characterization& c, const plant::Dataset& d, const Recording& drive,

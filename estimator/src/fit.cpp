@@ -465,6 +465,20 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         for (auto& t : pool) t.join();
     }
     for (auto& f : fits) out.pulse_fits.push_back(std::move(f));
+    if (jobs.empty()) {
+        std::size_t pulses = 0;
+        for (std::size_t r = 0; r < recordings.size(); ++r)
+            if (characterization[r])
+                for (const auto& ph : segs[r].phases)
+                    pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
+        if (pulses > 0)
+            out.warnings.push_back(
+                "no pulse set of the thesis form (long rest, discharge pulse, rest, charge pulse, rest of " +
+                std::to_string(static_cast<int>(SegmentOptions{}.min_relaxation_s)) + " s) among the " +
+                std::to_string(pulses) +
+                " pulses: no per-pulse-set tables to compare with, and cellbenchd would fit no pulse set of such a "
+                "program online; the global fit uses every pulse");
+    }
 
     ThermalCharacterization placeholder;
     placeholder.c_th_j_per_k = 1.0;

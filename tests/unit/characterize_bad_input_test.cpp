@@ -70,6 +70,31 @@ TEST(CharacterizeBadInput, SinglePulseIsAnErrorOrFlagged) {
     }
 }
 
+TEST(CharacterizeBadInput, PulsesOutsideThePulseSetFormSaySoInsteadOfASilentlyMissingComparison) {
+    // Discharge-only pulses (the Panasonic 18650PF's and the USABC layout's kind: no charge pulse, or none with a
+    // rest after it) at three SOC levels: the global fit takes them, but no thesis pulse set is there, so the
+    // per-pulse-set comparison is absent and an online fit of such a program would find nothing. The summary says
+    // so rather than showing an empty comparison.
+    std::vector<Step> p = {{700, 0.0, "Rest"}};
+    for (int level = 0; level < 3; ++level) {
+        p.push_back({10, -4.5, "CC DChg"});
+        p.push_back({60, 0.0, "Rest"});
+        p.push_back({10, -9.0, "CC DChg"});
+        p.push_back({60, 0.0, "Rest"});
+        p.push_back({400, -4.5, "CC DChg"});
+        p.push_back({700, 0.0, "Rest"});
+    }
+    try {
+        const auto c = est::characterize({synth(p)}, options());
+        EXPECT_TRUE(c.pulse_fits.empty());
+        bool said = false;
+        for (const auto& w : c.warnings) said = said || w.find("no pulse set of the thesis form") != std::string::npos;
+        EXPECT_TRUE(said) << "warnings: " << c.warnings.size();
+    } catch (const cellbench::InputError& e) {
+        ADD_FAILURE() << "three SOC levels of pulses are a characterization: " << e.what();
+    }
+}
+
 TEST(CharacterizeBadInput, NanInTheMiddleIsAnErrorOrFlagged) {
     auto rec = synth(cellbench::test::hppc_program(3));
     // A dropout of the voltage channel in the middle of the second pulse set's discharge pulse.

@@ -62,6 +62,32 @@ TEST(CheckCli, AGoodProgramPrintsItsCompiledPlan) {
     EXPECT_EQ(doc["program"]["parameters"]["c_rate"]["default"], 2.0);
 }
 
+// Whether the daemon will fit while the run goes: the plan counts the pulse sets of the thesis form the online
+// fitter detects (loops unrolled), and says so when there are none (a USABC-style regen pulse straight into the
+// SOC step), so that a lab engineer knows before the run that only `cellbench fit` afterwards characterizes it.
+TEST(CheckCli, ThePlanSaysHowManyPulseSetsTheDaemonWillFitOnline) {
+    const auto r = run(check("--program hppc_short --cell p45b --param pulse_sets=2"));
+    ASSERT_EQ(r.status, 0) << r.output;
+    EXPECT_TRUE(has(r.output, "online fits: 2 pulse sets")) << r.output;
+    const auto j = run(check("--program hppc_short --cell p45b --param pulse_sets=4 --json"));
+    ASSERT_EQ(j.status, 0) << j.output;
+    EXPECT_EQ(nlohmann::json::parse(j.output)["online_pulse_sets"], 4);
+
+    const fs::path dir = config_copy("online");
+    {
+        auto prog = nlohmann::json::parse(std::ifstream(dir / "programs" / "hppc_short.json"));
+        auto& steps = prog["segments"][2]["steps"];
+        ASSERT_EQ(steps[6]["type"], "rest");
+        steps.erase(6);  // no rest after the charge pulse: the SOC step follows at once
+        std::ofstream(dir / "programs" / "usabc_like.json") << prog.dump(2);
+    }
+    const auto u = run(kBin.string() + " check --config " + (dir / "bench.sim.json").string() +
+                       " --program usabc_like --cell p45b");
+    ASSERT_EQ(u.status, 0) << u.output;
+    EXPECT_TRUE(has(u.output, "online fits: none")) << u.output;
+    fs::remove_all(dir);
+}
+
 TEST(CheckCli, EveryProblemOfTheOverridesIsReportedAtOnce) {
     const auto r = run(check("--program hppc_short --cell p45b --param c_rate=fast --param soc_step=0.9 "
                              "--param crate=2 --param pulse_sets=1.5 --param bogus"));

@@ -14,6 +14,7 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/daemon/config.hpp"
+#include "cellbench/estimator/segment.hpp"
 #include "cellbench/protocol/neware_stepfile.hpp"
 #include "cli/commands.hpp"
 
@@ -57,6 +58,44 @@ std::string step_text(const protocol::Step& s) {
     return t;
 }
 
+// How many pulse sets the daemon's online fitter will find in a cycler program, as it runs (loops unrolled):
+// the thesis form estimator::segment_recording detects, a long rest, a discharge pulse, a rest, a charge pulse
+// and a rest of at least min_relaxation_s, with its thresholds (one owner: SegmentOptions). Steps without a time
+// limit count as long phases. A lab engineer learns before the run whether the dashboard will show fits while
+// it goes, or only `cellbench fit` of the recording afterwards (any layout).
+std::size_t online_pulse_sets(const protocol::StepProgram& program) {
+    using protocol::StepType;
+    const estimator::SegmentOptions so;
+    std::vector<const protocol::Step*> run;  // the steps in the order the tester executes them
+    std::vector<int> left(program.steps.size(), -1);
+    for (std::size_t i = 0; i < program.steps.size() && run.size() < 100000;) {
+        const auto& st = program.steps[i];
+        if (st.type == StepType::end) break;
+        if (st.type == StepType::cycle) {
+            if (left[i] < 0) left[i] = st.count;
+            if (--left[i] > 0 && st.start_step >= 1 && static_cast<std::size_t>(st.start_step - 1) < i) {
+                i = static_cast<std::size_t>(st.start_step - 1);
+                continue;
+            }
+            left[i] = -1;
+            ++i;
+            continue;
+        }
+        run.push_back(&st);
+        ++i;
+    }
+    auto seconds = [](const protocol::Step* st) { return st->time_s.value_or(1e9); };
+    auto rest = [](const protocol::Step* st) { return protocol::step_direction(st->type) == 0; };
+    auto pulse = [&](const protocol::Step* st, int dir) {
+        return protocol::step_direction(st->type) == dir && seconds(st) <= so.pulse_max_s;
+    };
+    std::size_t n = 0;
+    for (std::size_t k = 0; k + 4 < run.size(); ++k)
+        n += rest(run[k]) && seconds(run[k]) >= 0.99 * so.long_rest_s && pulse(run[k + 1], -1) && rest(run[k + 2]) &&
+             pulse(run[k + 3], +1) && rest(run[k + 4]) && seconds(run[k + 4]) >= so.min_relaxation_s;
+    return n;
+}
+
 void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const daemon::BenchConfig& bench) {
     std::printf("ok: program %s for cell %s (%s) on bench %s\n", p.name.c_str(), cell.id.c_str(), cell.name.c_str(),
                 bench.name.c_str());
@@ -93,6 +132,15 @@ void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const 
                 std::printf("     %3zu  %s\n", k + 1, step_text(cy->program.steps[k]).c_str());
         }
     }
+    std::size_t pulse_sets = 0;
+    for (const auto& seg : p.segments)
+        if (const auto* cy = std::get_if<daemon::CyclerSegment>(&seg)) pulse_sets += online_pulse_sets(cy->program);
+    if (pulse_sets > 0)
+        std::printf("online fits: %zu pulse sets of the thesis form (long rest, discharge pulse, rest, charge pulse, "
+                    "rest), each fitted as it completes\n", pulse_sets);
+    else
+        std::printf("online fits: none (no long rest, discharge pulse, rest, charge pulse, rest in this program): the "
+                    "run is recorded, and `cellbench fit` of its export characterizes it afterwards\n");
     const auto est = daemon::estimate_duration(p, cell);
     std::printf("expected duration about %.2f h of bench time (estimate: starting at %.0f %% SOC, nominal capacity)\n",
                 est.total_s / 3600.0, daemon::ProgramEstimate::kStartSoc * 100.0);
@@ -160,7 +208,14 @@ int run_check(const CheckOptions& o) {
     if (o.json_output)
         std::printf("%s\n", json{{"ok", true},
                                   {"program", program->to_json()},
-                                  {"expected_duration_s", daemon::estimate_duration(*program, *cell).total_s}}
+                                  {"expected_duration_s", daemon::estimate_duration(*program, *cell).total_s},
+                                  {"online_pulse_sets", [&] {
+                                       std::size_t n = 0;
+                                       for (const auto& seg : program->segments)
+                                           if (const auto* cy = std::get_if<daemon::CyclerSegment>(&seg))
+                                               n += online_pulse_sets(cy->program);
+                                       return n;
+                                   }()}}
                                  .dump(2)
                                  .c_str());
     else

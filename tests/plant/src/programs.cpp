@@ -20,47 +20,30 @@ Step rest(double seconds, bool fine = false) {
     s.fine_sampling = fine;
     return s;
 }
-Step cccv_charge(const CellSpec& c, double current_a, double seconds = kInf, bool fine = false) {
+// A current step of the cycler: `direction` +1 charges towards v_max (type "... Chg"), -1 discharges towards v_min
+// ("... DChg"); CCCV steps taper at the limit down to taper_a, CC steps end there.
+Step current_step(const CellSpec& c, Mode mode, int direction, double current_a, double seconds, bool fine) {
     Step s;
-    s.type = "CCCV Chg";
-    s.mode = Mode::cccv;
-    s.current_a = current_a;
-    s.voltage_limit_v = c.v_max_v;
+    s.type = std::string(mode == Mode::cccv ? "CCCV " : "CC ") + (direction > 0 ? "Chg" : "DChg");
+    s.mode = mode;
+    s.current_a = direction * current_a;
+    s.voltage_limit_v = direction > 0 ? c.v_max_v : c.v_min_v;
     s.duration_s = seconds;
-    s.cutoff_current_a = taper_a(c);
+    if (mode == Mode::cccv) s.cutoff_current_a = taper_a(c);
     s.fine_sampling = fine;
     return s;
+}
+Step cccv_charge(const CellSpec& c, double current_a, double seconds = kInf, bool fine = false) {
+    return current_step(c, Mode::cccv, +1, current_a, seconds, fine);
 }
 Step cccv_discharge(const CellSpec& c, double current_a, double seconds, bool fine) {
-    Step s;
-    s.type = "CCCV DChg";
-    s.mode = Mode::cccv;
-    s.current_a = -current_a;
-    s.voltage_limit_v = c.v_min_v;
-    s.duration_s = seconds;
-    s.cutoff_current_a = taper_a(c);
-    s.fine_sampling = fine;
-    return s;
+    return current_step(c, Mode::cccv, -1, current_a, seconds, fine);
 }
 Step cc_discharge(const CellSpec& c, double current_a, double seconds = kInf, bool fine = false) {
-    Step s;
-    s.type = "CC DChg";
-    s.mode = Mode::cc;
-    s.current_a = -current_a;
-    s.voltage_limit_v = c.v_min_v;
-    s.duration_s = seconds;
-    s.fine_sampling = fine;
-    return s;
+    return current_step(c, Mode::cc, -1, current_a, seconds, fine);
 }
 Step cc_charge(const CellSpec& c, double current_a, double seconds = kInf, bool fine = false) {
-    Step s;
-    s.type = "CC Chg";
-    s.mode = Mode::cc;
-    s.current_a = current_a;
-    s.voltage_limit_v = c.v_max_v;
-    s.duration_s = seconds;
-    s.fine_sampling = fine;
-    return s;
+    return current_step(c, Mode::cc, +1, current_a, seconds, fine);
 }
 // Ah of a SOC step of `fraction` (10 % unless given) of `reference_ah`, less what the pulse set's last
 // `pulse_steps` steps already moved in the step's direction (`sign` -1: a discharging step, +1: a charging one).

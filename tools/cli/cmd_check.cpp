@@ -96,6 +96,13 @@ std::size_t online_pulse_sets(const protocol::StepProgram& program) {
     return n;
 }
 
+std::size_t online_pulse_sets(const daemon::Program& p) {
+    std::size_t n = 0;
+    for (const auto& seg : p.segments)
+        if (const auto* cy = std::get_if<daemon::CyclerSegment>(&seg)) n += online_pulse_sets(cy->program);
+    return n;
+}
+
 void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const daemon::BenchConfig& bench) {
     std::printf("ok: program %s for cell %s (%s) on bench %s\n", p.name.c_str(), cell.id.c_str(), cell.name.c_str(),
                 bench.name.c_str());
@@ -132,10 +139,7 @@ void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const 
                 std::printf("     %3zu  %s\n", k + 1, step_text(cy->program.steps[k]).c_str());
         }
     }
-    std::size_t pulse_sets = 0;
-    for (const auto& seg : p.segments)
-        if (const auto* cy = std::get_if<daemon::CyclerSegment>(&seg)) pulse_sets += online_pulse_sets(cy->program);
-    if (pulse_sets > 0)
+    if (const std::size_t pulse_sets = online_pulse_sets(p); pulse_sets > 0)
         std::printf("online fits: %zu pulse sets of the thesis form (long rest, discharge pulse, rest, charge pulse, "
                     "rest), each fitted as it completes\n", pulse_sets);
     else
@@ -209,13 +213,7 @@ int run_check(const CheckOptions& o) {
         std::printf("%s\n", json{{"ok", true},
                                   {"program", program->to_json()},
                                   {"expected_duration_s", daemon::estimate_duration(*program, *cell).total_s},
-                                  {"online_pulse_sets", [&] {
-                                       std::size_t n = 0;
-                                       for (const auto& seg : program->segments)
-                                           if (const auto* cy = std::get_if<daemon::CyclerSegment>(&seg))
-                                               n += online_pulse_sets(cy->program);
-                                       return n;
-                                   }()}}
+                                  {"online_pulse_sets", online_pulse_sets(*program)}}
                                  .dump(2)
                                  .c_str());
     else

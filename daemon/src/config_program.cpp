@@ -452,7 +452,6 @@ Program parse_program_text(std::string_view text, const std::string& source, con
 // Expected duration
 
 ProgramEstimate estimate_duration(const Program& program, const CellConfig& cell) {
-    using protocol::StepType;
     ProgramEstimate out;
     const double q_ah = cell.nominal_capacity_ah > 0 ? cell.nominal_capacity_ah : 1.0;
     double soc = ProgramEstimate::kStartSoc;
@@ -468,22 +467,8 @@ ProgramEstimate estimate_duration(const Program& program, const CellConfig& cell
             } catch (const std::exception&) {
                 // a limit that cannot be resolved without a measurement: estimated without it
             }
-            std::map<std::size_t, int> passes_left;  // per cycle step: jumps back still to do
-            std::size_t k = 0, guard = 0;
-            while (k < sp.steps.size() && ++guard < 1000000) {
+            for (const std::size_t k : protocol::execution_order(sp)) {
                 const auto& st = sp.steps[k];
-                if (st.type == StepType::end) break;
-                if (st.type == StepType::cycle) {
-                    auto it = passes_left.try_emplace(k, std::max(0, st.count - 1)).first;
-                    if (it->second > 0 && st.start_step >= 1 && static_cast<std::size_t>(st.start_step) <= k) {
-                        --it->second;
-                        k = static_cast<std::size_t>(st.start_step - 1);
-                    } else {
-                        passes_left.erase(k);
-                        ++k;
-                    }
-                    continue;
-                }
                 const int dir = protocol::step_direction(st.type);
                 double dt = st.time_s.value_or(kInf);
                 if (dir != 0 && st.current_a && *st.current_a > 0) {
@@ -499,7 +484,6 @@ ProgramEstimate estimate_duration(const Program& program, const CellConfig& cell
                     if (protocol::step_has_cv_phase(st.type) && dt >= cc_s) soc = dir > 0 ? 1.0 : 0.0;
                 }
                 if (std::isfinite(dt)) t += dt;
-                ++k;
             }
         }
         out.segment_s.push_back(t);

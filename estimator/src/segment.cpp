@@ -118,17 +118,12 @@ Phase make_phase(const Recording& rec, const Run& r, const SegmentOptions& o) {
     if (r.state == 0) {
         p.peak_current_a = 0.0;
         p.end_current_a = end_mean;
-        // 1 % slack: a cycler may end a 10 min rest step one sample early.
-        p.kind = p.duration_s >= 0.99 * o.long_rest_s ? PhaseKind::LongRest : PhaseKind::Rest;
+        p.kind = classify_phase(0, p.duration_s, o);
     } else {
         p.peak_current_a = best;
         p.end_current_a = end_mean;
         p.cv_tail = std::abs(end_mean) < o.cv_tail_fraction * std::abs(best);
-        const bool pulse = p.duration_s <= o.pulse_max_s;
-        if (r.state < 0)
-            p.kind = pulse ? PhaseKind::DischargePulse : PhaseKind::Discharge;
-        else
-            p.kind = pulse ? PhaseKind::ChargePulse : PhaseKind::Charge;
+        p.kind = classify_phase(r.state, p.duration_s, o);
     }
     return p;
 }
@@ -198,6 +193,20 @@ std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& o) {
     return phases;
 }
 
+PhaseKind classify_phase(int direction, double duration_s, const SegmentOptions& o) {
+    // 1 % slack: a cycler may end a 10 min rest step one sample early.
+    if (direction == 0) return duration_s >= 0.99 * o.long_rest_s ? PhaseKind::LongRest : PhaseKind::Rest;
+    const bool pulse = duration_s <= o.pulse_max_s;
+    if (direction < 0) return pulse ? PhaseKind::DischargePulse : PhaseKind::Discharge;
+    return pulse ? PhaseKind::ChargePulse : PhaseKind::Charge;
+}
+
+bool begins_pulse_set(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o) {
+    if (i + 4 >= ph.size()) return false;
+    return ph[i].kind == PhaseKind::LongRest && ph[i + 1].kind == PhaseKind::DischargePulse && ph[i + 2].is_rest() &&
+           ph[i + 3].kind == PhaseKind::ChargePulse && ph[i + 4].is_rest() && ph[i + 4].duration_s >= o.min_relaxation_s;
+}
+
 RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& o) {
     RecordingSegments seg;
     seg.phases = split_phases(rec, o);
@@ -211,14 +220,12 @@ RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& 
     // Pulse sets: long rest -> discharge pulse -> rest -> charge pulse -> rest of at least min_relaxation_s.
     std::vector<bool> is_soc_step(ph.size(), false);
     for (std::size_t i = 0; i + 4 < ph.size(); ++i) {
+        if (!begins_pulse_set(ph, i, o)) continue;
         const Phase& rest = ph[i];
         const Phase& dis = ph[i + 1];
         const Phase& rel = ph[i + 2];
         const Phase& chg = ph[i + 3];
         const Phase& crel = ph[i + 4];
-        if (rest.kind != PhaseKind::LongRest || dis.kind != PhaseKind::DischargePulse || !rel.is_rest() ||
-            chg.kind != PhaseKind::ChargePulse || !crel.is_rest() || crel.duration_s < o.min_relaxation_s)
-            continue;
         PulseSet ps;
         ps.phase_index = i;
         ps.rest_begin = rest.begin;

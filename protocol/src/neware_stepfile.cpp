@@ -16,6 +16,7 @@
 #include <cstdio>
 #include <ctime>
 #include <limits>
+#include <map>
 #include <set>
 
 #include <boost/property_tree/ptree.hpp>
@@ -246,6 +247,29 @@ int step_direction(StepType type) {
 }
 
 bool step_carries_current(StepType type) { return step_direction(type) != 0; }
+
+std::vector<std::size_t> execution_order(const StepProgram& program, std::size_t max_steps) {
+    std::vector<std::size_t> order;
+    std::map<std::size_t, int> passes_left;  // per cycle step: jumps back still to do
+    std::size_t k = 0, guard = 0;
+    while (k < program.steps.size() && order.size() < max_steps && ++guard < 10 * max_steps) {
+        const Step& st = program.steps[k];
+        if (st.type == StepType::end) break;
+        if (st.type == StepType::cycle) {
+            auto it = passes_left.try_emplace(k, std::max(0, st.count - 1)).first;
+            if (it->second > 0 && st.start_step >= 1 && static_cast<std::size_t>(st.start_step) <= k) {
+                --it->second;
+                k = static_cast<std::size_t>(st.start_step - 1);
+            } else {
+                passes_left.erase(k);
+                ++k;
+            }
+            continue;
+        }
+        order.push_back(k++);
+    }
+    return order;
+}
 
 bool step_has_cv_phase(StepType type) {
     return type == StepType::cccv_charge || type == StepType::cccv_discharge || type == StepType::cv_charge ||

@@ -58,41 +58,23 @@ std::string step_text(const protocol::Step& s) {
     return t;
 }
 
-// How many pulse sets the daemon's online fitter will find in a cycler program, as it runs (loops unrolled):
-// the thesis form estimator::segment_recording detects, a long rest, a discharge pulse, a rest, a charge pulse
-// and a rest of at least min_relaxation_s, with its thresholds (one owner: SegmentOptions). Steps without a time
-// limit count as long phases. A lab engineer learns before the run whether the dashboard will show fits while
-// it goes, or only `cellbench fit` of the recording afterwards (any layout).
+// How many pulse sets the daemon's online fitter will find in a cycler program as the tester runs it: its steps in
+// execution order (protocol::execution_order) as phases of the segmentation's kinds (estimator::classify_phase; a
+// step without a time limit is a long phase), tested by the same estimator::begins_pulse_set as the recording will
+// be. A lab engineer learns before the run whether the dashboard will show fits while it goes, or only
+// `cellbench fit` of the recording afterwards (any layout).
 std::size_t online_pulse_sets(const protocol::StepProgram& program) {
-    using protocol::StepType;
-    const estimator::SegmentOptions so;
-    std::vector<const protocol::Step*> run;  // the steps in the order the tester executes them
-    std::vector<int> left(program.steps.size(), -1);
-    for (std::size_t i = 0; i < program.steps.size() && run.size() < 100000;) {
-        const auto& st = program.steps[i];
-        if (st.type == StepType::end) break;
-        if (st.type == StepType::cycle) {
-            if (left[i] < 0) left[i] = st.count;
-            if (--left[i] > 0 && st.start_step >= 1 && static_cast<std::size_t>(st.start_step - 1) < i) {
-                i = static_cast<std::size_t>(st.start_step - 1);
-                continue;
-            }
-            left[i] = -1;
-            ++i;
-            continue;
-        }
-        run.push_back(&st);
-        ++i;
+    std::vector<estimator::Phase> phases;
+    for (const std::size_t k : protocol::execution_order(program, 100000)) {
+        const auto& st = program.steps[k];
+        estimator::Phase ph;
+        ph.direction = protocol::step_direction(st.type);
+        ph.duration_s = st.time_s.value_or(1e9);
+        ph.kind = estimator::classify_phase(ph.direction, ph.duration_s);
+        phases.push_back(ph);
     }
-    auto seconds = [](const protocol::Step* st) { return st->time_s.value_or(1e9); };
-    auto rest = [](const protocol::Step* st) { return protocol::step_direction(st->type) == 0; };
-    auto pulse = [&](const protocol::Step* st, int dir) {
-        return protocol::step_direction(st->type) == dir && seconds(st) <= so.pulse_max_s;
-    };
     std::size_t n = 0;
-    for (std::size_t k = 0; k + 4 < run.size(); ++k)
-        n += rest(run[k]) && seconds(run[k]) >= 0.99 * so.long_rest_s && pulse(run[k + 1], -1) && rest(run[k + 2]) &&
-             pulse(run[k + 3], +1) && rest(run[k + 4]) && seconds(run[k + 4]) >= so.min_relaxation_s;
+    for (std::size_t i = 0; i < phases.size(); ++i) n += estimator::begins_pulse_set(phases, i);
     return n;
 }
 

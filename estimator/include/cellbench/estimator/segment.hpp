@@ -119,6 +119,14 @@ struct RecordingSegments {
     std::vector<SocStep> soc_steps;
 };
 
+// What a phase of `direction` (+1 charge, -1 discharge, 0 rest) lasting duration_s is (one rule for every caller:
+// a rest of long_rest_s with 1 % slack is long, a current phase of at most pulse_max_s is a pulse).
+PhaseKind classify_phase(int direction, double duration_s, const SegmentOptions& options = {});
+
+// Whether the phases from i on begin a pulse set (PulseSet: long rest, discharge pulse, rest, charge pulse, rest
+// of at least min_relaxation_s). segment_recording's test, and `cellbench check`'s on a program's steps.
+bool begins_pulse_set(const std::vector<Phase>& phases, std::size_t i, const SegmentOptions& options = {});
+
 // Splits a recording (or a window of one) into phases and finds what they make up. Never throws on odd
 // input: an empty recording gives empty results.
 RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& options = {});

@@ -141,6 +141,12 @@ struct StepProgram {
     static StepProgram from_json(const nlohmann::json& j, const std::string& source = "program");
 };
 
+// The steps a tester runs, in the order it runs them (indices into program.steps): loops unrolled (a cycle step
+// sends the tester back to start_step until its block has run `count` times in all; an inner loop runs in full on
+// every pass of an enclosing one), cycle and end steps left out, stopping at an end step or after max_steps. The
+// static twin of the simulated tester's run (drivers/sim ProgramRunner), for estimates and checks of a program.
+std::vector<std::size_t> execution_order(const StepProgram& program, std::size_t max_steps = 1'000'000);
+
 inline constexpr const char* kProgramSchema = "cellbench.program/1";
 
 // Step file (see the top of this header). compile validates first (InputError) and resolves capacity limits

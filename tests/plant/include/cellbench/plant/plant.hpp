@@ -201,7 +201,8 @@ Program hppc_program(const CellSpec& cell, Layout layout, const PlantOptions& op
 // from empty (`upward`, after a discharge to the cut-off), at each level one or two pulse pairs (the second at half
 // the current, 40 s rest between), discharge pulses of 2-30 s at 0.5-3C, charge pulses of 0 (none), 2 or 10 s at
 // 0.25-1x the discharge current, either first, 0-40 s rest between them and 0 or 40 s after, the SOC step at C/3-1C
-// right after, then 15 min - 1 h rest. A pulse lasts at least ten sample intervals. Pulses are held for their full time (clamped at the voltage limits).
+// right after, then 15 min - 1 h rest. A pulse lasts at least ten sample intervals; pulses are held for their full
+// time (clamped at the voltage limits).
 struct RandomLayout {
     bool upward = false, pilot = false, charge_first = false;
     double soc_step = 0.1, step_rate_c = 1.0, rest_after_step_s = 3600.0;

@@ -157,6 +157,7 @@ PulseFitRecord pulse_fit_record(RunId run_id, int pulse_set, double t_s, double 
                       {"discharge_sampling_corrected_ohm", nullable(fit.r0.discharge_corrected_ohm)},
                       {"charge_sampling_corrected_ohm", nullable(fit.r0.charge_corrected_ohm)}}},
         {"rows", {fit.begin, fit.end}},
+        {"form", estimator::to_string(fit.pulse_set.form)},
         {"warnings", fit.warnings},
         {"chosen_sd", {{"discharge", sd_json(r.discharge_sd)}, {"charge", sd_json(r.charge_sd)}}},
     };

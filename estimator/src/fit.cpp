@@ -473,9 +473,8 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
                     pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
         if (pulses > 0)
             out.warnings.push_back(
-                "no pulse set of the thesis form (long rest, discharge pulse, rest, charge pulse, rest of " +
-                std::to_string(static_cast<int>(SegmentOptions{}.min_relaxation_s)) + " s) among the " +
-                std::to_string(pulses) +
+                "no pulse set (a long rest of " + std::to_string(static_cast<int>(SegmentOptions{}.long_rest_s)) +
+                " s, a discharge pulse, a rest; a charge pulse after it or not) among the " + std::to_string(pulses) +
                 " pulses: no per-pulse-set tables to compare with, and cellbenchd would fit no pulse set of such a "
                 "program online; the global fit uses every pulse");
     }
@@ -484,7 +483,12 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     placeholder.c_th_j_per_k = 1.0;
     placeholder.r_th_k_per_w = 1.0;
     ParameterSet electrical;
-    if (!out.pulse_fits.empty()) {
+    const bool any_charge_pulse = std::any_of(out.pulse_fits.begin(), out.pulse_fits.end(),
+                                              [](const PulseSetFit& f) { return f.pulse_set.has_charge_pulse(); });
+    if (!out.pulse_fits.empty() && !any_charge_pulse) {
+        out.warnings.push_back("per-pulse-set tables not assembled: no pulse set has a charge pulse (their discharge "
+                               "values are in the summary's pulse_sets)");
+    } else if (!out.pulse_fits.empty()) {
         try {
             out.per_pulse_set_params = assemble_parameter_set(out.pulse_fits, out.ocv_points, cap, placeholder, options);
         } catch (const InputError& e) {
@@ -576,6 +580,7 @@ nlohmann::json Characterization::summary_json() const {
     for (const auto& f : pulse_fits) {
         nlohmann::json e;
         e["soc"] = f.soc;
+        e["form"] = to_string(f.pulse_set.form);
         e["ocv_v"] = f.ocv_v;
         e["temperature_c"] = num_or_null(f.temperature_c);
         e["r0_steps_ohm"] = {{"ab", num_or_null(f.r0.ab_ohm)}, {"cd", num_or_null(f.r0.cd_ohm)},

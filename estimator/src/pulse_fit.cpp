@@ -48,6 +48,9 @@ struct Window {
     std::vector<int> dir;           // sign of the current: -1 discharge (R0_dis), +1 charge (R0_chg), 0 none
     std::vector<double> ocv;        // ocv_v + docv_dah * q_ah
     std::size_t n() const { return t.size(); }
+    // Whether any row charges the cell: without one (a discharge-only pulse set) the charge direction's
+    // parameters are not identifiable and are held (and reported NaN).
+    bool has_charge() const { return std::any_of(dir.begin(), dir.end(), [](int d) { return d > 0; }); }
 };
 
 Window make_window(const Recording& rec, std::size_t first, std::size_t end, double ocv_v, double docv) {
@@ -743,6 +746,7 @@ Candidate varpro_refine(const Window& w, const std::vector<std::size_t>& rows, c
     for (std::size_t j = 0; j < 4; ++j) u[j] = std::log(std::clamp(start.tau[j], lo[j], hi[j]));
     ceres::Problem problem;
     problem.AddResidualBlock(cost, nullptr, u.data());
+    if (!w.has_charge()) problem.SetManifold(u.data(), new ceres::SubsetManifold(4, {2, 3}));
     for (int j = 0; j < 4; ++j) {
         problem.SetParameterLowerBound(u.data(), j, std::log(lo[static_cast<std::size_t>(j)]));
         problem.SetParameterUpperBound(u.data(), j, std::log(hi[static_cast<std::size_t>(j)]));
@@ -773,11 +777,17 @@ JointResult polish(const Window& w, const std::vector<std::size_t>& rows, const 
     p = {std::max(0.0, th(1)), std::max(0.0, th(3)), start.tau[0], std::max(0.0, th(5)), start.tau[1],
          std::max(0.0, th(2)), std::max(0.0, th(4)), start.tau[2], std::max(0.0, th(6)), start.tau[3], th(0)};
     std::vector<int> held;
-    if (o.r0_from_steps && std::isfinite(r0.discharge_ohm) && std::isfinite(r0.charge_ohm)) {
+    const bool charge = w.has_charge();
+    if (o.r0_from_steps && std::isfinite(r0.discharge_ohm) && (std::isfinite(r0.charge_ohm) || !charge)) {
         p[0] = r0.discharge_ohm;
-        p[5] = r0.charge_ohm;
-        held = {0, 5};
+        held.push_back(0);
+        if (charge) {
+            p[5] = r0.charge_ohm;
+            held.push_back(5);
+        }
     }
+    if (!charge)  // no charge rows: the charge direction's parameters do nothing, hold them
+        for (int j = 5; j < 10; ++j) held.push_back(j);
     ceres::Problem problem;
     problem.AddResidualBlock(new JointCost(w, rows), nullptr, p.data());
     if (!held.empty()) problem.SetManifold(p.data(), new ceres::SubsetManifold(kNumJoint, held));
@@ -871,7 +881,9 @@ void sampling_corrected_r0(const Window& w, const std::array<double, kNumJoint>&
         return ((w.v[k] - w.v[k - 1]) - (s[k] - s[k - 1]) - (w.ocv[k] - w.ocv[k - 1])) / di;
     };
     r0.discharge_corrected_ohm = finite_mean({at(ps.pulse_begin), at(ps.discharge_end)});
-    r0.charge_corrected_ohm = finite_mean({at(ps.charge_begin), at(ps.charge_end)});
+    if (!ps.has_charge_pulse()) return;
+    // The step at G only where a rest follows the charge pulse (not the SOC step's current at once).
+    r0.charge_corrected_ohm = finite_mean({at(ps.charge_begin), ps.charge_end < ps.end ? at(ps.charge_end) : kNaN});
 }
 
 Candidate candidate_of(const JointResult& r) {
@@ -904,11 +916,14 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
     const auto g1 = log_grid(o.tau1_min_s, o.tau1_max_s, o.tau1_grid);
     const auto g2 = log_grid(o.tau2_min_s, o.tau2_max_s, o.tau2_grid);
 
-    // 1. Coordinate-wise variable projection on the grid: discharge taus, then charge taus, twice.
+    // 1. Coordinate-wise variable projection on the grid: discharge taus, then charge taus, twice (the
+    //    discharge taus alone without charge rows).
+    const bool charge = w.has_charge();
     std::array<double, 4> tau{2.0, 30.0, 2.0, 30.0};
     std::vector<Candidate> all;
     for (int sweep = 0; sweep < 2; ++sweep) {
         for (int dir : {-1, +1}) {
+            if (dir > 0 && !charge) continue;
             if (sweep == 1 && dir < 0) all.clear();
             const Candidate c = grid_search(w, rows, y, tau, dir, g1, g2, all);
             if (std::isfinite(c.cost)) tau = c.tau;
@@ -963,33 +978,32 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
     // 4. R0 held at the sampling-corrected steps: correct with the fitted pairs, refine the pairs, repeat (the
     //    correction is ~1 % of R0 and moves the pairs little, so this settles in two or three rounds).
     if (o.r0_from_steps && o.r0_step_sampling_correction && std::isfinite(out.r0.discharge_ohm) &&
-        std::isfinite(out.r0.charge_ohm)) {
+        (std::isfinite(out.r0.charge_ohm) || !charge)) {
         R0Steps held = out.r0;
+        auto good = [](double x) { return std::isfinite(x) && x > 0.0; };
         for (int round = 0; round < 4; ++round) {
             sampling_corrected_r0(w, r.p, out.pulse_set, held);
-            if (!std::isfinite(held.discharge_corrected_ohm) || !std::isfinite(held.charge_corrected_ohm) ||
-                !(held.discharge_corrected_ohm > 0.0) || !(held.charge_corrected_ohm > 0.0))
-                break;
-            const double change = std::max(std::abs(held.discharge_corrected_ohm - r.p[0]) / r.p[0],
-                                           std::abs(held.charge_corrected_ohm - r.p[5]) / r.p[5]);
+            if (!good(held.discharge_corrected_ohm) || (charge && !good(held.charge_corrected_ohm))) break;
+            double change = std::abs(held.discharge_corrected_ohm - r.p[0]) / r.p[0];
+            if (charge) change = std::max(change, std::abs(held.charge_corrected_ohm - r.p[5]) / r.p[5]);
             if (change < 1e-5) break;
             held.discharge_ohm = held.discharge_corrected_ohm;
-            held.charge_ohm = held.charge_corrected_ohm;
+            if (charge) held.charge_ohm = held.charge_corrected_ohm;
             const JointResult next = polish(w, rows, candidate_of(r), best_bd, best_bc, o, held);
             if (!(next.p[2] < next.p[4]) || !(next.p[7] < next.p[9])) break;
             r = next;
             out.r0.discharge_corrected_ohm = r.p[0];
-            out.r0.charge_corrected_ohm = r.p[5];
+            if (charge) out.r0.charge_corrected_ohm = r.p[5];
         }
     }
 
     out.joint_discharge = unpack(r.p, 0);
-    out.joint_charge = unpack(r.p, 5);
+    out.joint_charge = charge ? unpack(r.p, 5) : kNaNRc2;
     out.joint_ocv_offset_v = r.p[kC];
     out.joint_converged = r.converged;
     if (r.sigma_ok) {
         out.joint_discharge_sigma = unpack(r.sigma, 0);
-        out.joint_charge_sigma = unpack(r.sigma, 5);
+        out.joint_charge_sigma = charge ? unpack(r.sigma, 5) : kNaNRc2;
         out.joint_ocv_offset_sigma_v = r.sigma[kC];
     } else if (o.compute_covariance) {
         out.warnings.push_back("joint method: covariance not computable (the Jacobian is rank deficient: a "
@@ -1009,7 +1023,7 @@ void joint_fit(const Window& w, const PulseFitOptions& o, PulseSetFit& out) {
             out.warnings.push_back(std::string("joint method: a ") + name + " resistance is zero (on its bound)");
     };
     check(out.joint_discharge, "discharge");
-    check(out.joint_charge, "charge");
+    if (charge) check(out.joint_charge, "charge");
 }
 
 // The joint method's cost (0.5 * sum of squared residuals) over a window after its time-constant search and
@@ -1025,8 +1039,10 @@ double joint_search_cost(const Window& w, const PulseFitOptions& o) {
     std::array<double, 4> tau{2.0, 30.0, 2.0, 30.0};
     std::vector<Candidate> all;
     Candidate best;
+    const bool charge = w.has_charge();
     for (int sweep = 0; sweep < 2; ++sweep)
         for (int dir : {-1, +1}) {
+            if (dir > 0 && !charge) continue;
             const Candidate c = grid_search(w, rows, y, tau, dir, g1, g2, all);
             if (std::isfinite(c.cost)) tau = c.tau;
             if (better(c, best)) best = c;
@@ -1099,22 +1115,29 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     out.ocv_v = ps.ocv_v;
     const std::size_t n = rec.size();
     const bool sizes_ok = rec.voltage_v.size() == n && rec.current_a.size() == n;
-    if (!sizes_ok || ps.pulse_begin < 1 || !(ps.pulse_begin < ps.discharge_end) ||
-        !(ps.discharge_end < ps.charge_begin) || !(ps.charge_begin < ps.charge_end) ||
-        !(ps.charge_end < ps.end) || ps.end > n) {
+    // Row order of each form: A < B < C < (F < G) <= end; the thesis form has rows after G (its relaxation),
+    // a discharge-only one rows after C.
+    const bool charge_pulse = ps.has_charge_pulse();
+    const bool rows_ok =
+        ps.pulse_begin >= 1 && ps.pulse_begin < ps.discharge_end && ps.end <= n &&
+        (charge_pulse ? ps.discharge_end < ps.charge_begin && ps.charge_begin < ps.charge_end &&
+                            (ps.form == PulseSetForm::Thesis ? ps.charge_end < ps.end : ps.charge_end <= ps.end)
+                      : ps.discharge_end < ps.end);
+    if (!sizes_ok || !rows_ok) {
         out.warnings.push_back("pulse set row indices do not fit this recording: nothing fitted");
         return out;
     }
     if (!std::isfinite(out.ocv_v)) out.ocv_v = rec.voltage_v[ps.pulse_begin - 1];
 
-    // Rows used: A .. end of the charge relaxation, cut after max_relaxation_s.
+    // Rows used: A .. end of the last relaxation, cut after max_relaxation_s.
     const std::size_t first = ps.pulse_begin - 1;
+    const std::size_t last_pulse_end = ps.last_pulse_end();
     std::size_t end = ps.end;
     {
-        const double t_g = rec.time_s[ps.charge_end - 1];
-        std::size_t k = ps.charge_end;
+        const double t_g = rec.time_s[last_pulse_end - 1];
+        std::size_t k = last_pulse_end;
         while (k < ps.end && rec.time_s[k] - t_g <= o.max_relaxation_s) ++k;
-        end = std::max(k, std::min(ps.end, ps.charge_end + 2));
+        end = std::max(k, std::min(ps.end, last_pulse_end + 2));
     }
     out.begin = first;
     out.end = end;
@@ -1126,8 +1149,11 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
         const std::size_t pb = ps.pulse_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
         out.r0.ab_ohm = (v[pb - 1] - v[pb]) / std::abs(c[pb]);
         out.r0.cd_ohm = (v[de] - v[de - 1]) / std::abs(c[de - 1]);
-        out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
-        out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
+        if (charge_pulse) {
+            out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
+            // G..H only where a rest follows the charge pulse (not the SOC step's discharge at once).
+            if (ce < ps.end) out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
+        }
         out.r0.discharge_ohm = finite_mean({out.r0.ab_ohm, out.r0.cd_ohm});
         out.r0.charge_ohm = finite_mean({out.r0.ef_ohm, out.r0.gh_ohm});
     }
@@ -1171,7 +1197,13 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     if (ps.charge_relaxation_s > 0.0 && ps.charge_relaxation_s < 30.0)
         out.warnings.push_back(printf_text("the charge relaxation lasts only %.1f s", ps.charge_relaxation_s));
 
-    if (o.thesis_method) thesis_fits(rec, ps, w, end, o, out);
+    if (o.thesis_method && ps.form == PulseSetForm::Thesis) thesis_fits(rec, ps, w, end, o, out);
+    else if (o.thesis_method)
+        out.warnings.push_back(std::string("pulse set of the ") + to_string(ps.form) +
+                               " form: the thesis' per-segment fits need its four segments (discharge pulse, rest, "
+                               "charge pulse, rest); the joint fit alone");
+    if (!charge_pulse)
+        out.warnings.push_back("no charge pulse in this pulse set: charge parameters not identified (null)");
     const bool extended = o.extended_end > ps.end && o.extended_end <= n && std::isfinite(o.extended_end_ocv_v);
     const Window wx = extended ? make_extended_window(rec, first, ps.end, o.extended_end, out.ocv_v,
                                                       o.extended_end_ocv_v)
@@ -1180,8 +1212,10 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     if (extended) out.end = o.extended_end;
     if (o.joint_method) joint_fit(wj, o, out);
 
-    out.thesis_rms_v = simulated_rms(wj, out.thesis_discharge, out.thesis_charge, 0.0);
-    out.joint_rms_v = simulated_rms(wj, out.joint_discharge, out.joint_charge, 0.0);
+    // Without charge rows the charge parameters do nothing: the discharge ones stand in for them in the RMS.
+    const bool window_charges = wj.has_charge();
+    out.thesis_rms_v = simulated_rms(wj, out.thesis_discharge, window_charges ? out.thesis_charge : out.thesis_discharge, 0.0);
+    out.joint_rms_v = simulated_rms(wj, out.joint_discharge, window_charges ? out.joint_charge : out.joint_discharge, 0.0);
 
     // Choice: the better predictor among the results with usable parameters (see the header).
     auto usable = [](const Rc2Params<double>& p) {
@@ -1190,15 +1224,15 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
         return true;
     };
     const auto& th = out.thesis;
-    out.thesis_at_bound = !usable(out.thesis_discharge) || !usable(out.thesis_charge) || th.discharge.at_bound ||
+    out.thesis_at_bound = !usable(out.thesis_discharge) || (window_charges && !usable(out.thesis_charge)) || th.discharge.at_bound ||
                           th.discharge_relaxation.at_bound || th.charge.at_bound || th.charge_relaxation.at_bound;
     auto on_box = [&](const Rc2Params<double>& p) {
         auto near = [](double x, double b) { return std::abs(x - b) <= 1e-6 * b; };
         return near(p.tau1_s, o.tau1_min_s) || near(p.tau1_s, o.tau1_max_s) || near(p.tau2_s, o.tau2_min_s) ||
                near(p.tau2_s, o.tau2_max_s);
     };
-    out.joint_at_bound = !usable(out.joint_discharge) || !usable(out.joint_charge) || on_box(out.joint_discharge) ||
-                         on_box(out.joint_charge);
+    out.joint_at_bound = !usable(out.joint_discharge) || on_box(out.joint_discharge) ||
+                         (window_charges && (!usable(out.joint_charge) || on_box(out.joint_charge)));
     const bool thesis_ok = std::isfinite(out.thesis_rms_v), joint_ok = std::isfinite(out.joint_rms_v);
     const bool joint_better = joint_ok && !(out.thesis_rms_v < out.joint_rms_v);
     if (thesis_ok && joint_ok && out.thesis_at_bound != out.joint_at_bound) {

@@ -201,10 +201,38 @@ PhaseKind classify_phase(int direction, double duration_s, const SegmentOptions&
     return pulse ? PhaseKind::ChargePulse : PhaseKind::Charge;
 }
 
-bool begins_pulse_set(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o) {
-    if (i + 4 >= ph.size()) return false;
-    return ph[i].kind == PhaseKind::LongRest && ph[i + 1].kind == PhaseKind::DischargePulse && ph[i + 2].is_rest() &&
-           ph[i + 3].kind == PhaseKind::ChargePulse && ph[i + 4].is_rest() && ph[i + 4].duration_s >= o.min_relaxation_s;
+const char* to_string(PulseSetForm form) {
+    switch (form) {
+        case PulseSetForm::Thesis: return "thesis";
+        case PulseSetForm::NoChargeRelaxation: return "no charge relaxation";
+        case PulseSetForm::DischargeOnly: return "discharge only";
+    }
+    return "?";
+}
+
+std::optional<PulseSetForm> pulse_set_form(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o,
+                                           std::size_t* phase_count) {
+    auto found = [&](PulseSetForm f, std::size_t count) {
+        if (phase_count) *phase_count = count;
+        return std::optional<PulseSetForm>(f);
+    };
+    // Long rest (A), discharge pulse (B..C), rest (D..E): every form.
+    if (i + 2 >= ph.size() || ph[i].kind != PhaseKind::LongRest || ph[i + 1].kind != PhaseKind::DischargePulse ||
+        !ph[i + 2].is_rest())
+        return std::nullopt;
+    if (i + 3 < ph.size() && ph[i + 3].kind == PhaseKind::ChargePulse) {
+        const bool has_after = i + 4 < ph.size();
+        if (has_after && ph[i + 4].is_rest() && ph[i + 4].duration_s >= o.min_relaxation_s)
+            return found(PulseSetForm::Thesis, 5);
+        // The charge pulse is over once the next phase has begun: a current at once, or a short rest that has ended.
+        if (has_after && !ph[i + 4].is_rest()) return found(PulseSetForm::NoChargeRelaxation, 4);
+        if (has_after && !ph[i + 4].open_end) return found(PulseSetForm::NoChargeRelaxation, 5);
+        return std::nullopt;  // the charge pulse or its rest goes on
+    }
+    // No charge pulse after the rest (or a charge pulse whose length is not known yet: wait).
+    if (i + 3 >= ph.size() || ph[i + 2].duration_s < o.min_relaxation_s) return std::nullopt;
+    if (ph[i + 3].direction > 0 && ph[i + 3].open_end && ph[i + 3].kind == PhaseKind::ChargePulse) return std::nullopt;
+    return found(PulseSetForm::DischargeOnly, 3);
 }
 
 RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& o) {
@@ -217,40 +245,48 @@ RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& 
         if (p.kind == PhaseKind::Discharge) seg.cc_discharges.push_back(p);
     }
 
-    // Pulse sets: long rest -> discharge pulse -> rest -> charge pulse -> rest of at least min_relaxation_s.
+    // Pulse sets of every form (pulse_set_form), each followed perhaps by the SOC step's discharge.
     std::vector<bool> is_soc_step(ph.size(), false);
-    for (std::size_t i = 0; i + 4 < ph.size(); ++i) {
-        if (!begins_pulse_set(ph, i, o)) continue;
+    for (std::size_t i = 0; i + 2 < ph.size(); ++i) {
+        std::size_t count = 0;
+        const auto form = pulse_set_form(ph, i, o, &count);
+        if (!form) continue;
         const Phase& rest = ph[i];
         const Phase& dis = ph[i + 1];
         const Phase& rel = ph[i + 2];
-        const Phase& chg = ph[i + 3];
-        const Phase& crel = ph[i + 4];
+        const Phase& last = ph[i + count - 1];
         PulseSet ps;
+        ps.form = *form;
         ps.phase_index = i;
         ps.rest_begin = rest.begin;
         ps.pulse_begin = dis.begin;
         ps.discharge_end = dis.end;
-        ps.charge_begin = chg.begin;
-        ps.charge_end = chg.end;
-        ps.end = crel.end;
+        ps.end = last.end;
+        ps.next_window_begin = last.kind == PhaseKind::LongRest ? last.begin : last.end;
         ps.ocv_v = rec.voltage_v[dis.begin - 1];
         ps.rest_duration_s = rest.duration_s;
         ps.discharge_current_a = dis.mean_current_a;
-        ps.charge_current_a = chg.mean_current_a;
         ps.discharge_duration_s = dis.duration_s;
         ps.discharge_relaxation_s = rel.duration_s;
-        ps.charge_duration_s = chg.duration_s;
-        ps.charge_relaxation_s = crel.duration_s;
         ps.discharge_ah = dis.charge_ah;
-        ps.charge_ah = chg.charge_ah;
         ps.discharge_cv = dis.cv_tail;
-        ps.charge_cv = chg.cv_tail;
-        ps.relaxation_open = crel.open_end;
+        if (ps.has_charge_pulse()) {
+            const Phase& chg = ph[i + 3];
+            ps.charge_begin = chg.begin;
+            ps.charge_end = chg.end;
+            ps.charge_current_a = chg.mean_current_a;
+            ps.charge_duration_s = chg.duration_s;
+            ps.charge_relaxation_s = count == 5 ? ph[i + 4].duration_s : 0.0;
+            ps.charge_ah = chg.charge_ah;
+            ps.charge_cv = chg.cv_tail;
+        } else {
+            ps.charge_begin = ps.charge_end = ps.end;
+        }
+        ps.relaxation_open = last.is_rest() && last.open_end;
         seg.pulse_sets.push_back(ps);
 
-        if (i + 5 < ph.size() && ph[i + 5].kind == PhaseKind::Discharge) {
-            const Phase& d = ph[i + 5];
+        if (const std::size_t after = i + count; after < ph.size() && ph[after].kind == PhaseKind::Discharge) {
+            const Phase& d = ph[after];
             SocStep s;
             s.phase_index = d.index;
             s.pulse_set_index = seg.pulse_sets.size() - 1;
@@ -258,7 +294,7 @@ RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& 
             s.end = d.end;
             s.charge_ah = d.charge_ah;
             s.mean_current_a = d.mean_current_a;
-            s.followed_by_long_rest = i + 6 < ph.size() && ph[i + 6].kind == PhaseKind::LongRest;
+            s.followed_by_long_rest = after + 1 < ph.size() && ph[after + 1].kind == PhaseKind::LongRest;
             seg.soc_steps.push_back(s);
             is_soc_step[d.index] = true;
         }

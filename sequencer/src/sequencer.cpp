@@ -392,7 +392,7 @@ void Sequencer::check_pulse_sets_locked(bool run_ending) {
     // One pending fit at a time: an earlier one still undecided is fitted now with what there is.
     if (pending_fit_) resolve_pending_fit_locked(true);
     const std::size_t begin = window_begin_;
-    window_begin_ += ps->end;  // later windows start after this pulse set's relaxation
+    window_begin_ += ps->next_window_begin;  // after this pulse set (at its last rest when that is the next one's)
     ++fitted_pulse_sets_;
     // The SOC of the pulse set's rested start (the row before its first pulse; the SOC owner's value of that
     // row) and the start of its first pulse.

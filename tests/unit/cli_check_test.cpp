@@ -62,9 +62,10 @@ TEST(CheckCli, AGoodProgramPrintsItsCompiledPlan) {
     EXPECT_EQ(doc["program"]["parameters"]["c_rate"]["default"], 2.0);
 }
 
-// Whether the daemon will fit while the run goes: the plan counts the pulse sets of the thesis form the online
-// fitter detects (loops unrolled), and says so when there are none (a USABC-style regen pulse straight into the
-// SOC step), so that a lab engineer knows before the run that only `cellbench fit` afterwards characterizes it.
+// Whether the daemon will fit while the run goes: the plan counts the pulse sets the online fitter detects (loops
+// unrolled), the USABC manual's form too (a regen pulse straight into the SOC step), and says so when there are
+// none (pulses after rests too short to read the OCV), so that a lab engineer knows before the run that only
+// `cellbench fit` afterwards characterizes it.
 TEST(CheckCli, ThePlanSaysHowManyPulseSetsTheDaemonWillFitOnline) {
     const auto r = run(check("--program hppc_short --cell p45b --param pulse_sets=2"));
     ASSERT_EQ(r.status, 0) << r.output;
@@ -80,11 +81,18 @@ TEST(CheckCli, ThePlanSaysHowManyPulseSetsTheDaemonWillFitOnline) {
         ASSERT_EQ(steps[6]["type"], "rest");
         steps.erase(6);  // no rest after the charge pulse: the SOC step follows at once
         std::ofstream(dir / "programs" / "usabc_like.json") << prog.dump(2);
+        steps[2]["time_s"] = 300;  // rests before the pulses too short for an OCV
+        steps[7]["time_s"] = 300;
+        std::ofstream(dir / "programs" / "short_rests.json") << prog.dump(2);
     }
     const auto u = run(kBin.string() + " check --config " + (dir / "bench.sim.json").string() +
                        " --program usabc_like --cell p45b");
     ASSERT_EQ(u.status, 0) << u.output;
-    EXPECT_TRUE(has(u.output, "online fits: none")) << u.output;
+    EXPECT_TRUE(has(u.output, "online fits: 3 pulse sets")) << u.output;
+    const auto s = run(kBin.string() + " check --config " + (dir / "bench.sim.json").string() +
+                       " --program short_rests --cell p45b");
+    ASSERT_EQ(s.status, 0) << s.output;
+    EXPECT_TRUE(has(s.output, "online fits: none")) << s.output;
     fs::remove_all(dir);
 }
 

@@ -276,3 +276,59 @@ TEST(PulseFit, UnknownOcvSlopeIsEstimatedAndTheSlowPairRecovered) {
     EXPECT_TRUE(std::any_of(fit.warnings.begin(), fit.warnings.end(),
                             [](const std::string& w) { return w.find("estimated from the pulse set") != std::string::npos; }));
 }
+
+// A discharge-only pulse set (long rest, 30 s discharge pulse, rest, then the SOC step): the joint fit identifies
+// the discharge direction alone, with uncertainties; the charge direction, which no row excites, is null and said
+// to be, never a value; the thesis' per-segment fits, which need its four segments, are not run.
+TEST(PulseFit, DischargeOnlyPulseSetFitsTheDischargeDirectionAlone) {
+    test::SyntheticOptions o;
+    o.soc0 = 0.7;
+    o.voltage_noise_v = 2e-4;
+    const std::vector<test::Step> prog = {
+        {700, 0, "Rest"}, {30, -9.0, "CC DChg"}, {120, 0, "Rest"}, {300, -4.5, "CC DChg"}, {700, 0, "Rest"}};
+    const auto rec = test::synthesize(prog, o);
+    const auto seg = segment_recording(rec);
+    ASSERT_EQ(seg.pulse_sets.size(), 1u);
+    ASSERT_EQ(seg.pulse_sets[0].form, PulseSetForm::DischargeOnly);
+    for (const bool from_steps : {false, true}) {
+        SCOPED_TRACE(from_steps ? "R0 held at the steps" : "R0 fitted");
+        PulseFitOptions po = options_at(0.7);
+        po.r0_from_steps = from_steps;
+        const auto fit = fit_pulse_set(rec, seg.pulse_sets[0], po);
+        expect_params(fit.chosen_discharge(), o.discharge, 0.02, 0.10, 0.25, "discharge");
+        EXPECT_EQ(fit.chosen, PulseSetFit::Method::Joint);
+        EXPECT_FALSE(fit.joint_at_bound);
+        EXPECT_TRUE(std::isnan(fit.chosen_charge().r0_ohm));
+        EXPECT_TRUE(std::isnan(fit.chosen_charge().tau2_s));
+        EXPECT_TRUE(std::isnan(fit.r0.charge_ohm));
+        EXPECT_TRUE(std::isnan(fit.thesis_rms_v));
+        EXPECT_LT(fit.joint_rms_v, 1e-3);
+        if (!from_steps) EXPECT_GT(fit.joint_discharge_sigma.r1_ohm, 0.0);
+        bool said = false;
+        for (const auto& w : fit.warnings) said = said || w.find("charge parameters not identified") != std::string::npos;
+        EXPECT_TRUE(said);
+    }
+}
+
+// The USABC layout's pulse set (regen pulse straight into the SOC step): both directions fitted; the step at the
+// regen pulse's end is a step into the SOC step's current, not into a rest, so it is not read as R0 (eq. 3.2's GH),
+// and the charge R0 comes from the step at its start alone.
+TEST(PulseFit, UsabcPulseSetFitsBothDirectionsWithoutTheStepIntoTheSocStep) {
+    test::SyntheticOptions o;
+    o.soc0 = 0.6;
+    o.voltage_noise_v = 2e-4;
+    const std::vector<test::Step> prog = {{700, 0, "Rest"}, {30, -9.0, "CC DChg"}, {40, 0, "Rest"},
+                                          {10, 6.75, "CC Chg"},  {300, -4.5, "CC DChg"}, {700, 0, "Rest"}};
+    const auto rec = test::synthesize(prog, o);
+    const auto seg = segment_recording(rec);
+    ASSERT_EQ(seg.pulse_sets.size(), 1u);
+    ASSERT_EQ(seg.pulse_sets[0].form, PulseSetForm::NoChargeRelaxation);
+    const auto fit = fit_pulse_set(rec, seg.pulse_sets[0], options_at(0.6));
+    EXPECT_TRUE(std::isnan(fit.r0.gh_ohm));
+    EXPECT_LT(rel(fit.r0.ef_ohm, o.charge.r0_ohm), 0.03);
+    EXPECT_LT(rel(fit.r0.charge_ohm, o.charge.r0_ohm), 0.03);
+    expect_params(fit.chosen_discharge(), o.discharge, 0.02, 0.10, 0.25, "discharge");
+    EXPECT_LT(rel(fit.chosen_charge().r0_ohm, o.charge.r0_ohm), 0.03);
+    EXPECT_TRUE(std::isfinite(fit.chosen_charge().r1_ohm));
+    EXPECT_TRUE(std::isnan(fit.thesis_rms_v));
+}

@@ -229,3 +229,99 @@ TEST(Segment, OnlineWindows) {
     }
     (void)starts;
 }
+
+// The USABC/FreedomCAR manual's layout: 30 s discharge pulse, 40 s rest, 10 s regen pulse and the SOC step at
+// once, no rest after the regen pulse. Each level is a pulse set of the NoChargeRelaxation form, followed by its
+// SOC step; online, the set is complete as soon as the SOC step has begun, with the rows an offline run finds.
+TEST(Segment, UsabcPulseSetsEndWithTheRegenPulseAndAreCompleteWhenTheSocStepBegins) {
+    std::vector<Step> prog;
+    for (int level = 0; level < 3; ++level) {
+        prog.push_back({700, 0, "Rest"});
+        prog.push_back({30, -9.0, "CC DChg"});
+        prog.push_back({40, 0, "Rest"});
+        prog.push_back({10, 4.5, "CC Chg"});
+        prog.push_back({300, -4.5, "CC DChg"});
+    }
+    prog.push_back({700, 0, "Rest"});
+    const auto full = test::synthesize(prog, {.voltage_noise_v = 3e-4, .current_noise_a = 5e-3, .seed = 5});
+    const auto seg = segment_recording(full);
+    ASSERT_EQ(seg.pulse_sets.size(), 3u);
+    ASSERT_EQ(seg.soc_steps.size(), 3u);
+    for (const auto& ps : seg.pulse_sets) {
+        EXPECT_EQ(ps.form, PulseSetForm::NoChargeRelaxation);
+        EXPECT_TRUE(ps.has_charge_pulse());
+        EXPECT_EQ(ps.charge_end, ps.end);
+        EXPECT_NEAR(ps.discharge_duration_s, 30.0, 0.2);
+        EXPECT_NEAR(ps.charge_duration_s, 10.0, 0.2);
+        EXPECT_EQ(ps.charge_relaxation_s, 0.0);
+    }
+    for (const auto& s : seg.soc_steps) EXPECT_TRUE(s.followed_by_long_rest);
+
+    const auto& target = seg.pulse_sets[1];
+    const std::size_t w0 = target.rest_begin;
+    // Mid charge pulse, or at its last row (it may go on): not complete.
+    for (std::size_t end : {target.charge_begin + 50, target.charge_end}) {
+        EXPECT_FALSE(last_complete_pulse_set(full.slice(w0, end))) << "window end " << end;
+    }
+    for (std::size_t extra : {1u, 25u}) {
+        const auto ps = last_complete_pulse_set(full.slice(w0, target.charge_end + extra));
+        ASSERT_TRUE(ps) << extra;
+        EXPECT_EQ(ps->form, PulseSetForm::NoChargeRelaxation);
+        EXPECT_EQ(ps->pulse_begin + w0, target.pulse_begin);
+        EXPECT_EQ(ps->charge_begin + w0, target.charge_begin);
+        EXPECT_EQ(ps->end + w0, target.end);
+        EXPECT_EQ(ps->next_window_begin + w0, target.end);
+    }
+}
+
+// Discharge pulses alone, two currents per level (the Panasonic 18650PF's kind): every pulse after a long rest is
+// a DischargeOnly pulse set. A rest after a discharge pulse may still be followed by a charge pulse, so online the
+// set is complete only when the next phase has begun; when that rest is long it is also the next set's rest, and
+// the window after the first set starts there and finds the second set with the offline rows.
+TEST(Segment, DischargeOnlyPulseSetsWaitForWhatFollowsTheirRestAndShareALongRest) {
+    std::vector<Step> prog;
+    for (int level = 0; level < 2; ++level) {
+        prog.push_back({700, 0, "Rest"});
+        prog.push_back({10, -4.5, "CC DChg"});
+        prog.push_back({700, 0, "Rest"});
+        prog.push_back({10, -9.0, "CC DChg"});
+        prog.push_back({120, 0, "Rest"});
+        prog.push_back({300, -4.5, "CC DChg"});
+    }
+    prog.push_back({700, 0, "Rest"});
+    const auto full = test::synthesize(prog, {.voltage_noise_v = 3e-4, .current_noise_a = 5e-3, .seed = 7});
+    const auto seg = segment_recording(full);
+    ASSERT_EQ(seg.pulse_sets.size(), 4u);
+    for (const auto& ps : seg.pulse_sets) {
+        EXPECT_EQ(ps.form, PulseSetForm::DischargeOnly);
+        EXPECT_FALSE(ps.has_charge_pulse());
+        EXPECT_EQ(ps.charge_begin, ps.end);
+        EXPECT_EQ(ps.charge_end, ps.end);
+    }
+    EXPECT_NEAR(seg.pulse_sets[0].discharge_current_a, -4.5, 0.05);
+    EXPECT_NEAR(seg.pulse_sets[1].discharge_current_a, -9.0, 0.05);
+    // The first set's rest is the second set's long rest; the second is followed by its SOC step.
+    EXPECT_EQ(seg.pulse_sets[0].next_window_begin, seg.pulse_sets[0].discharge_end);
+    EXPECT_EQ(seg.pulse_sets[1].rest_begin, seg.pulse_sets[0].discharge_end);
+    EXPECT_EQ(seg.pulse_sets[1].next_window_begin, seg.pulse_sets[1].end);
+    ASSERT_EQ(seg.soc_steps.size(), 2u);
+    EXPECT_EQ(seg.soc_steps[0].pulse_set_index, 1u);
+
+    const auto& first = seg.pulse_sets[0];
+    const std::size_t w0 = first.rest_begin;
+    // 60 s and the whole 700 s into the rest after the pulse, nothing after it yet: not complete.
+    for (std::size_t end : {first.discharge_end + 600, first.end}) {
+        EXPECT_FALSE(last_complete_pulse_set(full.slice(w0, end))) << "window end " << end;
+    }
+    const auto ps = last_complete_pulse_set(full.slice(w0, first.end + 5));
+    ASSERT_TRUE(ps);
+    EXPECT_EQ(ps->pulse_begin + w0, first.pulse_begin);
+    EXPECT_EQ(ps->end + w0, first.end);
+    // The daemon's next window starts where the first set says, and holds the second set.
+    const std::size_t w1 = w0 + ps->next_window_begin;
+    const auto second = last_complete_pulse_set(full.slice(w1, seg.pulse_sets[1].end + 5));
+    ASSERT_TRUE(second);
+    EXPECT_EQ(second->pulse_begin + w1, seg.pulse_sets[1].pulse_begin);
+    EXPECT_EQ(second->end + w1, seg.pulse_sets[1].end);
+    EXPECT_DOUBLE_EQ(second->ocv_v, seg.pulse_sets[1].ocv_v);
+}

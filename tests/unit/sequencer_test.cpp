@@ -7,6 +7,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <tuple>
 #include <utility>
 
 #include <cmath>
@@ -213,6 +214,70 @@ TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
     }
     EXPECT_GT(rec.fits[0].soc, rec.fits[2].soc);
     EXPECT_GE(rec.steps, 1 + 3 * 6);  // the first rest, then six steps per pulse set
+}
+
+// Programs of the other layouts labs run are fitted online too, each pulse set as it completes: the USABC
+// manual's (regen pulse straight into the SOC step: both directions) and a discharge-only HPPC (two currents per
+// level, the second pulse after the first one's long rest: the discharge direction alone, charge null).
+TEST(Sequencer, FitsUsabcAndDischargeOnlyPulseSetsOnline) {
+    const char* usabc = R"({
+      "schema": "cellbench.program/1", "name": "usabc",
+      "steps": [
+        {"type": "rest", "time_s": 3600},
+        {"type": "cc_discharge", "current_a": 9.0, "time_s": 30, "cutoff_voltage_v": 2.9},
+        {"type": "rest", "time_s": 40},
+        {"type": "cccv_charge", "current_a": 6.75, "voltage_v": 4.1, "time_s": 10, "cutoff_current_a": 0.05},
+        {"type": "cc_discharge", "current_a": 4.5, "cutoff_capacity_ah": 0.38, "cutoff_voltage_v": 2.9},
+        {"type": "rest", "time_s": 3600},
+        {"type": "cycle", "start_step": 2, "count": 3},
+        {"type": "end"}]})";
+    const char* discharge_only = R"({
+      "schema": "cellbench.program/1", "name": "discharge_only",
+      "steps": [
+        {"type": "rest", "time_s": 3600},
+        {"type": "cc_discharge", "current_a": 4.5, "time_s": 10, "cutoff_voltage_v": 2.9},
+        {"type": "rest", "time_s": 1200},
+        {"type": "cc_discharge", "current_a": 9.0, "time_s": 10, "cutoff_voltage_v": 2.9},
+        {"type": "rest", "time_s": 120},
+        {"type": "cc_discharge", "current_a": 4.5, "cutoff_capacity_ah": 0.38, "cutoff_voltage_v": 2.9},
+        {"type": "rest", "time_s": 3600},
+        {"type": "cycle", "start_step": 2, "count": 2},
+        {"type": "end"}]})";
+    for (const auto& [text, sets, charge] :
+         {std::tuple{usabc, std::size_t{3}, true}, std::tuple{discharge_only, std::size_t{4}, false}}) {
+        const auto program = protocol::StepProgram::from_json(nlohmann::json::parse(text));
+        SCOPED_TRACE(program.name);
+        ModelCell cell(cell_params());
+        FakeCycler cyc;
+        FakeChamber ch;
+        Recorder rec;
+        SequencerOptions opt;
+        opt.capacity_ah = cell.model.params().capacity_ah;
+        opt.fit_at_end = false;
+        Sequencer seq(cyc, ch, rec, opt);
+        seq.start(Program{program.name, {{Segment::Kind::Cycler, program, 0, 0, 0, 0, "hppc"}}}, 0.0);
+        run_bench(seq, cyc, cell, ch, 6 * 3600.0);
+        seq.wait_for_fits();
+        EXPECT_EQ(seq.state(), RunState::Completed) << (rec.events.empty() ? "" : rec.events.back());
+        ASSERT_EQ(rec.fits.size(), sets);
+        for (const auto& f : rec.fits) {
+            const double soc = f.soc + kInitialSoc - 1.0;
+            const auto truth = estimator::to_rc_values(cell.model.params().rc_at(soc, -1));
+            const auto got = estimator::to_rc_values(f.chosen_discharge());
+            std::printf("SOC %.3f discharge R0 %.3f/%.3f R1 %.3f/%.3f mOhm R2 %.3f/%.3f mOhm, charge R0 %.3f mOhm\n", f.soc,
+                        got.r0_ohm * 1e3, truth.r0_ohm * 1e3, got.r1_ohm * 1e3, truth.r1_ohm * 1e3, got.r2_ohm * 1e3,
+                        truth.r2_ohm * 1e3, f.chosen_charge().r0_ohm * 1e3);
+            EXPECT_NEAR(got.r0_ohm, truth.r0_ohm, 0.03 * truth.r0_ohm) << "SOC " << f.soc;
+            EXPECT_NEAR(got.r1_ohm + got.r2_ohm, truth.r1_ohm + truth.r2_ohm, 0.15 * (truth.r1_ohm + truth.r2_ohm))
+                << "SOC " << f.soc;
+            if (charge) {
+                const double r0c = cell.model.params().rc_at(soc, +1).r0_ohm;
+                EXPECT_NEAR(f.chosen_charge().r0_ohm, r0c, 0.05 * r0c) << "SOC " << f.soc;
+            } else {
+                EXPECT_TRUE(std::isnan(f.chosen_charge().r0_ohm)) << "SOC " << f.soc;
+            }
+        }
+    }
 }
 
 TEST(Sequencer, OverTemperatureStopsTheCurrentAtOnceAndAbortsTheRun) {

@@ -122,10 +122,10 @@ void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const 
         }
     }
     if (const std::size_t pulse_sets = online_pulse_sets(p); pulse_sets > 0)
-        std::printf("online fits: %zu pulse sets of the thesis form (long rest, discharge pulse, rest, charge pulse, "
-                    "rest), each fitted as it completes\n", pulse_sets);
+        std::printf("online fits: %zu pulse sets (a long rest, a discharge pulse, a rest, perhaps a charge pulse), "
+                    "each fitted as it completes\n", pulse_sets);
     else
-        std::printf("online fits: none (no long rest, discharge pulse, rest, charge pulse, rest in this program): the "
+        std::printf("online fits: none (no long rest followed by a discharge pulse and a rest in this program): the "
                     "run is recorded, and `cellbench fit` of its export characterizes it afterwards\n");
     const auto est = daemon::estimate_duration(p, cell);
     std::printf("expected duration about %.2f h of bench time (estimate: starting at %.0f %% SOC, nominal capacity)\n",

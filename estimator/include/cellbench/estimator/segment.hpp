@@ -21,11 +21,16 @@
 // t[end-1] - t[begin-1] (t[end-1] - t[begin] for a phase starting at row 0).
 //
 // Online use: segment_recording works on any window of rows. A pulse set is reported only when it is
-// complete: its charge relaxation has lasted at least min_relaxation_s AND is either followed by a new
-// current or reaches the end of the window (then PulseSet::relaxation_open is true and `end` is the window's
-// end). A daemon that passes the window when the relaxation step has ended gets the same pulse set (same
-// rows) as an offline run over the whole recording. The long rest before the discharge pulse must be inside
-// the window for at least long_rest_s (start the window at the start of that rest step).
+// complete: a thesis-form set when its charge relaxation has lasted at least min_relaxation_s AND is either
+// followed by a new current or reaches the end of the window (then PulseSet::relaxation_open is true and `end`
+// is the window's end); the other forms (PulseSetForm) when the phase after their last one has begun, since
+// until then a rest after a discharge pulse may still be followed by a charge pulse. A daemon that passes the
+// window when the relaxation step has ended gets the same pulse set (same rows) as an offline run over the
+// whole recording. The long rest before the discharge pulse must be inside the window for at least long_rest_s
+// (start the window at the start of that rest step: PulseSet::next_window_begin).
+//
+// Not recognized (the global fit still uses their every row): pulses with no rest between them (a charge pulse
+// straight after the discharge pulse), a charge pulse first, pulses after a rest shorter than long_rest_s.
 #include <cstddef>
 #include <optional>
 #include <string>
@@ -77,9 +82,27 @@ struct Phase {
     [[nodiscard]] std::size_t size() const { return end - begin; }
 };
 
+// The layouts a pulse set is recognized in. Every form starts with a long rest (A, the OCV) and a discharge
+// pulse (B..C) followed by a rest (D..E).
+enum class PulseSetForm {
+    // Thesis Table 2.12 / Figure 3.6: ... -> charge pulse (F..G) -> rest (H..I) of at least min_relaxation_s.
+    Thesis,
+    // The USABC/FreedomCAR manual's: ... -> charge (regen) pulse (F..G) -> at once a current (the SOC step), or
+    // a rest shorter than min_relaxation_s that a current ends. The set ends with that rest (or with G); the
+    // step at G is read only where a rest follows it.
+    NoChargeRelaxation,
+    // Discharge pulses alone (the Panasonic 18650PF's five currents per level, labs' discharge-only HPPCs):
+    // the rest after the discharge pulse lasts at least min_relaxation_s and what follows it is not a charge
+    // pulse. No charge rows: charge_begin = charge_end = end. When that rest is itself a long rest it is also
+    // the next pulse set's rest (A).
+    DischargeOnly,
+};
+const char* to_string(PulseSetForm form);
+
 // One HPPC pulse set (Figure 3.6): long rest (A) -> discharge pulse (B..C) -> rest (D..E) -> charge pulse
-// (F..G) -> rest (H..I).
+// (F..G) -> rest (H..I), or one of the other forms of PulseSetForm.
 struct PulseSet {
+    PulseSetForm form = PulseSetForm::Thesis;
     std::size_t phase_index = 0;   // index of the long rest in RecordingSegments::phases
     std::size_t rest_begin = 0;    // first row of the long rest
     std::size_t pulse_begin = 0;   // first discharge row (B); row pulse_begin-1 is A
@@ -98,6 +121,13 @@ struct PulseSet {
     bool discharge_cv = false;  // the discharge pulse hit the lower voltage limit and its current tapered
     bool charge_cv = false;     // the charge pulse hit the upper voltage limit and its current tapered
     bool relaxation_open = false;  // the charge relaxation runs to the end of the window
+
+    [[nodiscard]] bool has_charge_pulse() const { return form != PulseSetForm::DischargeOnly; }
+    // One past the last pulse row (G, or C without a charge pulse): where the relaxation the fits use begins.
+    [[nodiscard]] std::size_t last_pulse_end() const { return has_charge_pulse() ? charge_end : discharge_end; }
+    // Where a later window has to start to see the next pulse set's long rest: that rest is this set's last
+    // phase when it is long (DischargeOnly), else the next set starts after `end`.
+    std::size_t next_window_begin = 0;
 };
 
 // A CC discharge that moves the SOC between two pulse sets (Table 2.12 step 12).
@@ -123,9 +153,15 @@ struct RecordingSegments {
 // a rest of long_rest_s with 1 % slack is long, a current phase of at most pulse_max_s is a pulse).
 PhaseKind classify_phase(int direction, double duration_s, const SegmentOptions& options = {});
 
-// Whether the phases from i on begin a pulse set (PulseSet: long rest, discharge pulse, rest, charge pulse, rest
-// of at least min_relaxation_s). segment_recording's test, and `cellbench check`'s on a program's steps.
-bool begins_pulse_set(const std::vector<Phase>& phases, std::size_t i, const SegmentOptions& options = {});
+// Whether the phases from i on make a complete pulse set, and of which form (PulseSetForm; the thesis form is
+// tried first); how many phases it spans in *phase_count. A set is complete when what follows it is known: the
+// thesis form when its last rest lasted min_relaxation_s, the others when the next phase has begun.
+// segment_recording's test, and `cellbench check`'s on a program's steps.
+std::optional<PulseSetForm> pulse_set_form(const std::vector<Phase>& phases, std::size_t i,
+                                           const SegmentOptions& options = {}, std::size_t* phase_count = nullptr);
+inline bool begins_pulse_set(const std::vector<Phase>& phases, std::size_t i, const SegmentOptions& options = {}) {
+    return pulse_set_form(phases, i, options).has_value();
+}
 
 // Splits a recording (or a window of one) into phases and finds what they make up. Never throws on odd
 // input: an empty recording gives empty results.

@@ -880,10 +880,12 @@ void sampling_corrected_r0(const Window& w, const std::array<double, kNumJoint>&
         if (!(std::abs(di) > 0.0)) return kNaN;
         return ((w.v[k] - w.v[k - 1]) - (s[k] - s[k - 1]) - (w.ocv[k] - w.ocv[k - 1])) / di;
     };
-    r0.discharge_corrected_ohm = finite_mean({at(ps.pulse_begin), at(ps.discharge_end)});
+    // A step only where a rest is on its other side (PulseSet::rest_*), not into another current.
+    r0.discharge_corrected_ohm = finite_mean({ps.rest_before_discharge ? at(ps.discharge_begin) : kNaN,
+                                              ps.rest_after_discharge ? at(ps.discharge_end) : kNaN});
     if (!ps.has_charge_pulse()) return;
-    // The step at G only where a rest follows the charge pulse (not the SOC step's current at once).
-    r0.charge_corrected_ohm = finite_mean({at(ps.charge_begin), ps.charge_end < ps.end ? at(ps.charge_end) : kNaN});
+    r0.charge_corrected_ohm = finite_mean({ps.rest_before_charge ? at(ps.charge_begin) : kNaN,
+                                           ps.rest_after_charge ? at(ps.charge_end) : kNaN});
 }
 
 Candidate candidate_of(const JointResult& r) {
@@ -1115,14 +1117,15 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     out.ocv_v = ps.ocv_v;
     const std::size_t n = rec.size();
     const bool sizes_ok = rec.voltage_v.size() == n && rec.current_a.size() == n;
-    // Row order of each form: A < B < C < (F < G) <= end; the thesis form has rows after G (its relaxation),
-    // a discharge-only one rows after C.
+    // Row order: A < first pulse <= each pulse < its end <= the set's end; the thesis form has the charge pulse
+    // after the discharge pulse and rows after G (its relaxation).
     const bool charge_pulse = ps.has_charge_pulse();
-    const bool rows_ok =
-        ps.pulse_begin >= 1 && ps.pulse_begin < ps.discharge_end && ps.end <= n &&
-        (charge_pulse ? ps.discharge_end < ps.charge_begin && ps.charge_begin < ps.charge_end &&
-                            (ps.form == PulseSetForm::Thesis ? ps.charge_end < ps.end : ps.charge_end <= ps.end)
-                      : ps.discharge_end < ps.end);
+    auto inside = [&](std::size_t b, std::size_t e) { return ps.pulse_begin <= b && b < e && e <= ps.end; };
+    const bool rows_ok = ps.pulse_begin >= 1 && ps.end <= n && inside(ps.discharge_begin, ps.discharge_end) &&
+                         (!charge_pulse || inside(ps.charge_begin, ps.charge_end)) &&
+                         ps.last_pulse_end() <= ps.end &&
+                         (ps.form != PulseSetForm::Thesis ||
+                          (ps.discharge_end < ps.charge_begin && ps.charge_end < ps.end));
     if (!sizes_ok || !rows_ok) {
         out.warnings.push_back("pulse set row indices do not fit this recording: nothing fitted");
         return out;
@@ -1146,13 +1149,14 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     {
         const auto& v = rec.voltage_v;
         const auto& c = rec.current_a;
-        const std::size_t pb = ps.pulse_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
-        out.r0.ab_ohm = (v[pb - 1] - v[pb]) / std::abs(c[pb]);
-        out.r0.cd_ohm = (v[de] - v[de - 1]) / std::abs(c[de - 1]);
+        const std::size_t pb = ps.discharge_begin, de = ps.discharge_end, cb = ps.charge_begin, ce = ps.charge_end;
+        // Each step only where a rest is on its other side (PulseSet::rest_*): a step into the SOC step's current,
+        // or from one pulse straight into the other, moves both directions' R0.
+        if (ps.rest_before_discharge) out.r0.ab_ohm = (v[pb - 1] - v[pb]) / std::abs(c[pb]);
+        if (ps.rest_after_discharge && de < ps.end) out.r0.cd_ohm = (v[de] - v[de - 1]) / std::abs(c[de - 1]);
         if (charge_pulse) {
-            out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
-            // G..H only where a rest follows the charge pulse (not the SOC step's discharge at once).
-            if (ce < ps.end) out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
+            if (ps.rest_before_charge) out.r0.ef_ohm = (v[cb] - v[cb - 1]) / std::abs(c[cb]);
+            if (ps.rest_after_charge && ce < ps.end) out.r0.gh_ohm = (v[ce - 1] - v[ce]) / std::abs(c[ce - 1]);
         }
         out.r0.discharge_ohm = finite_mean({out.r0.ab_ohm, out.r0.cd_ohm});
         out.r0.charge_ohm = finite_mean({out.r0.ef_ohm, out.r0.gh_ohm});
@@ -1190,7 +1194,7 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
         out.warnings.push_back(
             printf_text("the discharge pulse hit the lower voltage limit and turned CV (current fell from %.2f A to "
                 "%.2f A): its discharge parameters are not those of a constant-current pulse",
-                std::abs(rec.current_a[ps.pulse_begin]), std::abs(rec.current_a[ps.discharge_end - 1])));
+                std::abs(rec.current_a[ps.discharge_begin]), std::abs(rec.current_a[ps.discharge_end - 1])));
     if (o.docv_dah_v_per_ah == 0.0)
         out.warnings.push_back("OCV slope unknown (docv_dah_v_per_ah = 0): the OCV is held at V_A during the "
                                "pulse set");

@@ -206,33 +206,84 @@ const char* to_string(PulseSetForm form) {
         case PulseSetForm::Thesis: return "thesis";
         case PulseSetForm::NoChargeRelaxation: return "no charge relaxation";
         case PulseSetForm::DischargeOnly: return "discharge only";
+        case PulseSetForm::Other: return "other order";
     }
     return "?";
 }
 
-std::optional<PulseSetForm> pulse_set_form(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o,
-                                           std::size_t* phase_count) {
-    auto found = [&](PulseSetForm f, std::size_t count) {
-        if (phase_count) *phase_count = count;
+namespace {
+
+bool is_pulse(const Phase& p) { return p.kind == PhaseKind::DischargePulse || p.kind == PhaseKind::ChargePulse; }
+
+// The thesis, USABC and discharge-only forms (PulseSetForm); nullopt also while one of them may still complete.
+std::optional<PulseSetForm> named_form(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o,
+                                       std::size_t& count) {
+    auto found = [&](PulseSetForm f, std::size_t n) {
+        count = n;
         return std::optional<PulseSetForm>(f);
     };
     // Long rest (A), discharge pulse (B..C), rest (D..E): every form.
     if (i + 2 >= ph.size() || ph[i].kind != PhaseKind::LongRest || ph[i + 1].kind != PhaseKind::DischargePulse ||
         !ph[i + 2].is_rest())
         return std::nullopt;
+    // What ends the USABC and discharge-only forms is a long current phase (the SOC step; while it is shorter
+    // than pulse_max_s it may be a pulse, so a set waits for it), or, after a discharge pulse, a long rest: never
+    // the next pulse of a drive cycle.
+    auto long_current = [&](std::size_t j) {
+        return j < ph.size() && (ph[j].kind == PhaseKind::Discharge || ph[j].kind == PhaseKind::Charge);
+    };
     if (i + 3 < ph.size() && ph[i + 3].kind == PhaseKind::ChargePulse) {
         const bool has_after = i + 4 < ph.size();
         if (has_after && ph[i + 4].is_rest() && ph[i + 4].duration_s >= o.min_relaxation_s)
             return found(PulseSetForm::Thesis, 5);
-        // The charge pulse is over once the next phase has begun: a current at once, or a short rest that has ended.
-        if (has_after && !ph[i + 4].is_rest()) return found(PulseSetForm::NoChargeRelaxation, 4);
-        if (has_after && !ph[i + 4].open_end) return found(PulseSetForm::NoChargeRelaxation, 5);
-        return std::nullopt;  // the charge pulse or its rest goes on
+        // The charge pulse is over once the next phase has begun: the SOC step at once, or after a short rest.
+        if (long_current(i + 4)) return found(PulseSetForm::NoChargeRelaxation, 4);
+        if (has_after && ph[i + 4].is_rest() && long_current(i + 5)) return found(PulseSetForm::NoChargeRelaxation, 5);
+        return std::nullopt;  // the charge pulse or its rest goes on, or another pulse follows (the Other form)
     }
-    // No charge pulse after the rest (or a charge pulse whose length is not known yet: wait).
+    // No charge pulse after a rest of min_relaxation_s: a long rest with what follows it begun, or the SOC step.
     if (i + 3 >= ph.size() || ph[i + 2].duration_s < o.min_relaxation_s) return std::nullopt;
-    if (ph[i + 3].direction > 0 && ph[i + 3].open_end && ph[i + 3].kind == PhaseKind::ChargePulse) return std::nullopt;
+    if (ph[i + 2].kind != PhaseKind::LongRest && !long_current(i + 3)) return std::nullopt;
     return found(PulseSetForm::DischargeOnly, 3);
+}
+
+// The Other form: after the long rest, pulses and short rests up to the next long phase, which has begun; the
+// number of phases from i.
+std::optional<std::size_t> other_form(const std::vector<Phase>& ph, std::size_t i) {
+    if (ph[i].kind != PhaseKind::LongRest || i + 1 >= ph.size() || !is_pulse(ph[i + 1])) return std::nullopt;
+    std::size_t pulses = 0;
+    bool discharge = false;
+    std::size_t j = i + 1;
+    for (; j < ph.size() && (is_pulse(ph[j]) || ph[j].kind == PhaseKind::Rest); ++j) {
+        if (!is_pulse(ph[j])) continue;
+        if (++pulses > kMaxOtherPulses) return std::nullopt;
+        discharge = discharge || ph[j].direction < 0;
+    }
+    if (j >= ph.size() || !discharge) return std::nullopt;  // the next long phase has not begun (or no discharge)
+    // A long rest that ends the pulses is their relaxation (and the next set's rest A, as in DischargeOnly); as
+    // there, what follows it must have begun (a charge pulse after it would make it a thesis-form set).
+    if (ph[j].kind != PhaseKind::LongRest) return j - i;
+    if (j + 1 >= ph.size()) return std::nullopt;
+    return j - i + 1;
+}
+
+}  // namespace
+
+std::optional<PulseSetForm> pulse_set_form(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o,
+                                           std::size_t* phase_count) {
+    if (i >= ph.size() || ph[i].kind != PhaseKind::LongRest) return std::nullopt;
+    std::size_t count = 0;
+    auto form = named_form(ph, i, o, count);
+    // The Other form needs the long phase after the pulses to have begun, and by then every named form that
+    // could still complete has: a set that waits for one of them never becomes an Other set early.
+    if (!form) {
+        if (const auto n = other_form(ph, i)) {
+            form = PulseSetForm::Other;
+            count = *n;
+        }
+    }
+    if (form && phase_count) *phase_count = count;
+    return form;
 }
 
 RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& o) {
@@ -252,35 +303,50 @@ RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& 
         const auto form = pulse_set_form(ph, i, o, &count);
         if (!form) continue;
         const Phase& rest = ph[i];
-        const Phase& dis = ph[i + 1];
-        const Phase& rel = ph[i + 2];
         const Phase& last = ph[i + count - 1];
+        // The first pulse of each direction (the Other form may begin with a charge pulse); the thesis, USABC
+        // and discharge-only forms have the discharge pulse at i + 1 and the charge pulse, if any, at i + 3.
+        std::size_t d = 0, c = 0, last_pulse = 0;
+        for (std::size_t j = i + 1; j < i + count; ++j) {
+            if (ph[j].kind == PhaseKind::DischargePulse && d == 0) d = j;
+            if (ph[j].kind == PhaseKind::ChargePulse && c == 0) c = j;
+            if (is_pulse(ph[j])) last_pulse = j;
+        }
+        auto rest_at = [&](std::size_t j) { return j > i && j < i + count && ph[j].is_rest(); };
+        const Phase& dis = ph[d];
         PulseSet ps;
         ps.form = *form;
         ps.phase_index = i;
         ps.rest_begin = rest.begin;
-        ps.pulse_begin = dis.begin;
+        ps.pulse_begin = ph[i + 1].begin;
+        ps.discharge_begin = dis.begin;
         ps.discharge_end = dis.end;
         ps.end = last.end;
+        ps.pulses_end = ph[last_pulse].end;
         ps.next_window_begin = last.kind == PhaseKind::LongRest ? last.begin : last.end;
-        ps.ocv_v = rec.voltage_v[dis.begin - 1];
+        ps.ocv_v = rec.voltage_v[ps.pulse_begin - 1];
         ps.rest_duration_s = rest.duration_s;
         ps.discharge_current_a = dis.mean_current_a;
         ps.discharge_duration_s = dis.duration_s;
-        ps.discharge_relaxation_s = rel.duration_s;
+        ps.discharge_relaxation_s = rest_at(d + 1) ? ph[d + 1].duration_s : 0.0;
         ps.discharge_ah = dis.charge_ah;
         ps.discharge_cv = dis.cv_tail;
-        if (ps.has_charge_pulse()) {
-            const Phase& chg = ph[i + 3];
+        ps.rest_before_discharge = d == i + 1 || rest_at(d - 1);
+        ps.rest_after_discharge = d + 1 < i + count && ph[d + 1].is_rest();
+        if (c != 0) {
+            const Phase& chg = ph[c];
             ps.charge_begin = chg.begin;
             ps.charge_end = chg.end;
             ps.charge_current_a = chg.mean_current_a;
             ps.charge_duration_s = chg.duration_s;
-            ps.charge_relaxation_s = count == 5 ? ph[i + 4].duration_s : 0.0;
+            ps.charge_relaxation_s = c + 1 < i + count && ph[c + 1].is_rest() ? ph[c + 1].duration_s : 0.0;
             ps.charge_ah = chg.charge_ah;
             ps.charge_cv = chg.cv_tail;
+            ps.rest_before_charge = c == i + 1 || rest_at(c - 1);
+            ps.rest_after_charge = c + 1 < i + count && ph[c + 1].is_rest();
         } else {
             ps.charge_begin = ps.charge_end = ps.end;
+            ps.rest_before_charge = ps.rest_after_charge = false;
         }
         ps.relaxation_open = last.is_rest() && last.open_end;
         seg.pulse_sets.push_back(ps);

@@ -189,3 +189,31 @@ TEST_F(RealHppc, PulseFitsAgainstThesisTable32) {
     }
     std::printf("fit_pulse_set: %.1f ms per pulse set (wall clock, both methods)\n", total_ms / 10.0);
 }
+
+// A drive cycle or a constant-current discharge is no HPPC: the pulse-set forms of segment.hpp (a long rest, a
+// discharge pulse, a rest, a charge pulse or none) must find nothing in them, else `fit` would take a drive cycle
+// for a characterization test and the daemon would fit its accelerations as pulse sets.
+TEST(RealDriveCycles, HoldNoPulseSet) {
+    const auto dir = std::filesystem::path(CELLBENCH_SHARED_DIR) / "data";
+    std::size_t read = 0;
+    for (const char* name : {"panasonic-18650pf/us06_25degC.bdf.csv", "panasonic-18650pf/hwfet_a_25degC.bdf.csv",
+                             "panasonic-18650pf/hwfet_b_25degC.bdf.csv", "panasonic-18650pf/la92_25degC.bdf.csv",
+                             "panasonic-18650pf/nn_25degC.bdf.csv", "panasonic-18650pf/us06_0degC.bdf.csv",
+                             "panasonic-18650pf/hwfet_0degC.bdf.csv", "panasonic-18650pf/la92_0degC.bdf.csv",
+                             "p45b/cc_4c_30degC.bdf.csv"}) {
+        const auto path = dir / name;
+        if (!std::filesystem::exists(path)) continue;
+        std::ifstream in(path, std::ios::binary);
+        std::stringstream ss;
+        ss << in.rdbuf();
+        const Recording rec = protocol::parse_bdf_csv(ss.str(), path.string());
+        const auto seg = segment_recording(rec);
+        std::size_t pulses = 0;
+        for (const auto& ph : seg.phases) pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
+        std::printf("%s: %zu phases, %zu pulses, %zu long rests, %zu pulse sets\n", name, seg.phases.size(), pulses,
+                    seg.long_rests.size(), seg.pulse_sets.size());
+        EXPECT_TRUE(seg.pulse_sets.empty()) << name;
+        ++read;
+    }
+    if (read == 0) GTEST_SKIP() << "shared data not found in " << dir;
+}

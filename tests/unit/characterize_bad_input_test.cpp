@@ -71,10 +71,10 @@ TEST(CharacterizeBadInput, SinglePulseIsAnErrorOrFlagged) {
 }
 
 TEST(CharacterizeBadInput, DischargeOnlyPulseSetsAreFittedForTheDischargeDirectionAlone) {
-    // Discharge-only pulses (the Panasonic 18650PF's kind: two currents per level, no charge pulse) at three SOC
-    // levels: the first pulse after each long rest is a pulse set of the discharge-only form. Its discharge
-    // values are fitted (R0 of the synthetic cell within 3 %), its charge values are null and said to be, never
-    // a made-up number; the global fit takes every pulse.
+    // Discharge-only pulses (two currents per level, 60 s apart, no charge pulse) at three SOC levels: the two
+    // pulses after each long rest, up to the SOC step, are one pulse set (the Other form: more than one pulse
+    // before the SOC step). Its discharge values are fitted (R0 of the synthetic cell within 3 %), its charge
+    // values are null and said to be, never a made-up number; the global fit takes every pulse.
     std::vector<Step> p = {{700, 0.0, "Rest"}};
     for (int level = 0; level < 3; ++level) {
         p.push_back({10, -4.5, "CC DChg"});
@@ -89,7 +89,8 @@ TEST(CharacterizeBadInput, DischargeOnlyPulseSetsAreFittedForTheDischargeDirecti
         ASSERT_EQ(c.pulse_fits.size(), 3u);
         const double truth = cellbench::test::p45b_discharge().r0_ohm;
         for (const auto& f : c.pulse_fits) {
-            EXPECT_EQ(f.pulse_set.form, est::PulseSetForm::DischargeOnly);
+            EXPECT_EQ(f.pulse_set.form, est::PulseSetForm::Other);
+            EXPECT_FALSE(f.pulse_set.has_charge_pulse());
             EXPECT_NEAR(f.chosen_discharge().r0_ohm, truth, 0.03 * truth) << "SOC " << f.soc;
             EXPECT_TRUE(std::isfinite(f.chosen_discharge().tau1_s)) << "SOC " << f.soc;
             EXPECT_TRUE(std::isnan(f.chosen_charge().r0_ohm)) << "SOC " << f.soc;

@@ -332,3 +332,26 @@ TEST(PulseFit, UsabcPulseSetFitsBothDirectionsWithoutTheStepIntoTheSocStep) {
     EXPECT_TRUE(std::isfinite(fit.chosen_charge().r1_ohm));
     EXPECT_TRUE(std::isnan(fit.thesis_rms_v));
 }
+
+// A pulse set of the Other form (a 2 s charge pulse, then at once a 30 s discharge pulse, a rest, the SOC step):
+// both directions fitted; R0 only from the steps with a rest on their other side (EF into the charge pulse, CD out
+// of the discharge pulse), never from the step between the pulses, which moves both directions' R0.
+TEST(PulseFit, ChargeFirstPulseSetWithoutARestBetweenReadsOnlyTheStepsAtARest) {
+    test::SyntheticOptions o;
+    o.soc0 = 0.6;
+    o.voltage_noise_v = 2e-4;
+    const std::vector<test::Step> prog = {{700, 0, "Rest"},  {2, 2.25, "CC Chg"},      {30, -9.0, "CC DChg"},
+                                          {40, 0, "Rest"},   {300, -4.5, "CC DChg"},   {700, 0, "Rest"}};
+    const auto rec = test::synthesize(prog, o);
+    const auto seg = segment_recording(rec);
+    ASSERT_EQ(seg.pulse_sets.size(), 1u);
+    ASSERT_EQ(seg.pulse_sets[0].form, PulseSetForm::Other);
+    const auto fit = fit_pulse_set(rec, seg.pulse_sets[0], options_at(0.6));
+    EXPECT_TRUE(std::isnan(fit.r0.ab_ohm));
+    EXPECT_TRUE(std::isnan(fit.r0.gh_ohm));
+    EXPECT_LT(rel(fit.r0.cd_ohm, o.discharge.r0_ohm), 0.03);
+    EXPECT_LT(rel(fit.r0.ef_ohm, o.charge.r0_ohm), 0.05);
+    expect_params(fit.chosen_discharge(), o.discharge, 0.02, 0.10, 0.25, "discharge");
+    EXPECT_TRUE(std::isfinite(fit.chosen_charge().r0_ohm));
+    EXPECT_TRUE(std::isnan(fit.thesis_rms_v));
+}

@@ -232,7 +232,8 @@ TEST(Segment, OnlineWindows) {
 
 // The USABC/FreedomCAR manual's layout: 30 s discharge pulse, 40 s rest, 10 s regen pulse and the SOC step at
 // once, no rest after the regen pulse. Each level is a pulse set of the NoChargeRelaxation form, followed by its
-// SOC step; online, the set is complete as soon as the SOC step has begun, with the rows an offline run finds.
+// SOC step; online, the set is complete once the SOC step has lasted longer than a pulse can (before, it may be
+// the next pulse of a drive cycle), with the rows an offline run finds.
 TEST(Segment, UsabcPulseSetsEndWithTheRegenPulseAndAreCompleteWhenTheSocStepBegins) {
     std::vector<Step> prog;
     for (int level = 0; level < 3; ++level) {
@@ -259,11 +260,11 @@ TEST(Segment, UsabcPulseSetsEndWithTheRegenPulseAndAreCompleteWhenTheSocStepBegi
 
     const auto& target = seg.pulse_sets[1];
     const std::size_t w0 = target.rest_begin;
-    // Mid charge pulse, or at its last row (it may go on): not complete.
-    for (std::size_t end : {target.charge_begin + 50, target.charge_end}) {
+    // Mid charge pulse, at its last row (it may go on), 30 s into the SOC step (it may be a pulse): not complete.
+    for (std::size_t end : {target.charge_begin + 50, target.charge_end, target.charge_end + 300}) {
         EXPECT_FALSE(last_complete_pulse_set(full.slice(w0, end))) << "window end " << end;
     }
-    for (std::size_t extra : {1u, 25u}) {
+    for (std::size_t extra : {605u, 2000u}) {
         const auto ps = last_complete_pulse_set(full.slice(w0, target.charge_end + extra));
         ASSERT_TRUE(ps) << extra;
         EXPECT_EQ(ps->form, PulseSetForm::NoChargeRelaxation);
@@ -319,9 +320,55 @@ TEST(Segment, DischargeOnlyPulseSetsWaitForWhatFollowsTheirRestAndShareALongRest
     EXPECT_EQ(ps->end + w0, first.end);
     // The daemon's next window starts where the first set says, and holds the second set.
     const std::size_t w1 = w0 + ps->next_window_begin;
-    const auto second = last_complete_pulse_set(full.slice(w1, seg.pulse_sets[1].end + 5));
+    const auto second = last_complete_pulse_set(full.slice(w1, seg.pulse_sets[1].end + 700));
     ASSERT_TRUE(second);
     EXPECT_EQ(second->pulse_begin + w1, seg.pulse_sets[1].pulse_begin);
     EXPECT_EQ(second->end + w1, seg.pulse_sets[1].end);
     EXPECT_DOUBLE_EQ(second->ocv_v, seg.pulse_sets[1].ocv_v);
+}
+
+// Any other order after the long rest (PulseSetForm::Other): a charge pulse first and a discharge pulse straight
+// after it (no rest between) is a pulse set once the SOC step has begun; the step between the two pulses is no R0
+// step of either direction. A drive-cycle-like run of more pulses before the next long phase is no pulse set.
+TEST(Segment, PulsesInAnyOrderUpToTheNextLongPhaseAreAPulseSetButADriveCycleIsNot) {
+    std::vector<Step> prog;
+    for (int level = 0; level < 2; ++level) {
+        prog.push_back({700, 0, "Rest"});
+        prog.push_back({2, 2.25, "CC Chg"});
+        prog.push_back({30, -4.5, "CC DChg"});
+        prog.push_back({40, 0, "Rest"});
+        prog.push_back({300, -4.5, "CC DChg"});
+    }
+    prog.push_back({700, 0, "Rest"});
+    for (int k = 0; k < 6; ++k) {  // a drive cycle's accelerations and decelerations
+        prog.push_back({8, k % 2 ? 3.0 : -6.0, k % 2 ? "CC Chg" : "CC DChg"});
+        prog.push_back({5, 0, "Rest"});
+    }
+    prog.push_back({300, -4.5, "CC DChg"});
+    prog.push_back({700, 0, "Rest"});
+    const auto full = test::synthesize(prog, {.voltage_noise_v = 3e-4, .current_noise_a = 5e-3, .seed = 9});
+    const auto seg = segment_recording(full);
+    ASSERT_EQ(seg.pulse_sets.size(), 2u);
+    ASSERT_EQ(seg.soc_steps.size(), 2u);
+    for (const auto& ps : seg.pulse_sets) {
+        EXPECT_EQ(ps.form, PulseSetForm::Other);
+        EXPECT_TRUE(ps.has_charge_pulse());
+        EXPECT_EQ(ps.pulse_begin, ps.charge_begin);       // the charge pulse comes first
+        EXPECT_EQ(ps.charge_end, ps.discharge_begin);     // and the discharge pulse at once
+        EXPECT_TRUE(ps.rest_before_charge);
+        EXPECT_FALSE(ps.rest_after_charge);
+        EXPECT_FALSE(ps.rest_before_discharge);
+        EXPECT_TRUE(ps.rest_after_discharge);
+        EXPECT_NEAR(ps.discharge_relaxation_s, 40.0, 0.2);
+        EXPECT_EQ(ps.pulses_end, ps.discharge_end);
+    }
+    // Online: complete once the SOC step has begun, with the offline rows.
+    const auto& target = seg.pulse_sets[1];
+    const std::size_t w0 = target.rest_begin;
+    EXPECT_FALSE(last_complete_pulse_set(full.slice(w0, target.end + 5)));  // the SOC step may be a pulse yet
+    const auto ps = last_complete_pulse_set(full.slice(w0, target.end + 700));
+    ASSERT_TRUE(ps);
+    EXPECT_EQ(ps->form, PulseSetForm::Other);
+    EXPECT_EQ(ps->pulse_begin + w0, target.pulse_begin);
+    EXPECT_EQ(ps->end + w0, target.end);
 }

@@ -18,6 +18,7 @@
 
 #include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/model.hpp"
+#include "cellbench/estimator/segment.hpp"
 #include "cellbench/estimator/simulate.hpp"
 #include "cellbench/plant/plant.hpp"
 #include "validation/plant_recording.hpp"
@@ -167,10 +168,15 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
                         c.thermal.r_th_k_per_w, c.thermal.r_th_sigma_k_per_w, d.truth.r_th_k_per_w);
         }
         const auto e = compare(c, d, to_recording(d.drive, "drive"), compared_soc_range(d, GetParam()));
-        std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %6.2f | %6.2f | %10.3f | %8.2f  (%s, %s)\n",
+        std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %6.2f | %6.2f | %10.3f | %8.2f  (%s, %s, %zu pulse sets)\n",
                     seed, e.ocv_mv, 100 * e.r0, 100 * e.r12, 100 * e.tau1, 100 * e.tau2, 100 * e.capacity,
                     100 * e.c_th, 100 * e.r_th, e.dudt_mv_per_k, e.drive_rms_mv, d.truth.chemistry.c_str(),
-                    c.capacity.method.c_str());
+                    c.capacity.method.c_str(), c.pulse_fits.size());
+        // Layout-agnostic detection (issue 11): every layout the plant draws has pulse sets the per-pulse-set
+        // comparison and the daemon's online fits find, and its drive profile (after a long rest too) has none.
+        EXPECT_FALSE(c.pulse_fits.empty()) << "seed " << seed << ": no pulse set found in the HPPC";
+        EXPECT_TRUE(est::segment_recording(to_recording(d.drive, "drive")).pulse_sets.empty())
+            << "seed " << seed << ": the drive profile taken for pulse sets";
         all.push_back(e);
     }
     auto median = [&](auto member) {

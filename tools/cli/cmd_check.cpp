@@ -122,11 +122,12 @@ void print_plan(const daemon::Program& p, const daemon::CellConfig& cell, const 
         }
     }
     if (const std::size_t pulse_sets = online_pulse_sets(p); pulse_sets > 0)
-        std::printf("online fits: %zu pulse sets (a long rest, a discharge pulse, a rest, perhaps a charge pulse), "
-                    "each fitted as it completes\n", pulse_sets);
+        std::printf("online fits: %zu pulse sets (each a long rest, then up to four pulses, one of them "
+                    "discharging), each fitted as it completes\n", pulse_sets);
     else
-        std::printf("online fits: none (no long rest followed by a discharge pulse and a rest in this program): the "
-                    "run is recorded, and `cellbench fit` of its export characterizes it afterwards\n");
+        std::printf("online fits: none (no long rest followed by at most four pulses, one of them discharging, in "
+                    "this program): the run is recorded, and `cellbench fit` of its export characterizes it "
+                    "afterwards\n");
     const auto est = daemon::estimate_duration(p, cell);
     std::printf("expected duration about %.2f h of bench time (estimate: starting at %.0f %% SOC, nominal capacity)\n",
                 est.total_s / 3600.0, daemon::ProgramEstimate::kStartSoc * 100.0);

@@ -23,14 +23,16 @@
 // Online use: segment_recording works on any window of rows. A pulse set is reported only when it is
 // complete: a thesis-form set when its charge relaxation has lasted at least min_relaxation_s AND is either
 // followed by a new current or reaches the end of the window (then PulseSet::relaxation_open is true and `end`
-// is the window's end); the other forms (PulseSetForm) when the phase after their last one has begun, since
-// until then a rest after a discharge pulse may still be followed by a charge pulse. A daemon that passes the
+// is the window's end); the other forms (PulseSetForm) when the long phase after their last one has begun (a
+// current phase once it has lasted pulse_max_s, before which it may be a pulse), since until then a rest after a
+// discharge pulse may still be followed by a charge pulse, and pulses by more pulses (a drive cycle). A daemon that passes the
 // window when the relaxation step has ended gets the same pulse set (same rows) as an offline run over the
 // whole recording. The long rest before the discharge pulse must be inside the window for at least long_rest_s
 // (start the window at the start of that rest step: PulseSet::next_window_begin).
 //
-// Not recognized (the global fit still uses their every row): pulses with no rest between them (a charge pulse
-// straight after the discharge pulse), a charge pulse first, pulses after a rest shorter than long_rest_s.
+// Not recognized (the global fit still uses their every row): pulses after a rest shorter than long_rest_s, more
+// than kMaxOtherPulses pulses before the next long phase, pulses of one direction only charging.
+#include <algorithm>
 #include <cstddef>
 #include <optional>
 #include <string>
@@ -87,16 +89,24 @@ struct Phase {
 enum class PulseSetForm {
     // Thesis Table 2.12 / Figure 3.6: ... -> charge pulse (F..G) -> rest (H..I) of at least min_relaxation_s.
     Thesis,
-    // The USABC/FreedomCAR manual's: ... -> charge (regen) pulse (F..G) -> at once a current (the SOC step), or
-    // a rest shorter than min_relaxation_s that a current ends. The set ends with that rest (or with G); the
-    // step at G is read only where a rest follows it.
+    // The USABC/FreedomCAR manual's: ... -> charge (regen) pulse (F..G) -> at once the SOC step (a current phase
+    // longer than pulse_max_s), or a rest shorter than min_relaxation_s and then the SOC step. The set ends with
+    // that rest (or with G); the step at G is read only where a rest follows it.
     NoChargeRelaxation,
     // Discharge pulses alone (the Panasonic 18650PF's five currents per level, labs' discharge-only HPPCs):
-    // the rest after the discharge pulse lasts at least min_relaxation_s and what follows it is not a charge
-    // pulse. No charge rows: charge_begin = charge_end = end. When that rest is itself a long rest it is also
-    // the next pulse set's rest (A).
+    // the rest after the discharge pulse lasts at least min_relaxation_s and is either a long rest (then it is
+    // also the next pulse set's rest A) with what follows it begun, or followed by the SOC step. No charge rows:
+    // charge_begin = charge_end = end.
     DischargeOnly,
+    // Any other order after the long rest: up to kMaxOtherPulses pulses of either direction (at least one a
+    // discharge pulse), with or without rests between them, that end where the next long phase (a CC step or a
+    // long rest, which is then the set's last phase) begins: a charge pulse first, pulses with no rest between,
+    // several currents per level. The discharge_* and charge_* fields describe the first pulse of each direction;
+    // an R0 step is read only where a rest is on its other side. More pulses before the next long phase (a drive
+    // cycle) make no pulse set.
+    Other,
 };
+inline constexpr std::size_t kMaxOtherPulses = 4;
 const char* to_string(PulseSetForm form);
 
 // One HPPC pulse set (Figure 3.6): long rest (A) -> discharge pulse (B..C) -> rest (D..E) -> charge pulse
@@ -105,7 +115,8 @@ struct PulseSet {
     PulseSetForm form = PulseSetForm::Thesis;
     std::size_t phase_index = 0;   // index of the long rest in RecordingSegments::phases
     std::size_t rest_begin = 0;    // first row of the long rest
-    std::size_t pulse_begin = 0;   // first discharge row (B); row pulse_begin-1 is A
+    std::size_t pulse_begin = 0;   // first row of the first pulse; row pulse_begin-1 is A (the OCV)
+    std::size_t discharge_begin = 0;  // first discharge row (B); = pulse_begin but in the Other form
     std::size_t discharge_end = 0; // one past the last discharge row (C); = first row of the relaxation (D)
     std::size_t charge_begin = 0;  // first charge row (F); row charge_begin-1 is E
     std::size_t charge_end = 0;    // one past the last charge row (G); = first row of the charge relaxation (H)
@@ -121,10 +132,17 @@ struct PulseSet {
     bool discharge_cv = false;  // the discharge pulse hit the lower voltage limit and its current tapered
     bool charge_cv = false;     // the charge pulse hit the upper voltage limit and its current tapered
     bool relaxation_open = false;  // the charge relaxation runs to the end of the window
+    // Whether a rest lies on the other side of each R0 step (eq. 3.2: AB, CD, EF, GH); a step into another
+    // current moves two directions' R0 at once and is not read.
+    bool rest_before_discharge = true, rest_after_discharge = true;
+    bool rest_before_charge = true, rest_after_charge = true;
+    std::size_t pulses_end = 0;  // one past the last row of the last pulse (where the last relaxation begins)
 
-    [[nodiscard]] bool has_charge_pulse() const { return form != PulseSetForm::DischargeOnly; }
+    [[nodiscard]] bool has_charge_pulse() const { return charge_end > charge_begin; }
     // One past the last pulse row (G, or C without a charge pulse): where the relaxation the fits use begins.
-    [[nodiscard]] std::size_t last_pulse_end() const { return has_charge_pulse() ? charge_end : discharge_end; }
+    [[nodiscard]] std::size_t last_pulse_end() const {
+        return pulses_end > 0 ? pulses_end : has_charge_pulse() ? std::max(charge_end, discharge_end) : discharge_end;
+    }
     // Where a later window has to start to see the next pulse set's long rest: that rest is this set's last
     // phase when it is long (DischargeOnly), else the next set starts after `end`.
     std::size_t next_window_begin = 0;

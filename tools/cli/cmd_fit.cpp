@@ -1,5 +1,6 @@
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <utility>
 
 #include <spdlog/spdlog.h>
@@ -70,7 +71,17 @@ void print_parameter_table(const estimator::Characterization& c) {
         }
         std::printf("%zu values flagged (? uncertain or unidentified, ! implausible)\n", c.global->flagged_count());
     }
-    std::printf("pulse sets: %zu fitted;", c.pulse_fits.size());
+    std::printf("pulse sets: %zu fitted", c.pulse_fits.size());
+    {  // by form, when not all are of the thesis' (estimator::PulseSetForm)
+        std::map<std::string, std::size_t> forms;
+        for (const auto& f : c.pulse_fits) ++forms[estimator::to_string(f.pulse_set.form)];
+        if (!forms.empty() && !(forms.size() == 1 && forms.begin()->first == "thesis")) {
+            std::string t;
+            for (const auto& [name, k] : forms) t += (t.empty() ? "" : ", ") + std::to_string(k) + " " + name;
+            std::printf(" (%s)", t.c_str());
+        }
+    }
+    std::printf(";");
     std::size_t joint = 0;
     double rms_t = 0, rms_j = 0;
     std::size_t n = 0;

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <optional>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -159,6 +160,51 @@ SimulationMetrics compare(const ParameterSet& params, const Recording& rec, cons
         [&](std::size_t k) { return tr.heat_flow_out_w[k] - rec.heat_flux_w_per_m2[k] * params.thermal.area_m2; },
         rec.has_heat_flux());
     return m;
+}
+
+ErrorBands error_bands(const ParameterSet& params, const Recording& rec, const SimulationTrace& tr) {
+    ErrorBands out;
+    const std::size_t n = std::min({rec.size(), tr.time_s.size(), tr.voltage_v.size(), tr.soc.size()});
+    const auto w = time_weights(rec.time_s);
+    double total_w = 0.0;
+    for (std::size_t k = 0; k < n; ++k)
+        if (std::isfinite(tr.voltage_v[k] - rec.voltage_v[k])) total_w += w[k];
+    if (!(total_w > 0.0)) return out;
+    auto band = [&](std::string name, auto&& in_band) -> std::optional<ErrorBand> {
+        double sw = 0, se = 0, se2 = 0;
+        for (std::size_t k = 0; k < n; ++k) {
+            const double e = tr.voltage_v[k] - rec.voltage_v[k];
+            if (!std::isfinite(e) || !in_band(k)) continue;
+            sw += w[k], se += w[k] * e, se2 += w[k] * e * e;
+        }
+        if (!(sw > 0.0)) return std::nullopt;
+        return ErrorBand{std::move(name), sw / total_w, std::sqrt(se2 / sw), se / sw};
+    };
+    for (int b = 0; b < 10; ++b) {
+        const double lo = 0.1 * b, hi = 0.1 * (b + 1);
+        auto e = band("SOC " + std::to_string(10 * b) + "-" + std::to_string(10 * (b + 1)) + " %", [&](std::size_t k) {
+            const double s = tr.soc[k];
+            return s >= lo && (s < hi || (b == 9 && s <= 1.0 + 1e-9));
+        });
+        if (e) out.by_soc.push_back(*e);
+    }
+    const double cap = params.capacity_ah > 0 ? params.capacity_ah : 1.0;
+    auto c_rate = [&](std::size_t k) { return std::isfinite(rec.current_a[k]) ? rec.current_a[k] / cap : 0.0; };
+    if (auto e = band("rest", [&](std::size_t k) { return !(std::abs(rec.current_a[k]) >= 0.05); })) out.by_current.push_back(*e);
+    struct Range { const char* name; double lo, hi; int sign; };
+    static constexpr Range kRanges[] = {{"discharge 0-1C", 0, 1, -1}, {"discharge 1-2C", 1, 2, -1},
+                                        {"discharge 2-4C", 2, 4, -1}, {"discharge above 4C", 4, 1e9, -1},
+                                        {"charge 0-1C", 0, 1, +1},    {"charge 1-2C", 1, 2, +1},
+                                        {"charge above 2C", 2, 1e9, +1}};
+    for (const auto& r : kRanges) {
+        auto e = band(r.name, [&](std::size_t k) {
+            if (!(std::abs(rec.current_a[k]) >= 0.05) || r.sign * rec.current_a[k] <= 0) return false;
+            const double c = std::abs(c_rate(k));
+            return c >= r.lo && c < r.hi;
+        });
+        if (e) out.by_current.push_back(*e);
+    }
+    return out;
 }
 
 }  // namespace cellbench::estimator

@@ -45,6 +45,16 @@ std::pair<double, double> simulate_rms(const fs::path& params, const fs::path& r
     EXPECT_EQ(r.status, 0) << r.output;
     if (r.status != 0) return {NAN, NAN};
     const auto m = read_json(out);
+    // Issue 11's report by SOC band and current band, from the metrics' bands (each the RMS and the bias).
+    for (const char* key : {"voltage_by_soc_band", "voltage_by_current_band"}) {
+        EXPECT_TRUE(m.contains(key) && m[key].is_array() && !m[key].empty()) << key;
+        if (!m.contains(key)) continue;
+        std::printf("%s %s:", recording.filename().string().c_str(), key);
+        for (const auto& b : m[key])
+            std::printf("  %s %.1f mV (bias %+.1f)", b["band"].get<std::string>().c_str(),
+                        1e3 * b["voltage_rms_v"].get<double>(), 1e3 * b["voltage_mean_v"].get<double>());
+        std::printf("\n");
+    }
     const double v = m["voltage"]["rms_v"].is_number() ? m["voltage"]["rms_v"].get<double>() : NAN;
     const double t = m["temperature"]["rms_c"].is_number() ? m["temperature"]["rms_c"].get<double>() : NAN;
     return {v, t};

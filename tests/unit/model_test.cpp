@@ -282,3 +282,32 @@ TEST(SimulateAmbient, ACoolingFirstRestGivesTheTemperatureItSettlesToNotItsFirst
     o.ambient_c = 10.0;
     EXPECT_DOUBLE_EQ(simulate(model, cooling_rest_then_discharge(p, 18.0, 0.0), o).ambient_c, 10.0);
 }
+
+// simulate's report by SOC band and current band (issue 11): an error placed in known rows lands in the bands
+// those rows belong to, with its sign (bias) and share of the time; bands without rows are left out.
+TEST(Simulate, ErrorBandsPutEachErrorWhereItsRowsAre) {
+    const auto p = flat_params();  // 4 Ah: 8 A is a 2C discharge
+    Recording rec;
+    SimulationTrace tr;
+    // 100 s rest at 95 % SOC, then 100 s of 2C (8 A) discharge at 45 % SOC, 1 s rows.
+    for (int k = 0; k < 200; ++k) {
+        const bool rest = k < 100;
+        rec.time_s.push_back(k);
+        rec.current_a.push_back(rest ? 0.0 : -8.0);
+        rec.voltage_v.push_back(3.7);
+        tr.time_s.push_back(k);
+        tr.soc.push_back(rest ? 0.95 : 0.45);
+        tr.voltage_v.push_back(rest ? 3.7 : 3.7 + 0.010);  // the model 10 mV high during the discharge only
+    }
+    const auto b = error_bands(p, rec, tr);
+    ASSERT_EQ(b.by_soc.size(), 2u);
+    EXPECT_EQ(b.by_soc[0].name, "SOC 40-50 %");
+    EXPECT_NEAR(b.by_soc[0].voltage_mean_v, 0.010, 1e-12);
+    EXPECT_NEAR(b.by_soc[0].share_of_time, 0.5, 0.01);
+    EXPECT_EQ(b.by_soc[1].name, "SOC 90-100 %");
+    EXPECT_NEAR(b.by_soc[1].voltage_rms_v, 0.0, 1e-12);
+    ASSERT_EQ(b.by_current.size(), 2u);
+    EXPECT_EQ(b.by_current[0].name, "rest");
+    EXPECT_EQ(b.by_current[1].name, "discharge 2-4C");
+    EXPECT_NEAR(b.by_current[1].voltage_rms_v, 0.010, 1e-12);
+}

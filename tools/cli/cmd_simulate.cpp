@@ -57,7 +57,31 @@ int run_simulate(const SimulateOptions& o) {
     line("temperature", metrics.temperature_c, 1.0, "degC");
     line("heat flux", metrics.heat_flux_w, 1.0, "W");
 
-    if (!o.metrics_json.empty()) outputs.write_json(o.metrics_json, metrics_to_json(metrics));
+    // Where the voltage error lies: by SOC band and by current band (bias = mean error, simulated minus measured).
+    const auto bands = estimator::error_bands(params, rec, trace);
+    auto band_lines = [](const char* title, const std::vector<estimator::ErrorBand>& v) {
+        if (v.empty()) return;
+        std::printf("%s\n", title);
+        for (const auto& b : v)
+            std::printf("  %-20s %5.1f %% of the time  RMS %8.2f mV  bias %+8.2f mV\n", b.name.c_str(),
+                        100 * b.share_of_time, 1e3 * b.voltage_rms_v, 1e3 * b.voltage_mean_v);
+    };
+    band_lines("voltage error by SOC band (simulated SOC):", bands.by_soc);
+    band_lines("voltage error by current band (C-rate of the parameter set's capacity):", bands.by_current);
+
+    if (!o.metrics_json.empty()) {
+        auto j = metrics_to_json(metrics);
+        auto band_json = [](const std::vector<estimator::ErrorBand>& v) {
+            auto a = nlohmann::json::array();
+            for (const auto& b : v)
+                a.push_back({{"band", b.name}, {"share_of_time", b.share_of_time}, {"voltage_rms_v", b.voltage_rms_v},
+                             {"voltage_mean_v", b.voltage_mean_v}});
+            return a;
+        };
+        j["voltage_by_soc_band"] = band_json(bands.by_soc);
+        j["voltage_by_current_band"] = band_json(bands.by_current);
+        outputs.write_json(o.metrics_json, j);
+    }
     if (!o.output.empty()) {
         std::vector<protocol::ExtraColumn> extra = {
             {"Simulated Voltage / V", &trace.voltage_v},

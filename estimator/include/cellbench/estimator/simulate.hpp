@@ -3,6 +3,7 @@
 // compare with its measured voltage, surface temperature and heat flux (thesis Table 5.2 definitions:
 // errors are simulated minus measured; RMS is time-weighted, eq. 5.5; heat flux in W over thermal.area_m2).
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "cellbench/core/recording.hpp"
@@ -44,5 +45,19 @@ SimulationMetrics compare(const ParameterSet& params, const Recording& rec, cons
 
 // Time weights of each row for eq. 5.5 (half the sum of the adjacent intervals).
 std::vector<double> time_weights(const std::vector<double>& time_s);
+
+// The voltage error split by operating condition (issue 11's report "by SOC band and current band"): rows by the
+// simulated SOC in 10 % bands, and by the measured current as C-rate of the parameter set's capacity (rest below
+// 0.05 A; discharge and charge in bands). Each band: its share of the recording's time, RMS and mean (bias) of
+// simulated minus measured voltage, time-weighted like compare(). Bands without rows are left out.
+struct ErrorBand {
+    std::string name;   // "SOC 20-30 %", "rest", "discharge 1-2C", ...
+    double share_of_time = 0.0;
+    double voltage_rms_v = 0.0, voltage_mean_v = 0.0;
+};
+struct ErrorBands {
+    std::vector<ErrorBand> by_soc, by_current;
+};
+ErrorBands error_bands(const ParameterSet& params, const Recording& rec, const SimulationTrace& trace);
 
 }  // namespace cellbench::estimator

@@ -97,7 +97,7 @@ namespace {
 std::size_t anchor_row(const RecordingSegments& seg) {
     std::size_t first_activity = SIZE_MAX;
     for (const auto& ph : seg.phases)
-        if (ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse) {
+        if (ph.is_pulse()) {
             first_activity = ph.begin;
             break;
         }
@@ -119,7 +119,7 @@ bool is_characterization(const RecordingSegments& seg) {
     if (!seg.pulse_sets.empty()) return true;
     std::size_t pulses = 0;
     for (const auto& ph : seg.phases)
-        pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
+        pulses += ph.is_pulse();
     return pulses >= 2 && seg.long_rests.size() >= 3;
 }
 
@@ -470,7 +470,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         for (std::size_t r = 0; r < recordings.size(); ++r)
             if (characterization[r])
                 for (const auto& ph : segs[r].phases)
-                    pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
+                    pulses += ph.is_pulse();
         if (pulses > 0)
             out.warnings.push_back(
                 "no pulse set (a long rest of " + std::to_string(static_cast<int>(SegmentOptions{}.long_rest_s)) +

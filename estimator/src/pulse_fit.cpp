@@ -1123,7 +1123,7 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
     auto inside = [&](std::size_t b, std::size_t e) { return ps.pulse_begin <= b && b < e && e <= ps.end; };
     const bool rows_ok = ps.pulse_begin >= 1 && ps.end <= n && inside(ps.discharge_begin, ps.discharge_end) &&
                          (!charge_pulse || inside(ps.charge_begin, ps.charge_end)) &&
-                         ps.last_pulse_end() <= ps.end &&
+                         ps.discharge_end <= ps.pulses_end && ps.pulses_end <= ps.end &&
                          (ps.form != PulseSetForm::Thesis ||
                           (ps.discharge_end < ps.charge_begin && ps.charge_end < ps.end));
     if (!sizes_ok || !rows_ok) {
@@ -1134,7 +1134,7 @@ PulseSetFit fit_pulse_set(const Recording& rec, const PulseSet& ps, const PulseF
 
     // Rows used: A .. end of the last relaxation, cut after max_relaxation_s.
     const std::size_t first = ps.pulse_begin - 1;
-    const std::size_t last_pulse_end = ps.last_pulse_end();
+    const std::size_t last_pulse_end = ps.pulses_end;
     std::size_t end = ps.end;
     {
         const double t_g = rec.time_s[last_pulse_end - 1];

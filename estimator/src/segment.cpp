@@ -213,8 +213,6 @@ const char* to_string(PulseSetForm form) {
 
 namespace {
 
-bool is_pulse(const Phase& p) { return p.kind == PhaseKind::DischargePulse || p.kind == PhaseKind::ChargePulse; }
-
 // The thesis, USABC and discharge-only forms (PulseSetForm); nullopt also while one of them may still complete.
 std::optional<PulseSetForm> named_form(const std::vector<Phase>& ph, std::size_t i, const SegmentOptions& o,
                                        std::size_t& count) {
@@ -250,12 +248,12 @@ std::optional<PulseSetForm> named_form(const std::vector<Phase>& ph, std::size_t
 // The Other form: after the long rest, pulses and short rests up to the next long phase, which has begun; the
 // number of phases from i.
 std::optional<std::size_t> other_form(const std::vector<Phase>& ph, std::size_t i) {
-    if (ph[i].kind != PhaseKind::LongRest || i + 1 >= ph.size() || !is_pulse(ph[i + 1])) return std::nullopt;
+    if (ph[i].kind != PhaseKind::LongRest || i + 1 >= ph.size() || !ph[i + 1].is_pulse()) return std::nullopt;
     std::size_t pulses = 0;
     bool discharge = false;
     std::size_t j = i + 1;
-    for (; j < ph.size() && (is_pulse(ph[j]) || ph[j].kind == PhaseKind::Rest); ++j) {
-        if (!is_pulse(ph[j])) continue;
+    for (; j < ph.size() && (ph[j].is_pulse() || ph[j].kind == PhaseKind::Rest); ++j) {
+        if (!ph[j].is_pulse()) continue;
         if (++pulses > kMaxOtherPulses) return std::nullopt;
         discharge = discharge || ph[j].direction < 0;
     }
@@ -310,7 +308,7 @@ RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& 
         for (std::size_t j = i + 1; j < i + count; ++j) {
             if (ph[j].kind == PhaseKind::DischargePulse && d == 0) d = j;
             if (ph[j].kind == PhaseKind::ChargePulse && c == 0) c = j;
-            if (is_pulse(ph[j])) last_pulse = j;
+            if (ph[j].is_pulse()) last_pulse = j;
         }
         auto rest_at = [&](std::size_t j) { return j > i && j < i + count && ph[j].is_rest(); };
         const Phase& dis = ph[d];
@@ -332,18 +330,18 @@ RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& 
         ps.discharge_ah = dis.charge_ah;
         ps.discharge_cv = dis.cv_tail;
         ps.rest_before_discharge = d == i + 1 || rest_at(d - 1);
-        ps.rest_after_discharge = d + 1 < i + count && ph[d + 1].is_rest();
+        ps.rest_after_discharge = rest_at(d + 1);
         if (c != 0) {
             const Phase& chg = ph[c];
             ps.charge_begin = chg.begin;
             ps.charge_end = chg.end;
             ps.charge_current_a = chg.mean_current_a;
             ps.charge_duration_s = chg.duration_s;
-            ps.charge_relaxation_s = c + 1 < i + count && ph[c + 1].is_rest() ? ph[c + 1].duration_s : 0.0;
+            ps.charge_relaxation_s = rest_at(c + 1) ? ph[c + 1].duration_s : 0.0;
             ps.charge_ah = chg.charge_ah;
             ps.charge_cv = chg.cv_tail;
             ps.rest_before_charge = c == i + 1 || rest_at(c - 1);
-            ps.rest_after_charge = c + 1 < i + count && ph[c + 1].is_rest();
+            ps.rest_after_charge = rest_at(c + 1);
         } else {
             ps.charge_begin = ps.charge_end = ps.end;
             ps.rest_before_charge = ps.rest_after_charge = false;

@@ -209,7 +209,7 @@ TEST(RealDriveCycles, HoldNoPulseSet) {
         const Recording rec = protocol::parse_bdf_csv(ss.str(), path.string());
         const auto seg = segment_recording(rec);
         std::size_t pulses = 0;
-        for (const auto& ph : seg.phases) pulses += ph.kind == PhaseKind::DischargePulse || ph.kind == PhaseKind::ChargePulse;
+        for (const auto& ph : seg.phases) pulses += ph.is_pulse();
         std::printf("%s: %zu phases, %zu pulses, %zu long rests, %zu pulse sets\n", name, seg.phases.size(), pulses,
                     seg.long_rests.size(), seg.pulse_sets.size());
         EXPECT_TRUE(seg.pulse_sets.empty()) << name;

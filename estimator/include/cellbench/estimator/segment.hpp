@@ -32,7 +32,6 @@
 //
 // Not recognized (the global fit still uses their every row): pulses after a rest shorter than long_rest_s, more
 // than kMaxOtherPulses pulses before the next long phase, pulses of one direction only charging.
-#include <algorithm>
 #include <cstddef>
 #include <optional>
 #include <string>
@@ -81,6 +80,7 @@ struct Phase {
     bool open_end = false;           // the phase runs to the end of the window (it may go on)
 
     [[nodiscard]] bool is_rest() const { return direction == 0; }
+    [[nodiscard]] bool is_pulse() const { return kind == PhaseKind::DischargePulse || kind == PhaseKind::ChargePulse; }
     [[nodiscard]] std::size_t size() const { return end - begin; }
 };
 
@@ -136,13 +136,11 @@ struct PulseSet {
     // current moves two directions' R0 at once and is not read.
     bool rest_before_discharge = true, rest_after_discharge = true;
     bool rest_before_charge = true, rest_after_charge = true;
-    std::size_t pulses_end = 0;  // one past the last row of the last pulse (where the last relaxation begins)
+    // One past the last row of the last pulse (G, or C without a charge pulse, or the last of the Other form's
+    // pulses): where the relaxation the fits use begins.
+    std::size_t pulses_end = 0;
 
     [[nodiscard]] bool has_charge_pulse() const { return charge_end > charge_begin; }
-    // One past the last pulse row (G, or C without a charge pulse): where the relaxation the fits use begins.
-    [[nodiscard]] std::size_t last_pulse_end() const {
-        return pulses_end > 0 ? pulses_end : has_charge_pulse() ? std::max(charge_end, discharge_end) : discharge_end;
-    }
     // Where a later window has to start to see the next pulse set's long rest: that rest is this set's last
     // phase when it is long (DischargeOnly), else the next set starts after `end`.
     std::size_t next_window_begin = 0;

@@ -329,11 +329,18 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         throw InputError("characterization: no recording holds pulses between rests (an HPPC test): nothing to "
                          "identify the resistances from");
 
-    // Capacity: the pilot discharge if any recording has one; else a characterization test's own throughput from
-    // its full charge to the cut-off; else a full CC discharge handed in beside it; else the given value.
-    for (std::size_t r = 0; r < recordings.size() && !std::isfinite(out.capacity.capacity_ah); ++r)
-        if (segs[r].pilot_discharge)
-            out.capacity = {-segs[r].pilot_discharge->charge_ah, "pilot discharge", recordings[r].source};
+    // Capacity: a pilot discharge if any recording has one (of several, the lowest rate: the closest to the charge
+    // the cell holds between its voltage limits, whatever order the files came in); else a characterization
+    // test's own throughput from its full charge to the cut-off; else a full CC discharge handed in beside it;
+    // else the given value.
+    {
+        double pilot_rate = 1e300;
+        for (std::size_t r = 0; r < recordings.size(); ++r)
+            if (const auto& pd = segs[r].pilot_discharge; pd && std::abs(pd->mean_current_a) < pilot_rate) {
+                pilot_rate = std::abs(pd->mean_current_a);
+                out.capacity = {-pd->charge_ah, "pilot discharge", recordings[r].source};
+            }
+    }
     double v_floor = 1e9;  // the lowest voltage any recording reaches: the cut-off
     for (const auto& rec : recordings)
         for (double v : rec.voltage_v)

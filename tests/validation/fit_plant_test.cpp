@@ -38,6 +38,7 @@ int seeds_per_layout() {
 
 struct Errors {
     double ocv_mv = 0, r0 = 0, r12 = 0, tau1 = 0, tau2 = 0, capacity = 0, c_th = 0, r_th = 0, dudt_mv_per_k = 0;
+    double capacity_vs_cell = 0;  // the fitted capacity against the plant cell's own (Truth::capacity_ah)
     double drive_rms_mv = 0;
 };
 
@@ -48,7 +49,9 @@ struct Errors {
 // same charge from full, so the truth at plant SOC s is compared with the fit at
 //     s_fit = 1 - (s_full - s) * C_truth / C_fit,
 // s_full being the plant's SOC at full charge (the highest of the HPPC). The capacity is compared with the charge
-// the HPPC itself moved between full charge and its cut-off, which is what a capacity test measures.
+// the HPPC itself moved between full charge and its cut-off (`cap %`, at the HPPC's rates), and with the cell's
+// own capacity (`cap/cell %`: the charge between OCV = v_min and OCV = v_max, which a capacity test at a low rate
+// approaches from below: its charge ends on the CV taper, its discharge at the cut-off under load).
 // The SOC levels whose truth the fit is held to: 10-90 % (issue 11), and in the random layout only those between
 // its lowest and highest pulse level (beyond them only the SOC steps and discharges pass: the tables there are the
 // fit's extrapolation; an upward test ends where a step's charge meets the voltage limit).
@@ -99,6 +102,7 @@ Errors compare(const est::Characterization& c, const plant::Dataset& d, const Re
     }
     e.dudt_mv_per_k = std::sqrt(dudt_sq / std::max(n, 1));
     e.capacity = std::abs(p.capacity_ah / measured_capacity_ah - 1.0);
+    e.capacity_vs_cell = std::abs(p.capacity_ah / t.capacity_ah - 1.0);
     e.c_th = std::abs(p.thermal.c_th_j_per_k / t.c_th_j_per_k - 1.0);
     e.r_th = std::abs(p.thermal.r_th_k_per_w / t.r_th_k_per_w - 1.0);
     const est::CellModel model(p);
@@ -131,8 +135,8 @@ class FitOnIndependentPlant : public ::testing::TestWithParam<plant::Layout> {};
 TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
     const int seeds = seeds_per_layout();
     std::vector<Errors> all;
-    std::printf("layout %s: seed | OCV mV | R0 %% | R1+R2 %% | tau1 %% | tau2 %% | cap %% | C_th %% | R_th %% | "
-                "dU/dT mV/K | drive mV\n",
+    std::printf("layout %s: seed | OCV mV | R0 %% | R1+R2 %% | tau1 %% | tau2 %% | cap %% | cap/cell %% | C_th %% | "
+                "R_th %% | dU/dT mV/K | drive mV\n",
                 std::string(plant::layout_name(GetParam())).c_str());
     const char* first_env = std::getenv("CELLBENCH_VALIDATION_FIRST_SEED");  // diagnostics: another seed range
     const int first = first_env ? std::max(1, std::atoi(first_env)) : 1;
@@ -168,9 +172,9 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
                         c.thermal.r_th_k_per_w, c.thermal.r_th_sigma_k_per_w, d.truth.r_th_k_per_w);
         }
         const auto e = compare(c, d, to_recording(d.drive, "drive"), compared_soc_range(d, GetParam()));
-        std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %6.2f | %6.2f | %10.3f | %8.2f  (%s, %s, %zu pulse sets)\n",
+        std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %10.2f | %6.2f | %6.2f | %10.3f | %8.2f  (%s, %s, %zu pulse sets)\n",
                     seed, e.ocv_mv, 100 * e.r0, 100 * e.r12, 100 * e.tau1, 100 * e.tau2, 100 * e.capacity,
-                    100 * e.c_th, 100 * e.r_th, e.dudt_mv_per_k, e.drive_rms_mv, d.truth.chemistry.c_str(),
+                    100 * e.capacity_vs_cell, 100 * e.c_th, 100 * e.r_th, e.dudt_mv_per_k, e.drive_rms_mv, d.truth.chemistry.c_str(),
                     c.capacity.method.c_str(), c.pulse_fits.size());
         // Layout-agnostic detection (issue 11): every layout the plant draws has pulse sets the per-pulse-set
         // comparison and the daemon's online fits find, and its drive profile (after a long rest too) has none.
@@ -205,6 +209,11 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         EXPECT_LT(e.c_th, 0.05);
         EXPECT_LT(e.r_th, 0.05);
     }
+    // The capacity against the cell's own: the lowest-rate full discharge handed in (the plant's C/20) measures
+    // it 0.07-0.60 % low on seeds 1-20 of the thesis and USABC layouts (issue 11's 0.5 %: 17 of 20 each); the 1C
+    // pilot discharge of the thesis layout would be 4-6 % low (the cut-off's share at 1C).
+    for (std::size_t k = 0; k < all.size(); ++k)
+        EXPECT_LT(all[k].capacity_vs_cell, 0.01) << "seed " << first + static_cast<int>(k);
     // The RC pairs keep their roles: every time constant within a factor 1.5 of the truth at every level. A
     // collapse (one pair taking both roles, the other's tau on its bound) is off by 5-250x: USABC seed 2 from
     // the generic start was 1133 % (tau1) and 2745 % (tau2) off at 10 % SOC before the fit tried other starts;

@@ -1,6 +1,7 @@
 #include "cellbench/estimator/global_fit.hpp"
 
 #include <algorithm>
+#include <cstdio>
 #include <array>
 #include <cmath>
 #include <limits>
@@ -1002,8 +1003,44 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         if (!absent) p.extensions.extra_rc = ExtraRcExt{r3, tau3};
         else out.notes.push_back("the long rests show no slow relaxation beyond the two RC pairs: no extra_rc");
     }
+    for (auto& n : poorly_fitted_notes(out.windows)) out.notes.push_back(std::move(n));
     progress(1.0, "global fit: done");
     return out;
+}
+
+std::vector<std::string> poorly_fitted_notes(const std::vector<GlobalWindow>& windows) {
+    std::vector<const GlobalWindow*> pulses;
+    for (const auto& w : windows)
+        if (w.kind == "pulses" && std::isfinite(w.rms_v) && std::isfinite(w.soc_min) && std::isfinite(w.soc_max))
+            pulses.push_back(&w);
+    std::vector<std::string> notes;
+    if (pulses.size() < 4) return notes;
+    std::vector<double> rms;
+    for (const auto* w : pulses) rms.push_back(w->rms_v);
+    const double median = upper_median(std::move(rms));
+    std::sort(pulses.begin(), pulses.end(), [](auto* a, auto* b) { return a->soc_min < b->soc_min; });
+    // Poor windows in SOC order, joined where their ranges touch (within 1 % of SOC).
+    struct Range {
+        double lo, hi, worst;
+    };
+    std::vector<Range> ranges;
+    for (const auto* w : pulses) {
+        if (!(w->rms_v > kPoorFitRatio * median)) continue;
+        if (!ranges.empty() && w->soc_min <= ranges.back().hi + 0.01)
+            ranges.back().hi = std::max(ranges.back().hi, w->soc_max),
+            ranges.back().worst = std::max(ranges.back().worst, w->rms_v);
+        else
+            ranges.push_back({w->soc_min, w->soc_max, w->rms_v});
+    }
+    for (const auto& r : ranges) {
+        char buf[320];
+        std::snprintf(buf, sizeof buf,
+                      "the model fits the pulse sets at SOC %.0f-%.0f %% worst (%.1f mV RMS against a median of %.1f mV "
+                      "over %zu pulse sets): the tables there are the least trustworthy, whatever their uncertainties say",
+                      100 * std::max(0.0, r.lo), 100 * std::min(1.0, r.hi), 1e3 * r.worst, 1e3 * median, pulses.size());
+        notes.emplace_back(buf);
+    }
+    return notes;
 }
 
 }  // namespace cellbench::estimator

@@ -148,4 +148,13 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                            const std::vector<std::vector<std::pair<std::size_t, std::size_t>>>& long_rest_ranges,
                            double capacity_ah, const ParameterSet& initial, const GlobalFitOptions& options = {});
 
+// Where the model fits the characterization worst: the SOC ranges of the pulse windows whose RMS residual exceeds
+// kPoorFitRatio times the median pulse window's (adjacent ones joined), one note each, or none. The tables there
+// rest on data the model does not reproduce (on the P45B HPPC without the cycler's export: 10.4 mV RMS at 0-10 %
+// SOC against a median of 2.7 mV, where its Random Walk prediction is 50-76 mV off), a fact about the model's
+// structure that the values' own uncertainties do not carry. Fewer than four pulse windows: none (no median to
+// judge by).
+inline constexpr double kPoorFitRatio = 3.0;
+std::vector<std::string> poorly_fitted_notes(const std::vector<GlobalWindow>& windows);
+
 }  // namespace cellbench::estimator

@@ -17,9 +17,20 @@ namespace {
 // A run's recording, fits and samples in flight are freed when it ends, but glibc keeps freed heap (and the
 // fit workers' arenas) mapped; an unattended daemon gives it back between runs so its RSS does not ratchet up
 // to the largest run it ever did (soak: RSS at the end within 10 % of RSS after the first run).
+// What the heap holds after the trim (all arenas): in use is live data (a leak grows it), free is fragmentation
+// the trim could not return (pages pinned by live blocks), mmapped the large blocks outside the arenas. Logged at
+// debug, so a soak's log tells retention from fragmentation when RSS ratchets.
 void return_free_memory() {
 #if defined(__GLIBC__)
     malloc_trim(0);
+#if __GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 33)
+    const struct mallinfo2 m = mallinfo2();
+    constexpr double kMiB = 1024.0 * 1024.0;
+    spdlog::debug("heap after trim: {:.2f} MiB in use, {:.2f} MiB free in the arenas ({:.2f} MiB of arena), "
+                  "{:.2f} MiB in {} mmapped blocks",
+                  static_cast<double>(m.uordblks) / kMiB, static_cast<double>(m.fordblks) / kMiB,
+                  static_cast<double>(m.arena) / kMiB, static_cast<double>(m.hblkhd) / kMiB, m.hblks);
+#endif
 #endif
 }
 }  // namespace

@@ -102,6 +102,14 @@ long status_kib(pid_t pid, const std::string& field) {
 }
 long rss_kib(pid_t pid) { return status_kib(pid, "VmRSS"); }
 
+// /proc/PID/smaps copied to `to` (each mapping's Rss, Anonymous, ...): which mapping holds what a run left
+// resident (heap arenas, thread stacks, library code), to compare between runs offline.
+void dump_smaps(pid_t pid, const fs::path& to) {
+    std::ifstream in("/proc/" + std::to_string(pid) + "/smaps");
+    std::ofstream out(to);
+    out << in.rdbuf();
+}
+
 // The cellbenchd process under `pid`: `pid` itself, or (CELLBENCH_SOAK_WRAP, e.g. heaptrack, which runs its
 // client as a child) the first descendant whose command name is cellbenchd.
 pid_t daemon_process(pid_t pid) {
@@ -414,6 +422,7 @@ int main(int argc, char** argv) {
         }
         for (auto& rr : runs)
             if (rr.id == id) rr.rss_settled_kib = settled, rr.anon_kib = anon, rr.file_kib = file;
+        dump_smaps(mem_pid, dir / ("smaps-run-" + std::to_string(id) + ".txt"));
         rss_after_last_run = settled;
         if (rss_after_first_run < 0) {
             rss_after_first_run = rss_after_last_run;

@@ -1,7 +1,6 @@
 #include "cellbench/estimator/global_fit.hpp"
 
 #include <algorithm>
-#include <cstdio>
 #include <array>
 #include <cmath>
 #include <limits>
@@ -17,6 +16,7 @@
 
 #include "global_window.hpp"
 #include "median.hpp"
+#include "printf_text.hpp"
 
 namespace cellbench::estimator {
 
@@ -1026,20 +1026,19 @@ std::vector<std::string> poorly_fitted_notes(const std::vector<GlobalWindow>& wi
     std::vector<Range> ranges;
     for (const auto* w : pulses) {
         if (!(w->rms_v > kPoorFitRatio * median)) continue;
-        if (!ranges.empty() && w->soc_min <= ranges.back().hi + 0.01)
-            ranges.back().hi = std::max(ranges.back().hi, w->soc_max),
+        if (!ranges.empty() && w->soc_min <= ranges.back().hi + 0.01) {
+            ranges.back().hi = std::max(ranges.back().hi, w->soc_max);
             ranges.back().worst = std::max(ranges.back().worst, w->rms_v);
-        else
+        } else {
             ranges.push_back({w->soc_min, w->soc_max, w->rms_v});
+        }
     }
-    for (const auto& r : ranges) {
-        char buf[320];
-        std::snprintf(buf, sizeof buf,
-                      "the model fits the pulse sets at SOC %.0f-%.0f %% worst (%.1f mV RMS against a median of %.1f mV "
-                      "over %zu pulse sets): the tables there are the least trustworthy, whatever their uncertainties say",
-                      100 * std::max(0.0, r.lo), 100 * std::min(1.0, r.hi), 1e3 * r.worst, 1e3 * median, pulses.size());
-        notes.emplace_back(buf);
-    }
+    for (const auto& r : ranges)
+        notes.push_back(printf_text("the model fits the pulse sets at SOC %.0f-%.0f %% worst (%.1f mV RMS against a "
+                                    "median of %.1f mV over %zu pulse sets)",
+                                    100 * std::max(0.0, r.lo), 100 * std::min(1.0, r.hi), 1e3 * r.worst, 1e3 * median,
+                                    pulses.size()) +
+                        ": the tables there are the least trustworthy, whatever their uncertainties say");
     return notes;
 }
 

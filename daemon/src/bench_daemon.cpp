@@ -24,6 +24,7 @@ void return_free_memory() {
 #if defined(__GLIBC__)
     malloc_trim(0);
 #if __GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 33)
+    if (!spdlog::should_log(spdlog::level::debug)) return;  // mallinfo2 walks every arena under its lock
     const struct mallinfo2 m = mallinfo2();
     constexpr double kMiB = 1024.0 * 1024.0;
     spdlog::debug("heap after trim: {:.2f} MiB in use, {:.2f} MiB free in the arenas ({:.2f} MiB of arena), "

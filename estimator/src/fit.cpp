@@ -6,6 +6,7 @@
 #include <map>
 #include <thread>
 
+#include "cellbench/estimator/coulomb.hpp"
 #include "cellbench/estimator/merge.hpp"
 #include "cellbench/estimator/thermal_characterization.hpp"
 
@@ -35,13 +36,6 @@ nlohmann::json rc_json(const Rc2Params<double>& p) {
 nlohmann::json num_or_null(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
 
 }  // namespace
-
-std::vector<double> cumulative_charge_ah(const Recording& rec) {
-    std::vector<double> q(rec.size(), 0.0);
-    for (std::size_t k = 1; k < rec.size(); ++k)
-        q[k] = q[k - 1] + rec.current_a[k] * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0;
-    return q;
-}
 
 ParameterSet assemble_parameter_set(const std::vector<PulseSetFit>& fits, const std::vector<OcvPoint>& ocv_points,
                                     double capacity_ah, const ThermalCharacterization& thermal,
@@ -355,7 +349,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
             // stopped part-way (its last SOC step at mid SOC) does not measure the capacity.
             if (!ends_on_knee(recordings[r], q, last, segs[r].long_rests)) continue;
             const std::size_t anchor = anchor_row(segs[r]);
-            out.capacity = {q[anchor] - q[last.end - 1], "throughput from full charge to the cut-off",
+            out.capacity = {q[anchor] - q[std::min(last.end, q.size() - 1)], "throughput from full charge to the cut-off",
                             recordings[r].source};
             out.warnings.push_back("no pilot discharge found: capacity taken from " + recordings[r].source +
                                    "'s own throughput from full charge to the cut-off");

@@ -11,6 +11,7 @@
 #include <ceres/ceres.h>
 #include <Eigen/Dense>
 
+#include "cellbench/estimator/coulomb.hpp"
 #include "cellbench/estimator/electrical.hpp"
 #include "cellbench/estimator/plausibility.hpp"
 
@@ -392,14 +393,10 @@ double voltage_noise_in_rests(const Recording& rec, const std::vector<std::pair<
 }
 
 std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& initial, double capacity_ah) {
-    std::vector<double> soc(rec.size());
+    std::vector<double> soc = cumulative_charge_ah(rec);
     const double ohmic = ohmic_drop_v(initial.rc_at(0.5, -1), initial.rc_at(0.5, +1), rec.current_a[0]);
-    double s = initial.soc_from_ocv(rec.voltage_v[0] - ohmic);
-    soc[0] = s;
-    for (std::size_t k = 1; k < rec.size(); ++k) {
-        s += rec.current_a[k] * (rec.time_s[k] - rec.time_s[k - 1]) / 3600.0 / capacity_ah;
-        soc[k] = s;
-    }
+    const double s0 = initial.soc_from_ocv(rec.voltage_v[0] - ohmic);
+    for (double& s : soc) s = s0 + s / capacity_ah;
     return soc;
 }
 

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "cellbench/estimator/coulomb.hpp"
+
 namespace cellbench::estimator {
 
 const char* to_string(PhaseKind kind) {
@@ -69,7 +71,7 @@ std::vector<int> row_states(const std::vector<double>& current_a, const SegmentO
     return st;
 }
 
-Phase make_phase(const Recording& rec, const Run& r, const SegmentOptions& o) {
+Phase make_phase(const Recording& rec, const std::vector<double>& charge_ah, const Run& r, const SegmentOptions& o) {
     const auto& t = rec.time_s;
     const auto& cur = rec.current_a;
     Phase p;
@@ -87,11 +89,10 @@ Phase make_phase(const Recording& rec, const Run& r, const SegmentOptions& o) {
         if (!std::isfinite(cur[k])) continue;
         sum += cur[k];
         ++cnt;
-        if (k > 0) {
-            const double dt = t[k] - t[k - 1];
-            if (std::isfinite(dt) && dt > 0.0) ah += cur[k] * dt / 3600.0;
-        }
     }
+    // The phase's charge: from its first row to the next phase's first row (coulomb.hpp places the steps
+    // between them).
+    ah = charge_ah[std::min(r.end, charge_ah.size() - 1)] - charge_ah[r.begin];
     p.mean_current_a = cnt ? sum / static_cast<double>(cnt) : 0.0;
     p.charge_ah = ah;
 
@@ -185,8 +186,9 @@ std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& o) {
     }
 
     phases.reserve(out.size());
+    const auto charge_ah = cumulative_charge_ah(rec);
     for (const Run& r : out) {
-        Phase p = make_phase(rec, r, o);
+        Phase p = make_phase(rec, charge_ah, r, o);
         p.index = phases.size();
         phases.push_back(p);
     }

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "cellbench/estimator/coulomb.hpp"
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/estimator/simulate.hpp"
 #include "cellbench/estimator/thermal_fit.hpp"

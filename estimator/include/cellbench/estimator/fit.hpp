@@ -87,7 +87,4 @@ ParameterSet assemble_parameter_set(const std::vector<PulseSetFit>& fits, const 
                                     double capacity_ah, const ThermalCharacterization& thermal,
                                     const CharacterizationOptions& options);
 
-// Charge throughput (Ah, + = charged) at every row, integrated with the model's hold convention.
-std::vector<double> cumulative_charge_ah(const Recording& rec);
-
 }  // namespace cellbench::estimator

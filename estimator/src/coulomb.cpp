@@ -1,0 +1,79 @@
+// Coulomb counting (coulomb.hpp).
+#include "cellbench/estimator/coulomb.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+
+namespace cellbench::estimator {
+
+namespace {
+
+bool finite_at(const std::vector<double>& t, const std::vector<double>& i, std::size_t k) {
+    return std::isfinite(t[k]) && std::isfinite(i[k]);
+}
+
+// A current step between two currents: they differ by more than 50 mA and 5 %.
+bool is_step(double a, double b) { return std::abs(b - a) > std::max(0.05, 0.05 * std::max(std::abs(a), std::abs(b))); }
+
+// Two logging intervals that are the same (5 % and 20 ms: loggers' intervals jitter).
+bool same_interval(double x, double h) { return std::isfinite(h) && h > 0 && std::abs(x - h) <= 0.05 * h + 0.02; }
+
+enum class Vote { start, after, none };
+
+// What the step between rows k - 1 and k tells (k >= 1, both rows finite, a step between them): the interval's
+// length against the old step's logging interval (rows k - 2, k - 1) and the new one's (rows k, k + 1).
+Vote vote(const std::vector<double>& t, const std::vector<double>& i, std::size_t k) {
+    const std::size_t n = t.size();
+    const double dt = t[k] - t[k - 1];
+    const double h_old = k >= 2 && finite_at(t, i, k - 2) && !is_step(i[k - 2], i[k - 1]) ? t[k - 1] - t[k - 2] : NAN;
+    const double h_new = k + 1 < n && finite_at(t, i, k + 1) && !is_step(i[k], i[k + 1]) ? t[k + 1] - t[k] : NAN;
+    const bool as_old = same_interval(dt, h_old), as_new = same_interval(dt, h_new);
+    if (as_new && !as_old) return Vote::after;
+    // The old step's interval, or cut short by the step (a limit reached between two of its rows).
+    const bool cut_short = std::isfinite(h_old) && dt < h_old && !as_new;
+    if ((as_old && !as_new) || cut_short) return Vote::start;
+    return Vote::none;
+}
+
+}  // namespace
+
+StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a) {
+    std::size_t start = 0, after = 0;
+    for (std::size_t k = 1; k < time_s.size() && k < current_a.size(); ++k) {
+        if (!finite_at(time_s, current_a, k) || !finite_at(time_s, current_a, k - 1)) continue;
+        if (!(time_s[k] > time_s[k - 1]) || !is_step(current_a[k - 1], current_a[k])) continue;
+        const Vote v = vote(time_s, current_a, k);
+        start += v == Vote::start;
+        after += v == Vote::after;
+    }
+    if (start > 2 * after) return StepLogging::at_step_start;
+    if (after > 2 * start) return StepLogging::one_interval_after;
+    return StepLogging::unknown;
+}
+
+std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, const std::vector<double>& current_a) {
+    const std::size_t n = std::min(time_s.size(), current_a.size());
+    std::vector<double> q(n, 0.0);
+    const StepLogging logging = step_logging(time_s, current_a);
+    for (std::size_t k = 1; k < n; ++k) {
+        q[k] = q[k - 1];
+        if (!finite_at(time_s, current_a, k) || !finite_at(time_s, current_a, k - 1)) continue;
+        const double dt = time_s[k] - time_s[k - 1], a = current_a[k - 1], b = current_a[k];
+        if (!(dt > 0)) continue;
+        double as = 0.5 * (a + b) * dt;  // within a step: trapezoid
+        if (is_step(a, b)) {
+            Vote v = vote(time_s, current_a, k);
+            // Unknown (no step of the recording tells, as on a recording sampled at one rate throughout): the
+            // electrical model's own ZOH convention, the new current over the interval before its row.
+            if (v == Vote::none) v = logging == StepLogging::at_step_start ? Vote::start : Vote::after;
+            as = (v == Vote::start ? a : b) * dt;
+        }
+        q[k] += as / 3600.0;
+    }
+    return q;
+}
+
+std::vector<double> cumulative_charge_ah(const Recording& rec) { return cumulative_charge_ah(rec.time_s, rec.current_a); }
+
+}  // namespace cellbench::estimator

@@ -24,7 +24,7 @@ enum class Vote { start, after, none };
 // What the step between rows k - 1 and k tells (k >= 1, both rows finite, a step between them): the interval's
 // length against the old step's logging interval (rows k - 2, k - 1) and the new one's (rows k, k + 1).
 Vote vote(const std::vector<double>& t, const std::vector<double>& i, std::size_t k) {
-    const std::size_t n = t.size();
+    const std::size_t n = std::min(t.size(), i.size());
     const double dt = t[k] - t[k - 1];
     const double h_old = k >= 2 && finite_at(t, i, k - 2) && !is_step(i[k - 2], i[k - 1]) ? t[k - 1] - t[k - 2] : NAN;
     const double h_new = k + 1 < n && finite_at(t, i, k + 1) && !is_step(i[k], i[k + 1]) ? t[k + 1] - t[k] : NAN;
@@ -40,7 +40,7 @@ Vote vote(const std::vector<double>& t, const std::vector<double>& i, std::size_
 
 StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a) {
     std::size_t start = 0, after = 0;
-    for (std::size_t k = 1; k < time_s.size() && k < current_a.size(); ++k) {
+    for (std::size_t k = 1; k < std::min(time_s.size(), current_a.size()); ++k) {
         if (!finite_at(time_s, current_a, k) || !finite_at(time_s, current_a, k - 1)) continue;
         if (!(time_s[k] > time_s[k - 1]) || !is_step(current_a[k - 1], current_a[k])) continue;
         const Vote v = vote(time_s, current_a, k);

@@ -36,39 +36,43 @@ Vote vote(const std::vector<double>& t, const std::vector<double>& i, std::size_
     return Vote::none;
 }
 
-}  // namespace
+// The vote of every row's interval (row k: the interval from row k - 1): none where no current step is in it.
+std::vector<Vote> step_votes(const std::vector<double>& t, const std::vector<double>& i) {
+    const std::size_t n = std::min(t.size(), i.size());
+    std::vector<Vote> v(n, Vote::none);
+    for (std::size_t k = 1; k < n; ++k)
+        if (finite_at(t, i, k) && finite_at(t, i, k - 1) && t[k] > t[k - 1] && is_step(i[k - 1], i[k])) v[k] = vote(t, i, k);
+    return v;
+}
 
-StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a) {
-    std::size_t start = 0, after = 0;
-    for (std::size_t k = 1; k < std::min(time_s.size(), current_a.size()); ++k) {
-        if (!finite_at(time_s, current_a, k) || !finite_at(time_s, current_a, k - 1)) continue;
-        if (!(time_s[k] > time_s[k - 1]) || !is_step(current_a[k - 1], current_a[k])) continue;
-        const Vote v = vote(time_s, current_a, k);
-        start += v == Vote::start;
-        after += v == Vote::after;
-    }
+StepLogging majority(const std::vector<Vote>& votes) {
+    const auto start = std::count(votes.begin(), votes.end(), Vote::start);
+    const auto after = std::count(votes.begin(), votes.end(), Vote::after);
     if (start > 2 * after) return StepLogging::at_step_start;
     if (after > 2 * start) return StepLogging::one_interval_after;
     return StepLogging::unknown;
 }
 
+}  // namespace
+
+StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a) {
+    return majority(step_votes(time_s, current_a));
+}
+
 std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, const std::vector<double>& current_a) {
     const std::size_t n = std::min(time_s.size(), current_a.size());
+    const auto votes = step_votes(time_s, current_a);
+    // Steps that do not tell follow the recording's majority; where nothing tells, the electrical model's own ZOH
+    // convention (the new current over the interval before its row), as on a recording sampled at one rate.
+    const Vote fallback = majority(votes) == StepLogging::at_step_start ? Vote::start : Vote::after;
     std::vector<double> q(n, 0.0);
-    const StepLogging logging = step_logging(time_s, current_a);
     for (std::size_t k = 1; k < n; ++k) {
         q[k] = q[k - 1];
         if (!finite_at(time_s, current_a, k) || !finite_at(time_s, current_a, k - 1)) continue;
         const double dt = time_s[k] - time_s[k - 1], a = current_a[k - 1], b = current_a[k];
         if (!(dt > 0)) continue;
         double as = 0.5 * (a + b) * dt;  // within a step: trapezoid
-        if (is_step(a, b)) {
-            Vote v = vote(time_s, current_a, k);
-            // Unknown (no step of the recording tells, as on a recording sampled at one rate throughout): the
-            // electrical model's own ZOH convention, the new current over the interval before its row.
-            if (v == Vote::none) v = logging == StepLogging::at_step_start ? Vote::start : Vote::after;
-            as = (v == Vote::start ? a : b) * dt;
-        }
+        if (is_step(a, b)) as = ((votes[k] == Vote::none ? fallback : votes[k]) == Vote::start ? a : b) * dt;
         q[k] += as / 3600.0;
     }
     return q;

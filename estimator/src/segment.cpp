@@ -83,18 +83,17 @@ Phase make_phase(const Recording& rec, const std::vector<double>& charge_ah, con
     p.voltage_begin_v = rec.voltage_v[r.begin];
     p.voltage_end_v = rec.voltage_v[r.end - 1];
 
-    double sum = 0.0, ah = 0.0;
+    double sum = 0.0;
     std::size_t cnt = 0;
     for (std::size_t k = r.begin; k < r.end; ++k) {
         if (!std::isfinite(cur[k])) continue;
         sum += cur[k];
         ++cnt;
     }
+    p.mean_current_a = cnt ? sum / static_cast<double>(cnt) : 0.0;
     // The phase's charge: from its first row to the next phase's first row (coulomb.hpp places the steps
     // between them).
-    ah = charge_ah[std::min(r.end, charge_ah.size() - 1)] - charge_ah[r.begin];
-    p.mean_current_a = cnt ? sum / static_cast<double>(cnt) : 0.0;
-    p.charge_ah = ah;
+    p.charge_ah = charge_ah[std::min(r.end, charge_ah.size() - 1)] - charge_ah[r.begin];
 
     // Peak and end current from short moving means, so that a noise spike is not a peak.
     const std::size_t n = r.end - r.begin;

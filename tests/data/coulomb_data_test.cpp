@@ -8,8 +8,6 @@
 
 #include <algorithm>
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 #include <string>
 #include <utility>
 
@@ -17,6 +15,7 @@
 #include "cellbench/estimator/segment.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
 #include "cellbench/protocol/neware_export.hpp"
+#include "support/command.hpp"
 
 namespace {
 
@@ -24,12 +23,7 @@ namespace fs = std::filesystem;
 using namespace cellbench;
 const fs::path kShared = fs::path(CELLBENCH_SHARED_DIR) / "data";
 
-Recording read(const fs::path& p) {
-    std::ifstream in(p, std::ios::binary);
-    std::stringstream ss;
-    ss << in.rdbuf();
-    return protocol::parse_bdf_csv(ss.str(), p.filename().string());
-}
+Recording read(const fs::path& p) { return protocol::parse_bdf_csv(test::slurp(p), p.filename().string()); }
 
 }  // namespace
 
@@ -48,10 +42,7 @@ TEST(CoulombOnRealLoggers, ThePanasonicHppcDischargesWhatItsOwnAhCounterSays) {
 TEST(CoulombOnRealLoggers, TheNewareExportsPilotDischargeIsTheCyclersOwnCapacity) {
     const auto path = kShared / "p45b" / "hppc_1c_30degC_neware.csv";
     if (!fs::exists(path)) GTEST_SKIP() << "no P45B data in " << path.parent_path();
-    std::ifstream in(path, std::ios::binary);
-    std::stringstream ss;
-    ss << in.rdbuf();
-    const auto rec = protocol::parse_neware_export(ss.str(), path.filename().string());
+    const auto rec = protocol::parse_neware_export(test::slurp(path), path.filename().string());
     EXPECT_EQ(estimator::step_logging(rec.time_s, rec.current_a), estimator::StepLogging::at_step_start);
     const auto seg = estimator::segment_recording(rec);
     ASSERT_TRUE(seg.pilot_discharge.has_value());

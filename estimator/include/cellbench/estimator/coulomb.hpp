@@ -12,13 +12,13 @@
 //    after it starts"): the new current flowed over the whole interval, whose length is the new step's interval.
 // Each step whose intervals tell the two apart votes; a recording comes from one logger, so the steps they leave
 // ambiguous (both steps logged at the same rate) follow the recording's majority (twice the other's votes), and
-// the electrical model's ZOH convention (the new current over the interval before its row) where none is clear. Counting every interval at its closing row's current alone (the electrical model's ZOH) adds the
-// step times the interval before it at every step of a cycler's recording, which does not cancel where rests are
-// logged at another rate than pulses: on the independent validation plant's HPPCs (60: three layouts, seeds 1-20)
-// the SOC drifted by up to 0.64 % of the capacity over the test (3-8 mV of OCV at the low levels), by at most
-// 0.03 % with this rule; on the
-// Panasonic HPPC this rule gives the source's own Ah counter (2.833 Ah), where holding the old current would give
-// 3.62 Ah.
+// the electrical model's ZOH convention (the new current over the interval before its row) where none is clear.
+// Counting every interval at its closing row's current alone (that ZOH convention) adds the step times the interval
+// before it at every step of a cycler's recording, which does not cancel where rests are logged at another rate
+// than pulses: on the independent validation plant's HPPCs (60: three layouts, seeds 1-20) the SOC drifted by up
+// to 0.64 % of the capacity over the test (3-8 mV of OCV at the low levels), by at most 0.03 % with this rule; on
+// the Panasonic HPPC this rule gives the source's own Ah counter (2.833 Ah), where holding the old current would
+// give 3.62 Ah.
 #include <vector>
 
 #include "cellbench/core/recording.hpp"

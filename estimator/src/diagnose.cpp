@@ -247,7 +247,8 @@ struct Quantities {
 // What the searches minimise: every quantity, each against its instrument's accuracy.
 constexpr Quantities kSearch{true, true, true, true};
 
-// Sum over quantities of mean squared error / baseline mean squared error, over the masked rows.
+// Sum over quantities of mean squared error / the current base's mean squared error (the evidence) or / the
+// instrument's accuracy squared (use.by_accuracy: the searches), over the masked rows.
 double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask, Quantities use) {
     double sv = 0, st = 0, sq = 0;
     std::size_t nv = 0, nt = 0, nq = 0;

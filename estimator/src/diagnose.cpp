@@ -247,8 +247,16 @@ struct Quantities {
 // What the searches minimise: every quantity, each against its instrument's accuracy.
 constexpr Quantities kSearch{true, true, true, true};
 
-// Sum over quantities of mean squared error / the current base's mean squared error (the evidence) or / the
-// instrument's accuracy squared (use.by_accuracy: the searches), over the masked rows.
+// What each quantity's mean squared error is divided by: the current base's mean squared error (the evidence) or
+// the instrument's accuracy squared (use.by_accuracy: the searches).
+struct Scale {
+    double v, t, q;
+};
+Scale scale_of(const Problem& pb, Quantities use) {
+    return use.by_accuracy ? Scale{pb.floor2_v, pb.floor2_t, pb.floor2_q} : Scale{pb.ms_v, pb.ms_t, pb.ms_q};
+}
+
+// Sum over quantities of mean squared error / scale_of(use), over the masked rows.
 double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask, Quantities use) {
     double sv = 0, st = 0, sq = 0;
     std::size_t nv = 0, nt = 0, nq = 0;
@@ -258,12 +266,11 @@ double objective(const Problem& pb, const Errors& e, const std::vector<char>& ma
         if (std::isfinite(e.t[k])) st += e.t[k] * e.t[k], ++nt;
         if (std::isfinite(e.q[k])) sq += e.q[k] * e.q[k], ++nq;
     }
-    const double ms_v = use.by_accuracy ? pb.floor2_v : pb.ms_v, ms_t = use.by_accuracy ? pb.floor2_t : pb.ms_t,
-                 ms_q = use.by_accuracy ? pb.floor2_q : pb.ms_q;
+    const Scale ms = scale_of(pb, use);
     double j = 0;
-    if (use.v && nv && ms_v > 0) j += sv / nv / ms_v;
-    if (use.t && nt && ms_t > 0) j += st / nt / ms_t;
-    if (use.q && nq && ms_q > 0) j += sq / nq / ms_q;
+    if (use.v && nv && ms.v > 0) j += sv / nv / ms.v;
+    if (use.t && nt && ms.t > 0) j += st / nt / ms.t;
+    if (use.q && nq && ms.q > 0) j += sq / nq / ms.q;
     return j;
 }
 
@@ -294,9 +301,10 @@ public:
             return false;
         }
         // the weights of objective(..., kSearch)
-        const double wv = nv_ && pb_.floor2_v > 0 ? 1.0 / std::sqrt(nv_ * pb_.floor2_v) : 0.0;
-        const double wt = nt_ && pb_.floor2_t > 0 ? 1.0 / std::sqrt(nt_ * pb_.floor2_t) : 0.0;
-        const double wq = nq_ && pb_.floor2_q > 0 ? 1.0 / std::sqrt(nq_ * pb_.floor2_q) : 0.0;
+        const Scale ms = scale_of(pb_, kSearch);
+        const double wv = nv_ && ms.v > 0 ? 1.0 / std::sqrt(nv_ * ms.v) : 0.0;
+        const double wt = nt_ && ms.t > 0 ? 1.0 / std::sqrt(nt_ * ms.t) : 0.0;
+        const double wq = nq_ && ms.q > 0 ? 1.0 / std::sqrt(nq_ * ms.q) : 0.0;
         for (std::size_t i = 0; i < rows_.size(); ++i) {
             const std::size_t k = rows_[i];
             r[3 * i] = std::isfinite(e.v[k]) ? wv * e.v[k] : 0.0;

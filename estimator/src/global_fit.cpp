@@ -602,6 +602,12 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             }
         }
         gw.kind = pulses > 0 ? "pulses" : (chg > 3 * dis ? "charge" : (dis > 3 * chg ? "discharge" : "mixed"));
+        if (gw.kind == "pulses" && gw.soc_max < options.min_pulse_window_soc) {
+            out.notes.push_back(printf_text("pulses between SOC %.1f %% and %.1f %% left out of the fit: below %.0f %% of SOC "
+                                            "pulses run into the cut-off, which ends them, not the cell",
+                                            100 * gw.soc_min, 100 * gw.soc_max, 100 * options.min_pulse_window_soc));
+            continue;
+        }
         gw.residuals = wd.residuals;
         gw.capacity_scale_fitted = wd.capacity_scale_free();
         b.windows.push_back(std::move(wd));

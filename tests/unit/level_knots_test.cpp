@@ -83,4 +83,29 @@ TEST(GlobalFitReference, IsThePulseCurrentNotTheRowMedianOfALowRateDischarge) {
     EXPECT_LT(c.global->reference_current_a, 1.01 * kPulseA);
 }
 
+// A test's last level, after its SOC step stopped near empty, gets pulses too: on a real cell they run into the
+// cut-off. Those windows lie wholly below 2 % SOC; the global fit leaves them out and says so, and fits the
+// levels above them as before.
+TEST(GlobalFitWindows, PulsesNearEmptyAreLeftOutAndNamed) {
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 1.0;
+    so.voltage_noise_v = 2e-4;
+    auto program = cellbench::test::hppc_program(10, 700.0, 4.5);  // levels 100, 90, ..., 10 %, then empty
+    program.pop_back();                                            // its final rest: the near-empty set follows
+    for (const auto& s : cellbench::test::pulse_set_program(700.0, 4.5)) program.push_back(s);
+    program.push_back({700.0, 0.0, "Rest"});
+    const auto rec = cellbench::test::synthesize(program, so);
+    const auto c = est::characterize({rec}, cellbench::test::characterization_options());
+    ASSERT_TRUE(c.global.has_value());
+    std::size_t pulse_windows = 0;
+    double lowest_top = 1.0;  // the lowest SOC a pulse window reaches up to
+    for (const auto& w : c.global->windows)
+        if (w.kind == "pulses") ++pulse_windows, lowest_top = std::min(lowest_top, w.soc_max);
+    EXPECT_EQ(pulse_windows, 10u);  // the ten levels above 2 % (each with the SOC step after it)
+    EXPECT_GT(lowest_top, 0.09);    // the window of the set at empty is not among them
+    const bool named = std::any_of(c.global->notes.begin(), c.global->notes.end(),
+                                   [](const std::string& n) { return n.find("left out of the fit") != std::string::npos; });
+    EXPECT_TRUE(named) << "the summary must say which pulses were left out";
+}
+
 }  // namespace

@@ -76,6 +76,14 @@ struct GlobalFitOptions {
     // rests' tail (Panasonic 0 degC: tau2 about 45 s while the rests relax for 25 min; docs/model.md).
     bool slow_relaxation = true;
     double long_rest_s = 600.0;              // windows break at rests at least this long
+    // Windows of pulses lying wholly below this SOC are left out (and named in the notes). At the test's last
+    // level, after the SOC step has stopped at the cut-off, the pulses run into the cut-off again: the cycler's
+    // voltage limit ends them, where the OCV is at its steepest, and no table value can fit them. Fitted
+    // anyway, those few windows (30-50 mV RMS against 1-2 mV elsewhere) outweighed the rest of the test: on the
+    // independent plant they turned the second RC pair into an integrator along the whole SOC axis (thesis layout
+    // seed 12, tau2 off by a factor 300) or moved R0 10 % (seed 15). The tables at the lowest level then come
+    // from the SOC-step discharges and the smoothness.
+    double min_pulse_window_soc = 0.02;
     double step_lag = 0.0;                   // start value of the fitted current-step timing (0: at the row)
     int max_iterations = 80;
     // Starts besides the initial parameter set: uniform (tau1, tau2) in s over SOC, R0 and the OCV from the initial

@@ -13,9 +13,6 @@ bool finite_at(const std::vector<double>& t, const std::vector<double>& i, std::
     return std::isfinite(t[k]) && std::isfinite(i[k]);
 }
 
-// A current step between two currents: they differ by more than 50 mA and 5 %.
-bool is_step(double a, double b) { return std::abs(b - a) > std::max(0.05, 0.05 * std::max(std::abs(a), std::abs(b))); }
-
 // Two logging intervals that are the same (5 % and 20 ms: loggers' intervals jitter).
 bool same_interval(double x, double h) { return std::isfinite(h) && h > 0 && std::abs(x - h) <= 0.05 * h + 0.02; }
 
@@ -26,8 +23,8 @@ enum class Vote { start, after, none };
 Vote vote(const std::vector<double>& t, const std::vector<double>& i, std::size_t k) {
     const std::size_t n = std::min(t.size(), i.size());
     const double dt = t[k] - t[k - 1];
-    const double h_old = k >= 2 && finite_at(t, i, k - 2) && !is_step(i[k - 2], i[k - 1]) ? t[k - 1] - t[k - 2] : NAN;
-    const double h_new = k + 1 < n && finite_at(t, i, k + 1) && !is_step(i[k], i[k + 1]) ? t[k + 1] - t[k] : NAN;
+    const double h_old = k >= 2 && finite_at(t, i, k - 2) && !is_current_step(i[k - 2], i[k - 1]) ? t[k - 1] - t[k - 2] : NAN;
+    const double h_new = k + 1 < n && finite_at(t, i, k + 1) && !is_current_step(i[k], i[k + 1]) ? t[k + 1] - t[k] : NAN;
     const bool as_old = same_interval(dt, h_old), as_new = same_interval(dt, h_new);
     if (as_new && !as_old) return Vote::after;
     // The old step's interval, or cut short by the step (a limit reached between two of its rows).
@@ -41,7 +38,7 @@ std::vector<Vote> step_votes(const std::vector<double>& t, const std::vector<dou
     const std::size_t n = std::min(t.size(), i.size());
     std::vector<Vote> v(n, Vote::none);
     for (std::size_t k = 1; k < n; ++k)
-        if (finite_at(t, i, k) && finite_at(t, i, k - 1) && t[k] > t[k - 1] && is_step(i[k - 1], i[k])) v[k] = vote(t, i, k);
+        if (finite_at(t, i, k) && finite_at(t, i, k - 1) && t[k] > t[k - 1] && is_current_step(i[k - 1], i[k])) v[k] = vote(t, i, k);
     return v;
 }
 
@@ -54,6 +51,10 @@ StepLogging majority(const std::vector<Vote>& votes) {
 }
 
 }  // namespace
+
+bool is_current_step(double a, double b) {
+    return std::abs(b - a) > std::max(0.05, 0.05 * std::max(std::abs(a), std::abs(b)));
+}
 
 StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a) {
     return majority(step_votes(time_s, current_a));
@@ -72,7 +73,7 @@ std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, cons
         const double dt = time_s[k] - time_s[k - 1], a = current_a[k - 1], b = current_a[k];
         if (!(dt > 0)) continue;
         double as = 0.5 * (a + b) * dt;  // within a step: trapezoid
-        if (is_step(a, b)) as = ((votes[k] == Vote::none ? fallback : votes[k]) == Vote::start ? a : b) * dt;
+        if (is_current_step(a, b)) as = ((votes[k] == Vote::none ? fallback : votes[k]) == Vote::start ? a : b) * dt;
         q[k] += as / 3600.0;
     }
     return q;

@@ -311,11 +311,9 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     }
     const std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
     std::vector<RecordingSegments> segs;
-    std::vector<std::vector<double>> throughput;
     for (const auto& rec : recordings) {
         if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");
         segs.push_back(segment_recording(rec));
-        throughput.push_back(cumulative_charge_ah(rec));
     }
     std::vector<bool> characterization(recordings.size());
     for (std::size_t r = 0; r < recordings.size(); ++r) characterization[r] = is_characterization(segs[r]);
@@ -344,7 +342,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
             if (!characterization[r] || segs[r].cc_discharges.empty()) continue;
             const auto& last = segs[r].cc_discharges.back();
             if (last.voltage_end_v > v_floor + 0.1) continue;
-            const auto& q = throughput[r];
+            const auto& q = segs[r].charge_ah;
             // The cut-off is where the cell runs empty: the discharge ends on the knee (ends_on_knee). A test
             // stopped part-way (its last SOC step at mid SOC) does not measure the capacity.
             if (!ends_on_knee(recordings[r], q, last, segs[r].long_rests)) continue;
@@ -387,7 +385,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     for (std::size_t r = 0; r < recordings.size(); ++r) {
         if (!characterization[r]) continue;
         const auto& rec = recordings[r];
-        const auto& q = throughput[r];
+        const auto& q = segs[r].charge_ah;
         const std::size_t anchor = anchor_row(segs[r]);
         auto& soc = soc_of_row[r];
         soc.resize(rec.size());

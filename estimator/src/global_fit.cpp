@@ -374,8 +374,7 @@ std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_
         tk.current_a = span > 0 ? q / span : rec.current_a[j - 1];
         tk.current_before_a = rec.current_a[k - 1];
         // The first tick after a change is one interval (its limit is a fifth of the time since the change).
-        tk.step = j == k + 1 && span > 0 &&
-                  std::abs(tk.current_a - tk.current_before_a) > std::max(0.05, 0.05 * std::abs(tk.current_a));
+        tk.step = j == k + 1 && span > 0 && is_current_step(tk.current_before_a, tk.current_a);
         tk.soc_end = soc[j - 1];
         tk.voltage_v = rec.voltage_v[j - 1];
         ticks.push_back(tk);

@@ -128,9 +128,8 @@ Phase make_phase(const Recording& rec, const std::vector<double>& charge_ah, con
     return p;
 }
 
-}  // namespace
-
-std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& o) {
+// The phases of rec, whose cumulative charge is charge_ah (cumulative_charge_ah(rec)).
+std::vector<Phase> split_phases(const Recording& rec, const std::vector<double>& charge_ah, const SegmentOptions& o) {
     std::vector<Phase> phases;
     const std::size_t n = rec.size();
     if (n == 0 || rec.current_a.size() != n || rec.voltage_v.size() != n) return phases;
@@ -185,13 +184,18 @@ std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& o) {
     }
 
     phases.reserve(out.size());
-    const auto charge_ah = cumulative_charge_ah(rec);
     for (const Run& r : out) {
         Phase p = make_phase(rec, charge_ah, r, o);
         p.index = phases.size();
         phases.push_back(p);
     }
     return phases;
+}
+
+}  // namespace
+
+std::vector<Phase> split_phases(const Recording& rec, const SegmentOptions& o) {
+    return split_phases(rec, cumulative_charge_ah(rec), o);
 }
 
 PhaseKind classify_phase(int direction, double duration_s, const SegmentOptions& o) {
@@ -287,7 +291,8 @@ std::optional<PulseSetForm> pulse_set_form(const std::vector<Phase>& ph, std::si
 
 RecordingSegments segment_recording(const Recording& rec, const SegmentOptions& o) {
     RecordingSegments seg;
-    seg.phases = split_phases(rec, o);
+    seg.charge_ah = cumulative_charge_ah(rec);
+    seg.phases = split_phases(rec, seg.charge_ah, o);
     const auto& ph = seg.phases;
 
     for (const Phase& p : ph) {

@@ -25,6 +25,10 @@
 
 namespace cellbench::estimator {
 
+// Whether the current steps between two rows' currents a and b (A): they differ by more than 50 mA and 5 % of the
+// larger. The one test of a step for Coulomb counting and for the global fit's ticks.
+bool is_current_step(double a, double b);
+
 // How a recording's logger placed its rows at current steps (see above), from the steps that tell.
 enum class StepLogging { at_step_start, one_interval_after, unknown };
 StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a);

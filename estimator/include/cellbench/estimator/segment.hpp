@@ -163,6 +163,7 @@ struct RecordingSegments {
     std::vector<Phase> cc_discharges;    // copies of the Discharge phases (SOC steps and pilot included)
     std::optional<Phase> pilot_discharge;  // first full discharge after a CCCV charge and a rest
     std::vector<SocStep> soc_steps;
+    std::vector<double> charge_ah;       // charge moved up to every row, Ah (cumulative_charge_ah: charging positive)
 };
 
 // What a phase of `direction` (+1 charge, -1 discharge, 0 rest) lasting duration_s is (one rule for every caller:

@@ -167,7 +167,7 @@ ThermalResistanceFit fit_thermal_resistance(const Recording& rec, const std::vec
 struct EntropicOptions {
     double window_s = 30.0;            // derivative window (at 4C the cell heats ~0.02 K/s, tau ~ 330 s)
     double skip_s = 30.0;              // start of the discharge left out (surface lags the core)
-    double max_abs_v_per_k = 1.0e-3;   // per-row bound
+    double max_abs_v_per_k = 1.0e-3;   // a bin's value is held within +-this (named in the note)
     double min_current_a = 0.05;       // rows with |I| below this carry no information (division by I)
     std::size_t min_samples = 20;      // fewer rows in a bin: no data
 };

@@ -180,7 +180,8 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         const double ohmic =
             ohmic_drop_v(electrical.rc_at(guess, -1), electrical.rc_at(guess, +1), rec.current_a[0]);
         const double soc0 = electrical.soc_from_ocv(rec.voltage_v[0] - ohmic);
-        const auto q = cumulative_charge_ah(rec);
+        // The charge segment_recording counted (a caller's hand-made segments may lack it).
+        const auto q = segments[r].charge_ah.size() == rec.size() ? segments[r].charge_ah : cumulative_charge_ah(rec);
         socs[r].resize(rec.size());
         for (std::size_t k = 0; k < rec.size(); ++k) socs[r][k] = soc0 + q[k] / electrical.capacity_ah;
     }

@@ -808,21 +808,17 @@ EntropicFit fit_entropic_coefficient(const Recording& rec, RowRange cc_discharge
                         "4C), C_th and the heat flux sensor gain; estimate kept robust (bound +-" +
                         printf_text("%.1f", 1e3 * opt.max_abs_v_per_k) +
                         " mV/K per SOC bin, medians of the rows). Prefer a C/2 or slower discharge (thesis 4.1.2)");
-    if (!empty_bins.empty()) {
-        std::string s = "no data at SOC";
-        for (const auto& b : empty_bins) s += " " + b;
-        notes.push_back(s);
-    }
-    if (!extrap_bins.empty()) {
-        std::string s = "OCV extrapolated outside the table at SOC";
-        for (const auto& b : extrap_bins) s += " " + b;
-        notes.push_back(s + " (Joule heat and dU/dT unreliable there)");
-    }
-    if (!clipped_bins.empty()) {
-        std::string s = "held at the bound +-" + printf_text("%.1f", 1e3 * opt.max_abs_v_per_k) + " mV/K at SOC";
-        for (const auto& b : clipped_bins) s += " " + b;
-        notes.push_back(s + " (implausible beyond it)");
-    }
+    // "<what> at SOC a b c<why>", when any bin is so.
+    auto bins_note = [&](const std::vector<std::string>& bins_of, const std::string& what, const std::string& why) {
+        if (bins_of.empty()) return;
+        std::string s = what + " at SOC";
+        for (const auto& b : bins_of) s += " " + b;
+        notes.push_back(s + why);
+    };
+    bins_note(empty_bins, "no data", "");
+    bins_note(extrap_bins, "OCV extrapolated outside the table", " (Joule heat and dU/dT unreliable there)");
+    bins_note(clipped_bins, "held at the bound +-" + printf_text("%.1f", 1e3 * opt.max_abs_v_per_k) + " mV/K",
+              " (implausible beyond it)");
     if (out.rows_rejected > 0)
         notes.push_back(std::to_string(out.rows_rejected) + " rows outside the SOC grid or not finite discarded");
     for (std::size_t i = 0; i < notes.size(); ++i) out.note += (i ? "; " : "") + notes[i];

@@ -1,7 +1,9 @@
 #include "cellbench/estimator/model.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <limits>
 
 #include "cellbench/core/recording.hpp"
 
@@ -197,44 +199,6 @@ std::size_t bracket_from(const std::vector<double>& x, std::size_t guess, double
     return std::min(i, last);
 }
 
-// interp_hold / interp_extrap of params.cpp with a located segment (same arithmetic, so the same result).
-struct Located {
-    std::size_t i = 0;
-    double w = 0.0;
-    int hold = 0;  // -1: value at the front, +1: at the back, 0: y[i] + w (y[i+1] - y[i])
-    double of(const std::vector<double>& y) const {
-        if (hold < 0) return y.front();
-        if (hold > 0) return y.back();
-        return y[i] + w * (y[i + 1] - y[i]);
-    }
-};
-
-Located locate_hold(const std::vector<double>& x, std::size_t& cached, double q) {
-    Located l;
-    if (x.size() == 1 || q <= x.front()) {
-        l.hold = -1;
-    } else if (q >= x.back()) {
-        l.hold = +1;
-    } else {
-        cached = bracket_from(x, cached, q);
-        l.i = cached;
-        l.w = (q - x[l.i]) / (x[l.i + 1] - x[l.i]);
-    }
-    return l;
-}
-
-Located locate_extrap(const std::vector<double>& x, std::size_t& cached, double q) {
-    Located l;
-    if (x.size() == 1) {
-        l.hold = -1;
-        return l;
-    }
-    cached = bracket_from(x, cached, q);
-    l.i = cached;
-    l.w = (q - x[l.i]) / (x[l.i + 1] - x[l.i]);
-    return l;
-}
-
 }  // namespace
 
 namespace {
@@ -265,33 +229,95 @@ namespace {
     m = c.m0;
 }
 
+// integral_of_decay(rate, dt) for |rate dt| < 1e-2, x = rate dt: dt * sum_k (-x)^k / (k + 1)! to k = 7
+// (truncation below x^8 / 9! < 3e-22 relative), in place of expm1 and a division.
+[[gnu::always_inline]] inline double integral_of_small_decay(double x, double dt_s) {
+    constexpr double k3 = 1.0 / 3, k5 = 1.0 / 5, k6 = 1.0 / 6, k7 = 1.0 / 7;
+    return dt_s * (1.0 - x * 0.5 * (1.0 - x * k3 * (1.0 - x * 0.25 * (1.0 - x * k5 * (1.0 - x * k6 *
+                                                                   (1.0 - x * k7 * (1.0 - x * 0.125)))))));
+}
+
 }  // namespace
 
 void CellStepper::DecayCache::eval(double x, double& e, double& m) { decay_eval(*this, x, e, m); }
 
-CellStepper::CellStepper(const CellModel& model) : model_(model), p_(model.params()) {}
+CellStepper::CellStepper(const CellModel& model)
+    : model_(model),
+      p_(model.params()),
+      inv_c_th_per_j_(1.0 / p_.thermal.c_th_j_per_k),
+      inv_r_th_w_per_k_(1.0 / p_.thermal.r_th_k_per_w),
+      soc_per_a_s_(1.0 / (3600.0 * model.capacity_ah())) {}
+
+namespace {
+
+// Places `lines` on the segment of axis x holding q (hold: the ends' values beyond them; else the end segments'
+// lines extended) for the given columns: the arithmetic of params.cpp's interp_hold / interp_extrap.
+template <std::size_t K>
+void place_lines(CellStepper::SegmentLines<K>& lines, const std::vector<double>& x,
+                 const std::array<const std::vector<double>*, K>& columns, double q, bool hold) {
+    constexpr double inf = std::numeric_limits<double>::infinity();
+    auto held = [&](std::size_t at, double lo, double hi) {
+        lines.lo = lo, lines.hi = hi, lines.x0 = 0.0, lines.inv_dx = 0.0;
+        for (std::size_t c = 0; c < K; ++c) lines.base[c] = (*columns[c])[at], lines.slope[c] = 0.0;
+    };
+    if (x.size() == 1) return held(0, -inf, inf);
+    if (hold && q <= x.front()) return held(0, -inf, std::nextafter(x.front(), inf));
+    if (hold && q >= x.back()) return held(x.size() - 1, x.back(), inf);
+    const std::size_t i = lines.bracket = bracket_from(x, lines.bracket, q);
+    if (!(q == q)) {  // NaN: every value NaN, and never valid
+        lines.lo = lines.hi = kNaN, lines.x0 = 0.0, lines.inv_dx = kNaN;
+    } else {
+        const std::size_t last = x.size() - 2;
+        lines.lo = hold || i > 0 ? x[i] : -inf;
+        lines.hi = hold || i < last ? x[i + 1] : inf;
+        lines.x0 = x[i];
+        lines.inv_dx = 1.0 / (x[i + 1] - x[i]);
+    }
+    for (std::size_t c = 0; c < K; ++c) {
+        lines.base[c] = (*columns[c])[i];
+        lines.slope[c] = (*columns[c])[i + 1] - (*columns[c])[i];
+    }
+}
+
+// Weight of q on the lines' segment, re-placing them first when q lies outside it.
+template <std::size_t K>
+[[gnu::always_inline]] inline double line_weight(CellStepper::SegmentLines<K>& lines, const std::vector<double>& x,
+                                                 const std::array<const std::vector<double>*, K>& columns, double q,
+                                                 bool hold) {
+    if (!(q >= lines.lo && q < lines.hi)) place_lines(lines, x, columns, q, hold);
+    return (q - lines.x0) * lines.inv_dx;
+}
+
+}  // namespace
 
 void CellStepper::refresh_parameters(double soc, double f_t, double f_i) {
     key_soc_ = soc;
     key_ft_ = f_t;
     key_fi_ = f_i;
-    const Located l = locate_hold(p_.soc, soc_bracket_, soc);
     const auto& ext = p_.extensions;
     const double dr0 = ext.series_resistance_offset ? ext.series_resistance_offset->r_ohm : 0.0;
-    auto rc = [&](const RcTable& t, Rc2Params<double>& p) {
-        const double r1 = l.of(t.r1_ohm), r2 = l.of(t.r2_ohm);
-        p = {l.of(t.r0_ohm), r1, r1 * l.of(t.c1_f), r2, r2 * l.of(t.c2_f)};
-        p.r0_ohm = p.r0_ohm * f_t + dr0;
-        p.r1_ohm *= f_t * f_i;
-        p.tau1_s *= f_t * f_i;
-        p.r2_ohm *= f_t * f_i;
-        p.tau2_s *= f_t * f_i;
+    const std::array<const std::vector<double>*, 10> columns{
+        &p_.discharge.r0_ohm, &p_.discharge.r1_ohm, &p_.discharge.c1_f, &p_.discharge.r2_ohm, &p_.discharge.c2_f,
+        &p_.charge.r0_ohm,    &p_.charge.r1_ohm,    &p_.charge.c1_f,    &p_.charge.r2_ohm,    &p_.charge.c2_f};
+    const double w = line_weight(rc_lines_, p_.soc, columns, soc, true);
+    double y[10];
+    for (std::size_t c = 0; c < 10; ++c) y[c] = rc_lines_.base[c] + w * rc_lines_.slope[c];
+    const double f_rc = f_t * f_i;
+    auto rc = [&](const double* v, Rc2Params<double>& p) {
+        p.r0_ohm = v[0] * f_t + dr0;
+        p.r1_ohm = v[1] * f_rc;
+        p.tau1_s = v[1] * v[2] * f_rc;
+        p.r2_ohm = v[3] * f_rc;
+        p.tau2_s = v[3] * v[4] * f_rc;
     };
-    rc(p_.discharge, pd_);
-    rc(p_.charge, pc_);
-    ehc_ = p_.thermal.ehc_soc.empty()
-               ? 0.0
-               : locate_hold(p_.thermal.ehc_soc, ehc_bracket_, soc).of(p_.thermal.ehc_v_per_k);
+    rc(y, pd_);
+    rc(y + 5, pc_);
+    ehc_ = 0.0;
+    if (!p_.thermal.ehc_soc.empty()) {
+        const std::array<const std::vector<double>*, 1> ehc_column{&p_.thermal.ehc_v_per_k};
+        const double we = line_weight(ehc_lines_, p_.thermal.ehc_soc, ehc_column, soc, true);
+        ehc_ = ehc_lines_.base[0] + we * ehc_lines_.slope[0];
+    }
     if (ext.entropic_heat) ehc_ += ext.entropic_heat->ehc_v_per_k + ext.entropic_heat->ehc_slope_v_per_k * (soc - 0.5);
     const double tau3 = ext.extra_rc ? ext.extra_rc->tau_s * f_t : 1.0;
     rate_[0] = 1.0 / pd_.tau1_s;
@@ -337,8 +363,10 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
     const double r3 = ext.extra_rc ? ext.extra_rc->r_ohm * f_t_ : 0.0;
     double* v[5] = {&s.rc.v1_discharge_v, &s.rc.v2_discharge_v, &s.rc.v1_charge_v, &s.rc.v2_charge_v, &s.extra_rc_v};
     const double vss[5] = {pd_.r1_ohm * id, pd_.r2_ohm * id, pc_.r1_ohm * ic, pc_.r2_ohm * ic, r3 * i};
+    // The fifth lane (extra_rc) only with that extension (or a state that still holds its voltage).
+    const int lanes = ext.extra_rc || s.extra_rc_v != 0.0 ? 5 : 4;
     double d[5], e[5], m[5], vss_sum = 0;
-    for (int j = 0; j < 5; ++j) {
+    for (int j = 0; j < lanes; ++j) {
         d[j] = *v[j] - vss[j];
         vss_sum += vss[j];
         if (d[j] != 0.0) decay_eval(pair_[j], rate_[j] * dt_s, e[j], m[j]);
@@ -363,7 +391,7 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
     const bool flowing = i != 0.0;
     double transient_heat_j = 0;
     if (flowing)
-        for (int j = 0; j < 5; ++j)
+        for (int j = 0; j < lanes; ++j)
             if (d[j] != 0.0) transient_heat_j += i * d[j] * iod(rate_[j], tau_[j], m[j]);
     const double steady_heat_w = i * (cell_ohmic_v + vss_sum + h_mean);
     out.heat_irreversible_w = steady_heat_w + transient_heat_j / dt_s;
@@ -371,17 +399,21 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
     const double ehc = ehc_;
 
     if (!ext.thermal_second_order) {
-        const double beta = (1.0 / th.r_th_k_per_w - i * ehc) / th.c_th_j_per_k;
-        const double c0 = (steady_heat_w + i * ehc * kZeroCelsiusK + ambient_c / th.r_th_k_per_w) / th.c_th_j_per_k;
+        const double beta = (inv_r_th_w_per_k_ - i * ehc) * inv_c_th_per_j_;
+        const double c0 = (steady_heat_w + i * ehc * kZeroCelsiusK + ambient_c * inv_r_th_w_per_k_) * inv_c_th_per_j_;
         double eb, mb;
         decay_eval(beta_, beta * dt_s, eb, mb);
         double t1 = t0 * eb + c0 * iod(beta, 1.0 / beta, mb);
-        for (int j = 0; j < 5 && flowing; ++j) {
-            if (d[j] == 0.0) continue;
-            // exp(-a dt) * integral_of_decay(beta - a, dt) = (e^{-a dt} - e^{-beta dt}) / (beta - a)
-            const double gap = beta - rate_[j];
-            const double cross = std::abs(gap * dt_s) < 1e-2 ? e[j] * integral_of_decay(gap, dt_s) : (m[j] - mb) / gap;
-            t1 += i * d[j] / th.c_th_j_per_k * cross;
+        if (flowing) {
+            // exp(-a dt) * integral_of_decay(beta - a, dt) = (e^{-a dt} - e^{-beta dt}) / (beta - a); the series
+            // where beta and a lie close (the usual case at 0.1-1 s sampling).
+            double sum = 0.0;
+            for (int j = 0; j < lanes; ++j) {
+                if (d[j] == 0.0) continue;
+                const double gap = beta - rate_[j], x = gap * dt_s;
+                sum += d[j] * (std::abs(x) < 1e-2 ? e[j] * integral_of_small_decay(x, dt_s) : (m[j] - mb) / gap);
+            }
+            t1 += i * inv_c_th_per_j_ * sum;
         }
         s.temperature_c = t1;
         out.heat_reversible_w = i * ehc * (0.5 * (t0 + t1) + kZeroCelsiusK);
@@ -398,13 +430,15 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
         out.heat_reversible_w = i * ehc * (0.5 * (tc0 + x[0]) + kZeroCelsiusK);
     }
 
-    for (int j = 0; j < 5; ++j) *v[j] = settled(d[j] != 0.0 ? vss[j] + d[j] * e[j] : vss[j] + d[j]);
-    s.soc += i * dt_s / (3600.0 * capacity);
+    for (int j = 0; j < lanes; ++j) *v[j] = settled(d[j] != 0.0 ? vss[j] + d[j] * e[j] : vss[j] + d[j]);
+    s.soc += i * dt_s * soc_per_a_s_;
     s.elapsed_s += dt_s;
 
-    out.ocv_v = locate_extrap(p_.soc, soc_bracket_, s.soc).of(p_.ocv_v);
+    const std::array<const std::vector<double>*, 1> ocv_column{&p_.ocv_v};
+    const double w_ocv = line_weight(ocv_lines_, p_.soc, ocv_column, s.soc, false);
+    out.ocv_v = ocv_lines_.base[0] + w_ocv * ocv_lines_.slope[0];
     out.voltage_v = out.ocv_v + ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v;
-    out.heat_flow_out_w = (s.temperature_c - ambient_c) / th.r_th_k_per_w;
+    out.heat_flow_out_w = (s.temperature_c - ambient_c) * inv_r_th_w_per_k_;
     out.sensor_heat_flow_w = out.heat_flow_out_w * (ext.heat_flux_sensor_gain ? ext.heat_flux_sensor_gain->gain : 1.0);
     return out;
 }

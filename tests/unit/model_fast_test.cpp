@@ -118,6 +118,32 @@ TEST(CellStepper, EqualsTheReferenceStepWithTheTwoNodeThermalModel) {
     expect_same(CellModel(with_every_extension(thesis_params(), true)), varied_profile(3));
 }
 
+TEST(CellStepper, EqualsTheReferenceStepBeyondTheTablesEnds) {
+    // Tables that cover SOC 30-70 % only (the entropic table 40-60 %, on its own axis): the profile runs from 95 %
+    // to below 60 %, so the R/C columns are held beyond the ends, the OCV is extended along its end segments, and
+    // the cached segments are left and re-placed at every breakpoint in both directions.
+    ParameterSet p = with_every_extension(thesis_params(), false);
+    auto keep = [](const std::vector<double>& axis, std::vector<double>& column, double lo, double hi) {
+        std::vector<double> out;
+        for (std::size_t k = 0; k < axis.size(); ++k)
+            if (axis[k] >= lo - 1e-9 && axis[k] <= hi + 1e-9) out.push_back(column[k]);
+        column = out;
+    };
+    for (auto* rc : {&p.discharge, &p.charge})
+        for (auto* col : {&rc->r0_ohm, &rc->r1_ohm, &rc->c1_f, &rc->r2_ohm, &rc->c2_f}) keep(p.soc, *col, 0.3, 0.7);
+    keep(p.soc, p.ocv_v, 0.3, 0.7);
+    keep(p.thermal.ehc_soc, p.thermal.ehc_v_per_k, 0.4, 0.6);
+    std::vector<double> ehc_axis = p.thermal.ehc_soc;
+    keep(p.thermal.ehc_soc, ehc_axis, 0.4, 0.6);
+    p.thermal.ehc_soc = ehc_axis;
+    std::vector<double> axis = p.soc;
+    keep(p.soc, axis, 0.3, 0.7);
+    p.soc = axis;
+    ASSERT_GE(p.soc.size(), 3u);
+    ASSERT_GE(p.thermal.ehc_soc.size(), 2u);
+    expect_same(CellModel(p), varied_profile(4));
+}
+
 TEST(CellStepper, ExponentialCacheStaysExactAsTheArgumentDrifts) {
     // exp(-x) and expm1(-x) from the cache, for x drifting in small and large steps, both directions.
     CellStepper::DecayCache c;

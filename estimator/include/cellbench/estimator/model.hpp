@@ -70,8 +70,9 @@ private:
 };
 
 // The fast path of CellModel::step for long runs (simulate(), diagnose, the fits' simulations): the same exact
-// ZOH step, with what repeats from one sample to the next cached instead of recomputed -- the SOC bracket of
-// the tables (one bracket for all R/C/OCV columns, one for the entropic table), the parameters while SOC,
+// ZOH step, with what repeats from one sample to the next cached instead of recomputed -- the tables' segment
+// around the SOC as straight lines (one for the ten R/C columns, one for the OCV, one for the entropic table;
+// re-placed when SOC leaves the segment), the parameters while SOC,
 // temperature factor and current factor are unchanged (rests), and exp/expm1 of each (rate * dt): an exact
 // re-evaluation when it moved far, else the last exact value times a Taylor series of the small change
 // (|change| <= 1e-2, truncation < 1e-18 relative). The heat integrals reuse the same exponentials
@@ -89,12 +90,24 @@ public:
         void eval(double x, double& e, double& m);
     };
 
+    // K table columns over one SOC axis as straight lines on the segment last located: value = base + w slope,
+    // w = (soc - x0) / dx, valid while lo <= soc < hi (a held end: slope 0). Re-located when SOC leaves it.
+    template <std::size_t K>
+    struct SegmentLines {
+        double lo = kNaN, hi = kNaN, x0 = 0.0, inv_dx = 0.0;
+        double base[K]{}, slope[K]{};
+        std::size_t bracket = 0;
+    };
+
 private:
     void refresh_parameters(double soc, double f_t, double f_i);
 
     const CellModel& model_;
     const ParameterSet& p_;
-    std::size_t soc_bracket_ = 0, ehc_bracket_ = 0;
+    // The ten R/C columns (discharge r0 r1 c1 r2 c2, then charge) held at the table's ends; the entropic table
+    // (held); the OCV (extrapolated beyond the ends).
+    SegmentLines<10> rc_lines_;
+    SegmentLines<1> ehc_lines_, ocv_lines_;
     // Parameters in force (after the factors) and the key they were computed for.
     double key_soc_ = kNaN, key_ft_ = kNaN, key_fi_ = kNaN;
     Rc2Params<double> pd_{}, pc_{};
@@ -103,6 +116,8 @@ private:
     DecayCache pair_[5], beta_;
     double t_inner_key_ = kNaN, f_t_ = 1.0;
     double i_key_ = kNaN, f_i_ = 1.0;
+    // Reciprocals of the constants the step divides by: 1/C_th (K/J), 1/R_th (W/K), SOC per ampere-second.
+    double inv_c_th_per_j_ = 1.0, inv_r_th_w_per_k_ = 1.0, soc_per_a_s_ = 0.0;
 };
 
 }  // namespace cellbench::estimator

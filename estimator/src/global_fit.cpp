@@ -546,19 +546,17 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // the tables resistances at C/20, depending on how often a recording was logged.
     std::vector<double> pulse_currents, low_rate_currents;
     double charge_as = 0;
+    // A window's currents and charge count (current range, reference current, whether anything charged) only
+    // once the window is in the fit.
     for (const auto& w : raw) {
         const auto& rec = *recordings[w.r];
-        double moved = 0;
+        double moved = 0, window_charge_as = 0;
         std::vector<double> currents;
         for (std::size_t k = w.begin + 1; k < w.end; ++k) {
             const double i = rec.current_a[k], dt = rec.time_s[k] - rec.time_s[k - 1];
             moved += std::abs(i) * dt;
-            if (i > 0.05) charge_as += i * dt;
-            if (std::abs(i) > 0.1) {
-                i_min = std::min(i_min, std::abs(i));
-                i_max = std::max(i_max, std::abs(i));
-                currents.push_back(std::abs(i));
-            }
+            if (i > 0.05) window_charge_as += i * dt;
+            if (std::abs(i) > 0.1) currents.push_back(std::abs(i));
         }
         if (moved < 1.0) continue;  // nothing happens in it
         WindowData wd;
@@ -572,8 +570,6 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                 }
             wd.low_rate = span > 0 && q / span < 0.2 * capacity_ah;
         }
-        auto& into = wd.low_rate ? low_rate_currents : pulse_currents;
-        into.insert(into.end(), currents.begin(), currents.end());
         wd.ticks = make_ticks(rec, w.begin, w.end, socs[w.r], t_ref_c);
         for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
         for (std::size_t k = 1; k < wd.ticks.size(); ++k)
@@ -607,6 +603,10 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                                             100 * gw.soc_min, 100 * gw.soc_max, 100 * options.min_pulse_window_soc));
             continue;
         }
+        auto& into = wd.low_rate ? low_rate_currents : pulse_currents;
+        into.insert(into.end(), currents.begin(), currents.end());
+        for (const double i : currents) i_min = std::min(i_min, i), i_max = std::max(i_max, i);
+        charge_as += window_charge_as;
         gw.residuals = wd.residuals;
         gw.capacity_scale_fitted = wd.capacity_scale_free();
         b.windows.push_back(std::move(wd));

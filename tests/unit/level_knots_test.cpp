@@ -108,4 +108,23 @@ TEST(GlobalFitWindows, PulsesNearEmptyAreLeftOutAndNamed) {
     EXPECT_TRUE(named) << "the summary must say which pulses were left out";
 }
 
+TEST(GlobalFitWindows, PulsesLeftOutDoNotSetTheCurrentRange) {
+    // Every level pulsed at 4.5 A, then a set at three times that current near empty: the fit leaves that set out,
+    // so its current must not count either (a 13.5 A pulse would otherwise span a 3:1 current range and switch
+    // the current dependence on, identified from pulses the fit never saw).
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 1.0;
+    so.voltage_noise_v = 2e-4;
+    auto program = cellbench::test::hppc_program(10, 700.0, 4.5);
+    program.pop_back();
+    for (const auto& s : cellbench::test::pulse_set_program(700.0, 13.5)) program.push_back(s);
+    program.push_back({700.0, 0.0, "Rest"});
+    const auto rec = cellbench::test::synthesize(program, so);
+    const auto c = est::characterize({rec}, cellbench::test::characterization_options());
+    ASSERT_TRUE(c.global.has_value());
+    for (const auto& w : c.global->windows) EXPECT_GT(w.soc_max, 0.05) << "the set near empty is left out";
+    EXPECT_FALSE(c.global->current_dependence) << "every pulse the fit uses is at 4.5 A";
+    EXPECT_NEAR(c.global->reference_current_a, 4.5, 0.1);
+}
+
 }  // namespace

@@ -320,16 +320,12 @@ void CellStepper::refresh_parameters(double soc, double f_t, double f_i) {
     }
     if (ext.entropic_heat) ehc_ += ext.entropic_heat->ehc_v_per_k + ext.entropic_heat->ehc_slope_v_per_k * (soc - 0.5);
     const double tau3 = ext.extra_rc ? ext.extra_rc->tau_s * f_t : 1.0;
-    rate_[0] = 1.0 / pd_.tau1_s;
-    rate_[1] = 1.0 / pd_.tau2_s;
-    rate_[2] = 1.0 / pc_.tau1_s;
-    rate_[3] = 1.0 / pc_.tau2_s;
-    rate_[4] = 1.0 / tau3;
     tau_[0] = pd_.tau1_s;
     tau_[1] = pd_.tau2_s;
     tau_[2] = pc_.tau1_s;
     tau_[3] = pc_.tau2_s;
     tau_[4] = tau3;
+    for (int j = 0; j < 5; ++j) rate_[j] = 1.0 / tau_[j];  // packed divisions
 }
 
 CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, double dt_s) {

@@ -199,9 +199,43 @@ std::size_t bracket_from(const std::vector<double>& x, std::size_t guess, double
     return std::min(i, last);
 }
 
-}  // namespace
+// Places `lines` on the segment of axis x holding q (hold: the ends' values beyond them; else the end segments'
+// lines extended) for the given columns: the arithmetic of params.cpp's interp_hold / interp_extrap.
+template <std::size_t K>
+void place_lines(CellStepper::SegmentLines<K>& lines, const std::vector<double>& x,
+                 const std::array<const std::vector<double>*, K>& columns, double q, bool hold) {
+    constexpr double inf = std::numeric_limits<double>::infinity();
+    auto held = [&](std::size_t at, double lo, double hi) {
+        lines.lo = lo, lines.hi = hi, lines.x0 = 0.0, lines.inv_dx = 0.0;
+        for (std::size_t c = 0; c < K; ++c) lines.base[c] = (*columns[c])[at], lines.slope[c] = 0.0;
+    };
+    if (x.size() == 1) return held(0, -inf, inf);
+    if (hold && q <= x.front()) return held(0, -inf, std::nextafter(x.front(), inf));
+    if (hold && q >= x.back()) return held(x.size() - 1, x.back(), inf);
+    const std::size_t i = lines.bracket = bracket_from(x, lines.bracket, q);
+    if (!(q == q)) {  // NaN: every value NaN, and never valid
+        lines.lo = lines.hi = kNaN, lines.x0 = 0.0, lines.inv_dx = kNaN;
+    } else {
+        const std::size_t last = x.size() - 2;
+        lines.lo = hold || i > 0 ? x[i] : -inf;
+        lines.hi = hold || i < last ? x[i + 1] : inf;
+        lines.x0 = x[i];
+        lines.inv_dx = 1.0 / (x[i + 1] - x[i]);
+    }
+    for (std::size_t c = 0; c < K; ++c) {
+        lines.base[c] = (*columns[c])[i];
+        lines.slope[c] = (*columns[c])[i + 1] - (*columns[c])[i];
+    }
+}
 
-namespace {
+// Weight of q on the lines' segment, re-placing them first when q lies outside it.
+template <std::size_t K>
+[[gnu::always_inline]] inline double line_weight(CellStepper::SegmentLines<K>& lines, const std::vector<double>& x,
+                                                 const std::array<const std::vector<double>*, K>& columns, double q,
+                                                 bool hold) {
+    if (!(q >= lines.lo && q < lines.hi)) place_lines(lines, x, columns, q, hold);
+    return (q - lines.x0) * lines.inv_dx;
+}
 
 // CellStepper::DecayCache::eval, inlined into the step (five calls per step: the four pairs and the thermal decay).
 [[gnu::always_inline]] inline void decay_eval(CellStepper::DecayCache& c, double x, double& e, double& m) {
@@ -247,48 +281,6 @@ CellStepper::CellStepper(const CellModel& model)
       inv_c_th_per_j_(1.0 / p_.thermal.c_th_j_per_k),
       inv_r_th_w_per_k_(1.0 / p_.thermal.r_th_k_per_w),
       soc_per_a_s_(1.0 / (3600.0 * model.capacity_ah())) {}
-
-namespace {
-
-// Places `lines` on the segment of axis x holding q (hold: the ends' values beyond them; else the end segments'
-// lines extended) for the given columns: the arithmetic of params.cpp's interp_hold / interp_extrap.
-template <std::size_t K>
-void place_lines(CellStepper::SegmentLines<K>& lines, const std::vector<double>& x,
-                 const std::array<const std::vector<double>*, K>& columns, double q, bool hold) {
-    constexpr double inf = std::numeric_limits<double>::infinity();
-    auto held = [&](std::size_t at, double lo, double hi) {
-        lines.lo = lo, lines.hi = hi, lines.x0 = 0.0, lines.inv_dx = 0.0;
-        for (std::size_t c = 0; c < K; ++c) lines.base[c] = (*columns[c])[at], lines.slope[c] = 0.0;
-    };
-    if (x.size() == 1) return held(0, -inf, inf);
-    if (hold && q <= x.front()) return held(0, -inf, std::nextafter(x.front(), inf));
-    if (hold && q >= x.back()) return held(x.size() - 1, x.back(), inf);
-    const std::size_t i = lines.bracket = bracket_from(x, lines.bracket, q);
-    if (!(q == q)) {  // NaN: every value NaN, and never valid
-        lines.lo = lines.hi = kNaN, lines.x0 = 0.0, lines.inv_dx = kNaN;
-    } else {
-        const std::size_t last = x.size() - 2;
-        lines.lo = hold || i > 0 ? x[i] : -inf;
-        lines.hi = hold || i < last ? x[i + 1] : inf;
-        lines.x0 = x[i];
-        lines.inv_dx = 1.0 / (x[i + 1] - x[i]);
-    }
-    for (std::size_t c = 0; c < K; ++c) {
-        lines.base[c] = (*columns[c])[i];
-        lines.slope[c] = (*columns[c])[i + 1] - (*columns[c])[i];
-    }
-}
-
-// Weight of q on the lines' segment, re-placing them first when q lies outside it.
-template <std::size_t K>
-[[gnu::always_inline]] inline double line_weight(CellStepper::SegmentLines<K>& lines, const std::vector<double>& x,
-                                                 const std::array<const std::vector<double>*, K>& columns, double q,
-                                                 bool hold) {
-    if (!(q >= lines.lo && q < lines.hi)) place_lines(lines, x, columns, q, hold);
-    return (q - lines.x0) * lines.inv_dx;
-}
-
-}  // namespace
 
 void CellStepper::refresh_parameters(double soc, double f_t, double f_i) {
     key_soc_ = soc;
@@ -351,7 +343,6 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
     const double ohmic_v = ohmic_drop_v(pd_, pc_, i);
     const double dr0 = ext.series_resistance_offset ? ext.series_resistance_offset->r_ohm : 0.0;
     const double cell_ohmic_v = ohmic_v - dr0 * i;  // the harness' heat stays outside the cell (as in CellModel)
-    const double capacity = model_.capacity_ah();
     CellOutputs out;
     out.ambient_c = ambient_c;
 
@@ -376,7 +367,7 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
 
     double h_mean = s.hysteresis_v;
     if (ext.ocv_hysteresis && i != 0.0) {
-        const double k = ext.ocv_hysteresis->rate_per_capacity * std::abs(i) / (3600.0 * capacity);
+        const double k = ext.ocv_hysteresis->rate_per_capacity * std::abs(i) * soc_per_a_s_;
         const double target = (i > 0 ? 1.0 : -1.0) * ext.ocv_hysteresis->magnitude_v;
         const double h0 = s.hysteresis_v;
         s.hysteresis_v = target + (h0 - target) * std::exp(-k * dt_s);

@@ -209,11 +209,12 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         EXPECT_LT(e.c_th, 0.05);
         EXPECT_LT(e.r_th, 0.05);
     }
-    // The capacity against the cell's own: the lowest-rate full discharge handed in (the plant's C/20) measures
-    // it 0.07-0.60 % low on seeds 1-20 of the thesis and USABC layouts (issue 11's 0.5 %: 17 of 20 each); the 1C
-    // pilot discharge in the thesis layout's HPPC measures 7.8 % low on seed 1 (the cut-off's share at 1C).
+    // The capacity against the cell's own (issue 11: within 0.5 %): the lowest-rate full discharge handed in (the
+    // plant's C/20) delivered 0.07-0.60 % less on seeds 1-20 (17 of 20 within 0.5 %; seed 1: 0.60 %) until the
+    // charge between its cut-off under load and OCV = cut-off was counted (charge_below_cutoff_ah); the 1C pilot
+    // discharge in the thesis layout's HPPC delivers 7.8 % less on seed 1 (the cut-off's share at 1C).
     for (std::size_t k = 0; k < all.size(); ++k)
-        EXPECT_LT(all[k].capacity_vs_cell, 0.01) << "seed " << first + static_cast<int>(k);
+        EXPECT_LT(all[k].capacity_vs_cell, 0.005) << "seed " << first + static_cast<int>(k);
     // The RC pairs keep their roles: every time constant within a factor 1.5 of the truth at every level. A
     // collapse (one pair taking both roles, the other's tau on its bound) is off by 5-250x: USABC seed 2 from
     // the generic start was 1133 % (tau1) and 2745 % (tau2) off at 10 % SOC before the fit tried other starts;

@@ -23,6 +23,10 @@ void print_parameter_table(const estimator::Characterization& c) {
                     p.capacity_ah, c.capacity.capacity_ah_sd, c.capacity.method.c_str(), c.capacity.source.c_str());
     else
         std::printf("capacity %.4f Ah (%s, %s)\n", p.capacity_ah, c.capacity.method.c_str(), c.capacity.source.c_str());
+    if (c.capacity.below_cutoff_ah > 0)
+        std::printf("  of which %.1f mAh lie between the discharge's cut-off under load and OCV = cut-off (from the rest "
+                    "after it)\n",
+                    1e3 * c.capacity.below_cutoff_ah);
     std::printf("%5s %7s | %-36s | %-36s\n", "SOC", "OCV", "discharge R0  R1 mOhm  C1 F  R2 mOhm  C2 F",
                 "charge R0  R1 mOhm  C1 F  R2 mOhm  C2 F");
     for (std::size_t k = 0; k < p.soc.size(); ++k) {

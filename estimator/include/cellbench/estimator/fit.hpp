@@ -51,6 +51,9 @@ struct CapacityMeasurement {
     // scale of each slow discharge it was free to rescale, spanning at least half the SOC range); NaN where no
     // such recording was handed in.
     double capacity_ah_sd = kNaN;
+    // Of capacity_ah: the charge a slow discharge (C/10 or slower, a rest after it) left between its cut-off under
+    // load and OCV = cut-off, from the relaxation after it and the voltage's slope at its end; 0 where none.
+    double below_cutoff_ah = 0.0;
 };
 
 // What the thermal fits gave, with the choice made and why (filled by fit_thermal_parameters).

@@ -404,6 +404,59 @@ std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& init
     return soc;
 }
 
+// Local restarts. The other starts are uniform over SOC; a pair collapse can also hold in one SOC range only
+// (independent plant, random layout, seed 6, LFP: above 80 % SOC tau1 and tau2 1.7 and 5.2 times the cell's, its
+// pulse windows at 1.7-2.6 mV RMS against 0.7 mV in mid SOC). Where pulse windows fit more than twice as badly as
+// the best, the RC values (R0 kept) of every knot no well-fitted window touches restart from the nearest knot one
+// does, and the whole problem is fitted again. The result stays only where its objective (same problem, same
+// smoothness) is below fit_cost, which it then lowers: returns the number of knots restarted, else 0 with the
+// builder's state as it was.
+int restart_poorly_fitted_knots(Builder& b, const std::vector<GlobalWindow>& windows, int max_iterations,
+                                double& fit_cost, ProgressReporter& progress) {
+    std::vector<std::size_t> pulses;
+    std::vector<double> rms;
+    for (std::size_t w = 0; w < b.windows.size(); ++w) {
+        if (windows[w].kind != "pulses") continue;
+        const auto [sse, n] = b.window_sse({w});
+        pulses.push_back(w), rms.push_back(std::sqrt(sse / static_cast<double>(std::max<std::size_t>(n, 1))));
+    }
+    if (pulses.size() < 3) return 0;
+    const double best_rms = *std::min_element(rms.begin(), rms.end());
+    std::vector<bool> good(b.grid.n, false);
+    bool any_poor = false;
+    for (std::size_t k = 0; k < pulses.size(); ++k) {
+        if (rms[k] > 2.0 * best_rms) {
+            any_poor = true;
+            continue;
+        }
+        for (int j = b.windows[pulses[k]].knot_lo; j <= b.windows[pulses[k]].knot_hi; ++j) good[j] = true;
+    }
+    if (!any_poor) return 0;
+    const Builder::State fitted = b.state();
+    int restarted = 0;
+    for (int j = 0; j < b.grid.n; ++j) {
+        if (good[j]) continue;
+        int donor = -1;
+        for (int k = 0; k < b.grid.n; ++k)
+            if (good[k] && (donor < 0 || std::abs(b.grid.soc(k) - b.grid.soc(j)) <
+                                             std::abs(b.grid.soc(donor) - b.grid.soc(j))))
+                donor = k;
+        if (donor < 0) continue;
+        for (int q = 0; q < kKnotSize; ++q)
+            if (q % 5 != 0) b.knots[j][q] = fitted.knots[donor][q];  // q = 0, 5: each direction's log R0, kept
+        ++restarted;
+    }
+    if (restarted == 0) return 0;
+    progress(0.85, "global fit: local restarts");
+    const double c = b.solve(*b.problem(std::vector<bool>(b.windows.size(), true)), max_iterations);
+    if (c < fit_cost) {
+        fit_cost = c;
+        return restarted;
+    }
+    b.set_state(fitted);
+    return 0;
+}
+
 nlohmann::json num(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
 
 nlohmann::json value_json(const FittedValue& v) {
@@ -812,59 +865,11 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             b.set_state(fitted);
         }
     }
-    // Local restarts. The other starts above are uniform over SOC; a pair collapse can also hold in one SOC range
-    // only (independent plant, random layout, seed 6, LFP: above 80 % SOC tau1 and tau2 1.7 and 5.2 times the
-    // cell's, its pulse windows at 1.7-2.6 mV RMS against 0.7 mV in mid SOC). Where pulse windows fit more than
-    // twice as badly as the best, the RC knots that no well-fitted window touches restart from the nearest knot a
-    // well-fitted one does (R0 kept) and the whole problem is fitted again; the result replaces the fit only where
-    // its objective (same problem, same smoothness) is lower.
-    {
-        std::vector<std::size_t> pulses;
-        std::vector<double> rms;
-        for (std::size_t w = 0; w < b.windows.size(); ++w) {
-            if (out.windows[w].kind != "pulses") continue;
-            const auto [sw, mw] = b.window_sse({w});
-            pulses.push_back(w), rms.push_back(std::sqrt(sw / std::max<std::size_t>(mw, 1)));
-        }
-        const double best_rms = rms.empty() ? 0.0 : *std::min_element(rms.begin(), rms.end());
-        std::vector<bool> good(b.grid.n, false);
-        bool any_bad = false;
-        for (std::size_t k = 0; k < pulses.size(); ++k) {
-            if (rms[k] > 2.0 * best_rms) {
-                any_bad = true;
-                continue;
-            }
-            for (int j = b.windows[pulses[k]].knot_lo; j <= b.windows[pulses[k]].knot_hi; ++j) good[j] = true;
-        }
-        if (any_bad && pulses.size() >= 3) {
-            progress(0.85, "global fit: local restarts");
-            const Builder::State fitted = b.state();
-            int restarted = 0;
-            for (int j = 0; j < b.grid.n; ++j) {
-                if (good[j]) continue;
-                int donor = -1;
-                for (int k = 0; k < b.grid.n; ++k)
-                    if (good[k] && (donor < 0 || std::abs(b.grid.soc(k) - b.grid.soc(j)) <
-                                                     std::abs(b.grid.soc(donor) - b.grid.soc(j))))
-                        donor = k;
-                if (donor < 0) continue;
-                for (int q = 0; q < kKnotSize; ++q)
-                    if (q % 5 != 0) b.knots[j][q] = fitted.knots[donor][q];
-                ++restarted;
-            }
-            if (restarted > 0) {
-                const double c = b.solve(*b.problem(all), options.max_iterations);
-                if (c < fit_cost) {
-                    fit_cost = c;
-                    out.notes.push_back(printf_text("%d table knots restarted from their well-fitted neighbours' RC "
-                                                    "values (a lower objective than the fit from the common start)",
-                                                    restarted));
-                } else {
-                    b.set_state(fitted);
-                }
-            }
-        }
-    }
+    // Local restarts: a collapse held in one SOC range only (restart_poorly_fitted_knots).
+    if (const int restarted = restart_poorly_fitted_knots(b, out.windows, options.max_iterations, fit_cost, progress))
+        out.notes.push_back(printf_text("%d table knots restarted from their well-fitted neighbours' RC values (a lower "
+                                        "objective than the fit from the common start)",
+                                        restarted));
     auto problem = b.problem(all);
     if (options.check_jacobian) out.jacobian_mismatch = std::max(out.jacobian_mismatch, b.jacobian_mismatch());
 

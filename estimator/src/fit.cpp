@@ -278,8 +278,7 @@ std::vector<double> level_knots(const std::vector<Recording>& recordings, const 
 // (at C/10 or slower the loaded voltage runs parallel to the OCV there; faster, the overpotential grows towards
 // the end and the slope says nothing about the OCV's). 0 where the test does not show it: a faster discharge, no
 // rest of 10 min after it, an end above the cut-off, fewer than 3 rows in the last 0.5 %, or a figure beyond 2 %
-// of the charge. Independent plant (C/20 test; seeds 1, 3, 11 of the thesis layout): 6-9 mAh, 0.25-0.37 % of the
-// capacity.
+// of the charge. Independent plant (C/20 test, a 1 h rest after it): 2.5-9.4 mAh, up to 0.37 % of the capacity.
 double charge_below_cutoff_ah(const Recording& rec, const RecordingSegments& seg, const Phase& d, double v_floor) {
     const double delivered_ah = -d.charge_ah;
     if (!(delivered_ah > 0) || d.index + 1 >= seg.phases.size()) return 0.0;

@@ -60,15 +60,22 @@ struct Errors {
 // The SOC levels whose truth the fit is held to: 10-90 % (issue 11), and in the random layout only those between
 // its lowest and highest pulse level (beyond them only the SOC steps and discharges pass: the tables there are the
 // fit's extrapolation; an upward test ends where a step's charge meets the voltage limit).
-std::pair<double, double> compared_soc_range(const plant::Dataset& d, plant::Layout layout) {
-    if (layout != plant::Layout::random) return {0.1, 0.9};
-    double lo = 1.0, hi = 0.0;
+// The plant's SOC where each discharge pulse of the HPPC starts (a discharge of at most 60 s that ran its time).
+std::vector<double> pulse_start_socs(const plant::Dataset& d) {
+    std::vector<double> socs;
     for (const auto& s : d.hppc.steps) {
         if (s.type != "CCCV DChg" || s.end_reason != "time" || s.end_s - s.start_s > 60.0) continue;
         const auto row = static_cast<std::size_t>(std::lower_bound(d.hppc.time_s.begin(), d.hppc.time_s.end(), s.start_s) -
                                                   d.hppc.time_s.begin());
-        lo = std::min(lo, d.hppc.true_soc[row]), hi = std::max(hi, d.hppc.true_soc[row]);
+        if (row < d.hppc.true_soc.size()) socs.push_back(d.hppc.true_soc[row]);
     }
+    return socs;
+}
+
+std::pair<double, double> compared_soc_range(const plant::Dataset& d, plant::Layout layout) {
+    if (layout != plant::Layout::random) return {0.1, 0.9};
+    double lo = 1.0, hi = 0.0;
+    for (const double soc : pulse_start_socs(d)) lo = std::min(lo, soc), hi = std::max(hi, soc);
     // A level's pulses start a little off its nominal SOC (the 10 % level of a 10 % step test at 10.3 %): 2.5 % slack.
     return {std::max(0.1, lo - 0.025), std::min(0.9, hi + 0.025)};
 }
@@ -106,12 +113,7 @@ Errors compare(const est::Characterization& c, const plant::Dataset& d, const Re
         dudt_sq += dd * dd, ++n;
     }
     e.dudt_mv_per_k = std::sqrt(dudt_sq / std::max(n, 1));
-    for (const auto& st : d.hppc.steps) {
-        if (st.type != "CCCV DChg" || st.end_s - st.start_s > 60.0) continue;
-        const auto row = static_cast<std::size_t>(
-            std::lower_bound(d.hppc.time_s.begin(), d.hppc.time_s.end(), st.start_s) - d.hppc.time_s.begin());
-        if (row >= d.hppc.true_soc.size()) continue;
-        const double sp = d.hppc.true_soc[row];
+    for (const double sp : pulse_start_socs(d)) {
         if (sp < soc_range.first - 0.005 || sp > soc_range.second + 0.005) continue;
         const double s = 1.0 - (s_full - sp) * t.capacity_ah / p.capacity_ah;
         e.r0_at_levels = std::max(e.r0_at_levels, std::abs(p.rc_at(s, -1).r0_ohm /

@@ -325,7 +325,8 @@ struct Builder {
 // Merges rows into ticks: a row joins the open tick while its current stays within the tick's mean (5 % or
 // 50 mA) and the tick is shorter than a fifth of the time since the current last changed (capped at 30 s), so
 // every transient keeps its fine sampling and long steady stretches cost few ticks. Exact under ZOH apart from
-// the SOC-dependence frozen over a tick.
+// the SOC-dependence frozen over a tick, which the window model reads at the tick's mid-SOC (R and C) and where
+// its voltage is read, at its end (R0): simulate_window.
 //
 // Current steps: a row's current is held over the interval before it (the ZOH convention of electrical.hpp),
 // except across a step, where the new current flows only the fitted last fraction `step_lag` of the interval

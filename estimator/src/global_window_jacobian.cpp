@@ -34,9 +34,10 @@ constexpr double kForgottenV = 1e-13;
 // (lane, partial derivative), duplicates allowed. A tick's quantities each depend directly on a few variables (the
 // two knots it interpolates between, the SOC offset, Ea, I0); only the RC voltages carry every lane (dense).
 struct Grad {
-    // The longest list is a second pair's tau = R C: R from two knots' log R2 and the interpolation weight's two
-    // (SOC offset, capacity scale), times the temperature and current factors (2), plus C2 from two knots' three
-    // variables each and the weight's two: 14 entries. A longer one is a programming error (logic_error).
+    // The longest list is a second pair's tau = R C: R from two knots' log R2 and the interpolation weight's four
+    // (SOC offset and capacity scale, through the tick's start and end SOC), times the temperature and current
+    // factors (2), plus C2 from two knots' three variables each and the weight's four: 18 entries. A longer one is a
+    // programming error (logic_error).
     static constexpr int kMax = 24;
     int n = 0;
     std::array<int, kMax> lane{};
@@ -174,7 +175,7 @@ private:
         std::array<Dense, 5> dv{};
         Dense dv_prev{}, dvm{};
         std::size_t r = range.r, rs = range.rs;
-        Grad dsoc0, dsoc1, dwr, dwo, dft, dfi, dfr, gR, gC, gr, gtau, gocv, gr0;
+        Grad dsoc0, dsoc1, dwr, dw0, dwo, dft, dfi, dfr, gR, gC, gr, gtau, gocv, gr0;
         const int nl = ln.count;
         auto forgotten_all = [&] {
             for (int l = 0; l < nl; ++l)
@@ -191,10 +192,10 @@ private:
             const double soc0 = s_first + off + gain * u0, soc1 = s_first + off + gain * u1;
             dsoc0.n = 0, dsoc0.add(ln.offset[0], 1.0), dsoc0.add(ln.offset[1], gain * u0);
             dsoc1.n = 0, dsoc1.add(ln.offset[0], 1.0), dsoc1.add(ln.offset[1], gain * u1);
-            // R and C: linear between the tick's two knots, held outside the table.
+            // R and C: linear between the tick's two knots at its mid-SOC, held outside the table.
             const int idx = trace.knot[k];
-            double wr = (soc0 - g.soc(idx)) / g.width(idx);
-            dwr.n = 0, dwr.add(dsoc0, 1.0 / g.width(idx));
+            double wr = (0.5 * (soc0 + soc1) - g.soc(idx)) / g.width(idx);
+            dwr.n = 0, dwr.add(dsoc0, 0.5 / g.width(idx)), dwr.add(dsoc1, 0.5 / g.width(idx));
             if (wr < 0) wr = 0.0, dwr.n = 0;
             if (wr > 1) wr = 1.0, dwr.n = 0;
             if (lo == hi) wr = 0.0, dwr.n = 0;
@@ -207,9 +208,15 @@ private:
                 f_t = std::exp(ea_scaled * c);
                 dft.add(ln.ea, f_t * c);
             }
+            // R0 where the tick's voltage is read, at its end (on the same knot interval, held outside it).
+            double w0 = (soc1 - g.soc(idx)) / g.width(idx);
+            dw0.n = 0, dw0.add(dsoc1, 1.0 / g.width(idx));
+            if (w0 < 0) w0 = 0.0, dw0.n = 0;
+            if (w0 > 1) w0 = 1.0, dw0.n = 0;
+            if (lo == hi) w0 = 0.0, dw0.n = 0;
             const int dir0 = i < 0 ? 0 : 1;
             const double r0_knots = lerp_grad(dir0 ? a.r0c : a.r0d, dir0 ? b.r0c : b.r0d, kg[ia][dir0][0], kg[ib][dir0][0],
-                                              wr, dwr, gR);
+                                              w0, dw0, gR);
             gr0.n = 0, gr0.add(gR, f_t), gr0.add(dft, r0_knots);
             auto advance = [&](double ic_a, double dt_s, double ddt_dlag) {
                 double fi = 1.0;

@@ -222,20 +222,21 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         T wt;
         locate(socm, idx, wt);
         if (trace) trace->knot[k] = idx;
-        T wr = wt;  // hold outside the table for R and C
-        if (scalar(wr) < 0) wr = T(0.0);
-        if (scalar(wr) > 1) wr = T(1.0);
-        if (lo == hi) wr = T(0.0);
+        // A weight on the tick's knot interval, held at its ends (R, C and R0 are held outside the table).
+        auto hold = [&](T x) {
+            if (scalar(x) < 0) x = T(0.0);
+            if (scalar(x) > 1) x = T(1.0);
+            if (lo == hi) x = T(0.0);
+            return x;
+        };
+        const T wr = hold(wt);
         const auto& a = kv[idx - lo];
         const auto& b = kv[std::min(idx + 1, hi) - lo];
         auto lerp = [&](const T& x, const T& y) { return x + wr * (y - x); };
         T f_t(1.0);  // the current factor is applied per sub-step in advance()
         if (g.temperature) f_t = exp(ea / kGasConstantJPerMolK * (1.0 / (tk.temperature_c + kZeroCelsiusK) - 1.0 / g.t_ref_k));
-        // R0 where the tick's voltage is read, at its end (on the same knot interval, held outside it).
-        T w0 = (soc1 - g.soc(idx)) / g.width(idx);
-        if (scalar(w0) < 0) w0 = T(0.0);
-        if (scalar(w0) > 1) w0 = T(1.0);
-        if (lo == hi) w0 = T(0.0);
+        // R0 where the tick's voltage is read, at its end (on the same knot interval).
+        const T w0 = hold((soc1 - g.soc(idx)) / g.width(idx));
         const T r0d = (a.r0d + w0 * (b.r0d - a.r0d)) * f_t, r0c = (a.r0c + w0 * (b.r0c - a.r0c)) * f_t;
         // The RC pairs over a span dt with current ic held (R and C at this tick's SOC and temperature).
         auto advance = [&](double ic_a, const T& dt) {

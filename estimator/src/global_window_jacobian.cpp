@@ -194,11 +194,15 @@ private:
             dsoc1.n = 0, dsoc1.add(ln.offset[0], 1.0), dsoc1.add(ln.offset[1], gain * u1);
             // R and C: linear between the tick's two knots at its mid-SOC, held outside the table.
             const int idx = trace.knot[k];
-            double wr = (0.5 * (soc0 + soc1) - g.soc(idx)) / g.width(idx);
+            // A weight on the tick's knot interval and its gradient, held at the interval's ends.
+            auto hold = [&](double x, Grad& dx) {
+                if (x < 0) x = 0.0, dx.n = 0;
+                if (x > 1) x = 1.0, dx.n = 0;
+                if (lo == hi) x = 0.0, dx.n = 0;
+                return x;
+            };
             dwr.n = 0, dwr.add(dsoc0, 0.5 / g.width(idx)), dwr.add(dsoc1, 0.5 / g.width(idx));
-            if (wr < 0) wr = 0.0, dwr.n = 0;
-            if (wr > 1) wr = 1.0, dwr.n = 0;
-            if (lo == hi) wr = 0.0, dwr.n = 0;
+            const double wr = hold((0.5 * (soc0 + soc1) - g.soc(idx)) / g.width(idx), dwr);
             const int ia = idx - lo, ib = std::min(idx + 1, hi) - lo;
             const auto &a = kv[ia], &b = kv[ib];
             double f_t = 1.0;
@@ -208,12 +212,9 @@ private:
                 f_t = std::exp(ea_scaled * c);
                 dft.add(ln.ea, f_t * c);
             }
-            // R0 where the tick's voltage is read, at its end (on the same knot interval, held outside it).
-            double w0 = (soc1 - g.soc(idx)) / g.width(idx);
+            // R0 where the tick's voltage is read, at its end (on the same knot interval).
             dw0.n = 0, dw0.add(dsoc1, 1.0 / g.width(idx));
-            if (w0 < 0) w0 = 0.0, dw0.n = 0;
-            if (w0 > 1) w0 = 1.0, dw0.n = 0;
-            if (lo == hi) w0 = 0.0, dw0.n = 0;
+            const double w0 = hold((soc1 - g.soc(idx)) / g.width(idx), dw0);
             const int dir0 = i < 0 ? 0 : 1;
             const double r0_knots = lerp_grad(dir0 ? a.r0c : a.r0d, dir0 ? b.r0c : b.r0d, kg[ia][dir0][0], kg[ib][dir0][0],
                                               w0, dw0, gR);

@@ -26,6 +26,13 @@ namespace {
 using namespace global_window;
 
 constexpr double kOcvCurvatureScaleV = 0.01;
+// A step lag (a fraction of the sample interval, in [0, 1]) whose one sd spans more than a quarter of the interval
+// is not identified by the data.
+constexpr double kStepLagUnidentifiedSd = 0.25;
+// The search ranges of the activation energy (in its scaled unit, 1e4 J/mol) and of the exchange current (per
+// reference current).
+constexpr double kEaMaxScaled = 15.0;
+constexpr double kI0MinPerRef = 0.5, kI0MaxPerRef = 1000.0;
 
 // The curvature of f over three knots at spacings h1, h2 as a residual whose square approximates the integral
 // of (f'' href^2)^2 / href over the knots' span: for h1 = h2 = href it is the plain second difference a - 2b + c,
@@ -88,6 +95,7 @@ struct Builder {
     std::vector<bool> ocv_free;
     double ea = 0.0, log_i0 = 0.0;  // Ea / 1e4 J/mol, log I0 (each its own block, held when not identified)
     double step_lag = 0.0;          // fraction of a step's sample interval the new current flows before its row
+    bool hold_step_lag = false;     // problem(): the step lag constant
     std::array<double, 2> slow{};   // log R3 (Ohm), log tau3 (s): the slow pair (held when not identified)
     std::vector<std::array<double, 2>> offsets;  // per window (used when fit_offset): SOC offset, log capacity scale
     std::vector<std::unique_ptr<ceres::CostFunction>> window_costs;
@@ -202,6 +210,7 @@ struct Builder {
         p->AddParameterBlock(&step_lag, 1);
         p->SetParameterLowerBound(&step_lag, 0, 0.0);
         p->SetParameterUpperBound(&step_lag, 0, 1.0);
+        if (hold_step_lag) p->SetParameterBlockConstant(&step_lag);
         p->AddParameterBlock(slow.data(), 2);
         for (std::size_t w = 0; w < windows.size(); ++w)
             if (use[w]) p->AddResidualBlock(window_costs[w].get(), nullptr, blocks_of(w));
@@ -228,15 +237,15 @@ struct Builder {
         }
         if (grid.temperature) {
             p->SetParameterLowerBound(&ea, 0, 0.0);
-            p->SetParameterUpperBound(&ea, 0, 15.0);
+            p->SetParameterUpperBound(&ea, 0, kEaMaxScaled);
         } else {
             p->SetParameterBlockConstant(&ea);
         }
         if (grid.current) {
             // I0 below half the reference current would make the polarization at rest (factor 1/asinh_ratio) several
             // times that under the pulses that measured it: the relaxation then passes for series resistance.
-            p->SetParameterLowerBound(&log_i0, 0, std::log(0.5 * grid.i_ref_a));
-            p->SetParameterUpperBound(&log_i0, 0, std::log(1000.0 * grid.i_ref_a));
+            p->SetParameterLowerBound(&log_i0, 0, std::log(kI0MinPerRef * grid.i_ref_a));
+            p->SetParameterUpperBound(&log_i0, 0, std::log(kI0MaxPerRef * grid.i_ref_a));
         } else {
             p->SetParameterBlockConstant(&log_i0);
         }
@@ -492,7 +501,7 @@ nlohmann::json GlobalFitResult::to_json() const {
     for (const auto& [w, rms] : cross_validation) j["cross_validation"].push_back({{"weight", w}, {"held_out_rms_v", num(rms)}});
     j["rms_v"] = num(rms_v);
     j["residual_lag1_autocorrelation"] = num(residual_autocorrelation);
-    j["step_lag"] = num(step_lag);
+    j["step_lag"] = value_json(step_lag);
     j["knots"] = nlohmann::json::array();
     for (std::size_t k = 0; k < params.soc.size(); ++k) {
         nlohmann::json e = {{"soc", params.soc[k]}};
@@ -871,32 +880,35 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         out.notes.push_back(printf_text("%d table knots restarted from their well-fitted neighbours' RC values (a lower "
                                         "objective than the fit from the common start)",
                                         restarted));
-    auto problem = b.problem(all);
     if (options.check_jacobian) out.jacobian_mismatch = std::max(out.jacobian_mismatch, b.jacobian_mismatch());
 
-    // Residual statistics.
-    double sse = 0, lag = 0, var = 0;
-    std::size_t n_res = 0;
-    for (std::size_t w = 0; w < b.windows.size(); ++w) {
-        const auto [s, m] = b.window_sse({w});
-        out.windows[w].rms_v = std::sqrt(s / std::max<std::size_t>(m, 1)) * b.grid.sigma_v;
-        out.windows[w].soc_offset = b.offsets[w][0];
-        out.windows[w].capacity_scale = std::exp(b.offsets[w][1]);
-        sse += s, n_res += m;
-        const auto res = b.tick_residuals(w);
-        for (std::size_t i = 1; i < res.size(); ++i) lag += res[i] * res[i - 1], var += res[i] * res[i];
-    }
-    out.rms_v = std::sqrt(sse / std::max<std::size_t>(n_res, 1)) * b.grid.sigma_v;
-    const double rho = var > 0 ? std::clamp(lag / var, 0.0, 0.99) : 0.0;
-    out.residual_autocorrelation = var > 0 ? lag / var : kNaN;
-    out.step_lag = b.step_lag;
-
-    // Uncertainty: (J'J)^-1 of the whole problem (smoothness included, as a prior), scaled by the residual
-    // variance and inflated by (1 + rho) / (1 - rho) for correlated residuals.
+    // Residual statistics and the uncertainty at the current state.
     const int n_rc = b.grid.n * kKnotSize, n_ocv = b.grid.ocv_n();
-    const int n_par = n_rc + n_ocv + 4;  // knots, OCV knots, Ea, log I0, log R3, log tau3
+    // knots, OCV knots, Ea, log I0, log R3, log tau3, step lag: the lag trades against R0 and R1 (exactly, on
+    // uniformly sampled steps), so the tables' uncertainties are marginal over it as well.
+    const int n_par = n_rc + n_ocv + 5;
+    const int g_lag = n_par - 1;
     Eigen::MatrixXd cov = Eigen::MatrixXd::Constant(n_par, n_par, kNaN);
-    if (options.compute_uncertainty) {
+    auto assess = [&] {
+        auto problem = b.problem(all);
+        double sse = 0, lag = 0, var = 0;
+        std::size_t n_res = 0;
+        for (std::size_t w = 0; w < b.windows.size(); ++w) {
+            const auto [s, m] = b.window_sse({w});
+            out.windows[w].rms_v = std::sqrt(s / std::max<std::size_t>(m, 1)) * b.grid.sigma_v;
+            out.windows[w].soc_offset = b.offsets[w][0];
+            out.windows[w].capacity_scale = std::exp(b.offsets[w][1]);
+            sse += s, n_res += m;
+            const auto res = b.tick_residuals(w);
+            for (std::size_t i = 1; i < res.size(); ++i) lag += res[i] * res[i - 1], var += res[i] * res[i];
+        }
+        out.rms_v = std::sqrt(sse / std::max<std::size_t>(n_res, 1)) * b.grid.sigma_v;
+        const double rho = var > 0 ? std::clamp(lag / var, 0.0, 0.99) : 0.0;
+        out.residual_autocorrelation = var > 0 ? lag / var : kNaN;
+
+        // Uncertainty: (J'J)^-1 of the whole problem (smoothness included, as a prior), scaled by the residual
+        // variance and inflated by (1 + rho) / (1 - rho) for correlated residuals.
+        if (!options.compute_uncertainty) return;
         progress(0.9, "global fit: uncertainty");
         ceres::Problem::EvaluateOptions eo;
         for (auto& k : b.knots) eo.parameter_blocks.push_back(k.data());
@@ -904,6 +916,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         eo.parameter_blocks.push_back(&b.ea);
         eo.parameter_blocks.push_back(&b.log_i0);
         eo.parameter_blocks.push_back(b.slow.data());
+        eo.parameter_blocks.push_back(&b.step_lag);
         double cost = 0;
         ceres::CRSMatrix jac;
         problem->Evaluate(eo, &cost, nullptr, nullptr, &jac);
@@ -921,9 +934,25 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double s2 = sse / dof * (1 + rho) / (1 - rho);
         cov *= s2;
         // Held blocks (constant global) have zero columns: NaN for them.
-        if (!b.grid.temperature) cov(n_par - 4, n_par - 4) = kNaN;
-        if (!b.grid.current) cov(n_par - 3, n_par - 3) = kNaN;
-        if (!b.grid.slow) cov(n_par - 2, n_par - 2) = cov(n_par - 1, n_par - 1) = kNaN;
+        if (!b.grid.temperature) cov(n_par - 5, n_par - 5) = kNaN;
+        if (!b.grid.current) cov(n_par - 4, n_par - 4) = kNaN;
+        if (!b.grid.slow) cov(n_par - 3, n_par - 3) = cov(n_par - 2, n_par - 2) = kNaN;
+    };
+    assess();
+    // A step lag the data cannot tell (one sd spans more than a quarter of the sample interval: uniformly sampled
+    // steps, where it trades against R0 and R1 exactly) is not left where the model's other errors push it: it is
+    // held at 0, the convention of a cycler that writes a record at each step's start, and the tables refitted.
+    // Its uncertainty (and through it the tables') is still that of a free lag.
+    if (std::isfinite(cov(g_lag, g_lag)) && std::sqrt(cov(g_lag, g_lag)) > kStepLagUnidentifiedSd && b.step_lag > 1e-3) {
+        const double fitted_lag = b.step_lag;
+        b.step_lag = 0.0;
+        b.hold_step_lag = true;
+        b.solve(*b.problem(all), options.max_iterations);
+        b.hold_step_lag = false;
+        out.notes.push_back(printf_text("the data do not identify when a current step happens within its sample interval "
+                                        "(fitted %.2f +- %.2f of an interval): held at 0, a record at the step's start",
+                                        fitted_lag, std::sqrt(cov(g_lag, g_lag))));
+        assess();
     }
     // Which knots have data of each direction nearby, and which OCV knots have rows near them.
     std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
@@ -1032,12 +1061,16 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             out.ocv[j].flags.push_back("implausible");
             out.notes.push_back("fitted OCV not increasing at SOC " + std::to_string(p.soc[j]));
         }
-    const int g0 = n_par - 4, g1 = n_par - 3, g2 = n_par - 2, g3 = n_par - 1;
+    const int g0 = n_par - 5, g1 = n_par - 4, g2 = n_par - 3, g3 = n_par - 2;
+    out.step_lag = {b.step_lag, std::sqrt(cov(g_lag, g_lag)), {}};
+    if (b.step_lag < 1e-3 || b.step_lag > 1.0 - 1e-3) out.step_lag.flags.push_back("at_bound");
+    if (std::isfinite(out.step_lag.sd) && out.step_lag.sd > kStepLagUnidentifiedSd) out.step_lag.flags.push_back("uncertain");
     if (b.grid.temperature) {
         const double ea = b.ea * kEaScale;
         out.activation_energy_j_per_mol = {ea, kEaScale * std::sqrt(cov(g0, g0)), {}};
         if (ea < 0 || ea > 120e3) out.activation_energy_j_per_mol.flags.push_back("implausible");
-        if (ea < 1000) out.activation_energy_j_per_mol.flags.push_back("at_bound");
+        if (out.activation_energy_j_per_mol.sd > ea) out.activation_energy_j_per_mol.flags.push_back("uncertain");
+        if (ea < 1000 || b.ea > 0.99 * kEaMaxScaled) out.activation_energy_j_per_mol.flags.push_back("at_bound");
         if (ea > 0) p.extensions.resistance_temperature = ResistanceTemperatureExt{ea};
     } else {
         out.notes.push_back("the recordings' cell temperature spans less than " +
@@ -1048,7 +1081,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double i0 = std::exp(b.log_i0);
         out.exchange_current_a = {i0, i0 * std::sqrt(cov(g1, g1)), {}};
         if (out.exchange_current_a.sd > i0) out.exchange_current_a.flags.push_back("uncertain");
-        if (i0 < 0.51 * b.grid.i_ref_a) out.exchange_current_a.flags.push_back("at_bound");
+        if (i0 < 1.01 * kI0MinPerRef * b.grid.i_ref_a || i0 > 0.99 * kI0MaxPerRef * b.grid.i_ref_a)
+            out.exchange_current_a.flags.push_back("at_bound");
         if (i0 < 50.0 * b.grid.i_ref_a)  // above that the polarization is linear over the currents seen
             p.extensions.resistance_current = ResistanceCurrentExt{i0, b.grid.i_ref_a};
     } else {

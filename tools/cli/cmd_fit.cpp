@@ -1,5 +1,6 @@
 #include <cmath>
 #include <cstdio>
+#include <initializer_list>
 #include <map>
 #include <utility>
 
@@ -57,22 +58,27 @@ void print_parameter_table(const estimator::Characterization& c) {
         if (std::isfinite(c.global->start_time_constants_s[0]))
             std::printf("from a start at tau %.0f / %.0f s (lower objective than from the initial tables), ",
                         c.global->start_time_constants_s[0], c.global->start_time_constants_s[1]);
-        if (c.global->temperature_dependence)
-            std::printf("Ea %.1f +- %.1f kJ/mol, ", c.global->activation_energy_j_per_mol.value / 1e3,
-                        c.global->activation_energy_j_per_mol.sd / 1e3);
-        if (c.global->current_dependence)
-            std::printf("I0 %.2f +- %.2f A (ref %.2f A), ", c.global->exchange_current_a.value,
-                        c.global->exchange_current_a.sd, c.global->reference_current_a);
-        if (c.global->params.extensions.extra_rc) {
-            // Its flags as the summary has them (at_bound, uncertain), not one word for all of them.
+        // Each global value with its flags (at_bound, uncertain, implausible), as the fit JSON has them.
+        auto flags_of = [](std::initializer_list<const estimator::FittedValue*> values) {
             std::string flags;
-            for (const auto* v : {&c.global->slow_r_ohm, &c.global->slow_tau_s})
+            for (const auto* v : values)
                 for (const auto& f : v->flags) flags += (flags.empty() ? " (" : ", ") + f;
-            if (!flags.empty()) flags += ")";
+            return flags.empty() ? flags : flags + ")";
+        };
+        if (c.global->temperature_dependence)
+            std::printf("Ea %.1f +- %.1f kJ/mol%s, ", c.global->activation_energy_j_per_mol.value / 1e3,
+                        c.global->activation_energy_j_per_mol.sd / 1e3,
+                        flags_of({&c.global->activation_energy_j_per_mol}).c_str());
+        if (c.global->current_dependence)
+            std::printf("I0 %.2f +- %.2f A (ref %.2f A)%s, ", c.global->exchange_current_a.value,
+                        c.global->exchange_current_a.sd, c.global->reference_current_a,
+                        flags_of({&c.global->exchange_current_a}).c_str());
+        if (c.global->params.extensions.extra_rc)
             std::printf("slow pair R3 %.2f +- %.2f mOhm, tau3 %.0f +- %.0f s%s, ", c.global->slow_r_ohm.value * 1e3,
                         c.global->slow_r_ohm.sd * 1e3, c.global->slow_tau_s.value, c.global->slow_tau_s.sd,
-                        flags.c_str());
-        }
+                        flags_of({&c.global->slow_r_ohm, &c.global->slow_tau_s}).c_str());
+        std::printf("current steps %.2f +- %.2f of a sample before their row%s, ", c.global->step_lag.value,
+                    c.global->step_lag.sd, flags_of({&c.global->step_lag}).c_str());
         std::printf("%zu values flagged (? uncertain or unidentified, ! implausible)\n", c.global->flagged_count());
     }
     std::printf("pulse sets: %zu fitted", c.pulse_fits.size());

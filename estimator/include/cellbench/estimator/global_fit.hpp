@@ -91,7 +91,7 @@ struct GlobalFitOptions {
     // the end and wins where its objective is below the fit from the initial set. Empty: the initial set only.
     std::vector<std::array<double, 2>> start_time_constants_s = {{1.0, 20.0}, {5.0, 100.0}, {10.0, 300.0}};
     int start_iterations = 20;
-    bool compute_uncertainty = true;
+    bool compute_uncertainty = true;  // also what tells an unidentified step lag (then held at 0 and refitted)
     // Tests: compare every window's Jacobian with Ceres' dynamic autodiff over the whole window (the reference the
     // fit's cheaper derivative passes must reproduce) at the start and at the fitted values; the largest relative
     // difference lands in GlobalFitResult::jacobian_mismatch. Costs several reference evaluations per window.
@@ -139,7 +139,7 @@ struct GlobalFitResult {
     std::vector<GlobalWindow> windows;
     double rms_v = kNaN;
     double residual_autocorrelation = kNaN;
-    double step_lag = kNaN;  // fitted fraction of a step's sample interval the new current flowed before its row
+    FittedValue step_lag;  // fitted fraction of a step's sample interval the new current flowed before its row
     double jacobian_mismatch = kNaN;  // GlobalFitOptions::check_jacobian: the largest relative difference found
     std::vector<std::string> notes;
 

@@ -46,6 +46,23 @@ void two_node_step(const double a[2][2], const double b[2], double x[2], double 
     x[1] = xss[1] + c1 * a[1][0] * y[0] + (c0 + c1 * a[1][1]) * y[1];
 }
 
+// The core and surface nodes (ThermalSecondOrderExt) over dt_s with the heat held: the irreversible heat and the
+// reversible heat i T dU/dT at the core's temperature enter the core, the surface exchanges with the ambient through
+// R_th. Updates s's core and surface temperatures from core_c (the core at the step's start) and s.temperature_c;
+// returns the reversible heat in W at the step's mean core temperature.
+double two_node_thermal_step(const ThermalSecondOrderExt& so, const ThermalParams& th, double i, double ehc,
+                             double heat_irreversible_w, double ambient_c, double core_c, double dt_s, CellState& s) {
+    const double cc = so.core_fraction * th.c_th_j_per_k, cs = th.c_th_j_per_k - cc;
+    const double g_cs = 1.0 / so.r_core_surface_k_per_w, g_sa = 1.0 / th.r_th_k_per_w;
+    const double a[2][2] = {{(-g_cs + i * ehc) / cc, g_cs / cc}, {g_cs / cs, (-g_cs - g_sa) / cs}};
+    const double b[2] = {(heat_irreversible_w + i * ehc * kZeroCelsiusK) / cc, g_sa * ambient_c / cs};
+    double x[2] = {core_c, s.temperature_c};
+    two_node_step(a, b, x, dt_s);
+    s.core_temperature_c = x[0];
+    s.temperature_c = x[1];
+    return i * ehc * (0.5 * (core_c + x[0]) + kZeroCelsiusK);
+}
+
 }  // namespace
 
 CellModel::CellModel(ParameterSet params) : params_(std::move(params)) { params_.validate(); }
@@ -154,16 +171,8 @@ CellOutputs CellModel::step(CellState& s, double current_a, double ambient_c, do
             out.heat_reversible_w = i * ehc * (0.5 * (t0 + t1) + kZeroCelsiusK);
         } else {
             // Core (heat source, reversible heat at the core temperature) and surface nodes, mean heat held.
-            const auto& so = *ext.thermal_second_order;
-            const double cc = so.core_fraction * th.c_th_j_per_k, cs = th.c_th_j_per_k - cc;
-            const double g_cs = 1.0 / so.r_core_surface_k_per_w, g_sa = 1.0 / th.r_th_k_per_w;
-            const double a[2][2] = {{(-g_cs + i * ehc) / cc, g_cs / cc}, {g_cs / cs, (-g_cs - g_sa) / cs}};
-            const double b[2] = {(out.heat_irreversible_w + i * ehc * kZeroCelsiusK) / cc, g_sa * ambient_c / cs};
-            double x[2] = {tc0, t0};
-            two_node_step(a, b, x, dt_s);
-            s.core_temperature_c = x[0];
-            s.temperature_c = x[1];
-            out.heat_reversible_w = i * ehc * (0.5 * (tc0 + x[0]) + kZeroCelsiusK);
+            out.heat_reversible_w = two_node_thermal_step(*ext.thermal_second_order, th, i, ehc, out.heat_irreversible_w,
+                                                          ambient_c, tc0, dt_s, s);
         }
 
         for (int j = 0; j < 5; ++j) *v[j] = settled(vss[j] + d[j] * std::exp(-rate[j] * dt_s));
@@ -405,16 +414,8 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
         s.temperature_c = t1;
         out.heat_reversible_w = i * ehc * (0.5 * (t0 + t1) + kZeroCelsiusK);
     } else {
-        const auto& so = *ext.thermal_second_order;
-        const double cc = so.core_fraction * th.c_th_j_per_k, cs = th.c_th_j_per_k - cc;
-        const double g_cs = 1.0 / so.r_core_surface_k_per_w, g_sa = 1.0 / th.r_th_k_per_w;
-        const double a[2][2] = {{(-g_cs + i * ehc) / cc, g_cs / cc}, {g_cs / cs, (-g_cs - g_sa) / cs}};
-        const double b[2] = {(out.heat_irreversible_w + i * ehc * kZeroCelsiusK) / cc, g_sa * ambient_c / cs};
-        double x[2] = {tc0, t0};
-        two_node_step(a, b, x, dt_s);
-        s.core_temperature_c = x[0];
-        s.temperature_c = x[1];
-        out.heat_reversible_w = i * ehc * (0.5 * (tc0 + x[0]) + kZeroCelsiusK);
+        out.heat_reversible_w = two_node_thermal_step(*ext.thermal_second_order, th, i, ehc, out.heat_irreversible_w,
+                                                      ambient_c, tc0, dt_s, s);
     }
 
     for (int j = 0; j < lanes; ++j) *v[j] = settled(d[j] != 0.0 ? vss[j] + d[j] * e[j] : vss[j] + d[j]);

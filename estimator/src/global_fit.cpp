@@ -943,7 +943,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // steps, where it trades against R0 and R1 exactly) is not left where the model's other errors push it: it is
     // held at 0, the convention of a cycler that writes a record at each step's start, and the tables refitted.
     // Its uncertainty (and through it the tables') is still that of a free lag.
-    if (std::isfinite(cov(g_lag, g_lag)) && std::sqrt(cov(g_lag, g_lag)) > kStepLagUnidentifiedSd && b.step_lag > 1e-3) {
+    if (options.hold_unidentified_step_lag && std::isfinite(cov(g_lag, g_lag)) &&
+        std::sqrt(cov(g_lag, g_lag)) > kStepLagUnidentifiedSd && b.step_lag > 1e-3) {
         const double fitted_lag = b.step_lag;
         b.step_lag = 0.0;
         b.hold_step_lag = true;

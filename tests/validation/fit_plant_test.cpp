@@ -145,6 +145,7 @@ est::Characterization characterize_plant(const plant::Dataset& d) {
     if (const char* k = std::getenv("CELLBENCH_VALIDATION_DIRECTION_PRIOR")) co.global.direction_prior = std::atof(k);
     if (std::getenv("CELLBENCH_VALIDATION_NO_CURRENT_DEPENDENCE")) co.global.current_dependence = false;
     if (std::getenv("CELLBENCH_VALIDATION_NO_SLOW_PAIR")) co.global.slow_relaxation = false;
+    if (std::getenv("CELLBENCH_VALIDATION_FREE_STEP_LAG")) co.global.hold_unidentified_step_lag = false;
     return est::characterize(recs, co);
 }
 

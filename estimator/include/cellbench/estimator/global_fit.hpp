@@ -85,6 +85,9 @@ struct GlobalFitOptions {
     // from the SOC-step discharges and the smoothness.
     double min_pulse_window_soc = 0.02;
     double step_lag = 0.0;                   // start value of the fitted current-step timing (0: at the row)
+    // A step lag the data do not identify (its sd over a quarter of the sample interval) is held at 0 and the
+    // tables refitted (global_fit.cpp); false leaves it where the fit put it (diagnostics).
+    bool hold_unidentified_step_lag = true;
     int max_iterations = 80;
     // Starts besides the initial parameter set: uniform (tau1, tau2) in s over SOC, R0 and the OCV from the initial
     // set, its R1 + R2 split 1 : 2. Each is fitted start_iterations on every window; the lowest of them is fitted to

@@ -469,6 +469,11 @@ int restart_poorly_fitted_knots(Builder& b, const std::vector<GlobalWindow>& win
 
 nlohmann::json num(double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(nullptr); }
 
+// A fitted value whose standard deviation exceeds the value itself is "uncertain" (a NaN sd: not judged).
+void flag_if_uncertain(FittedValue& v) {
+    if (std::isfinite(v.sd) && v.sd > v.value) v.flags.push_back("uncertain");
+}
+
 nlohmann::json value_json(const FittedValue& v) {
     nlohmann::json j = {{"value", num(v.value)}, {"sd", num(v.sd)}};
     if (!v.flags.empty()) j["flags"] = v.flags;
@@ -1048,7 +1053,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                 (d == 1 && no_charge) || support[ka][src] < 1.0 || (w > 0 && support[kb][src] < 1.0);
             for (int q = 0; q < 7; ++q) {
                 if (!ok[q]) v[q].flags.push_back("implausible");
-                if (std::isfinite(v[q].sd) && v[q].sd > v[q].value) v[q].flags.push_back("uncertain");
+                flag_if_uncertain(v[q]);
                 if (unidentified) v[q].flags.push_back("unidentified");
             }
             RcTable& t = d ? p.charge : p.discharge;
@@ -1070,7 +1075,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double ea = b.ea * kEaScale;
         out.activation_energy_j_per_mol = {ea, kEaScale * std::sqrt(cov(g0, g0)), {}};
         if (ea < 0 || ea > 120e3) out.activation_energy_j_per_mol.flags.push_back("implausible");
-        if (out.activation_energy_j_per_mol.sd > ea) out.activation_energy_j_per_mol.flags.push_back("uncertain");
+        flag_if_uncertain(out.activation_energy_j_per_mol);
         if (ea < 1000 || b.ea > 0.99 * kEaMaxScaled) out.activation_energy_j_per_mol.flags.push_back("at_bound");
         if (ea > 0) p.extensions.resistance_temperature = ResistanceTemperatureExt{ea};
     } else {
@@ -1081,7 +1086,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     if (b.grid.current) {
         const double i0 = std::exp(b.log_i0);
         out.exchange_current_a = {i0, i0 * std::sqrt(cov(g1, g1)), {}};
-        if (out.exchange_current_a.sd > i0) out.exchange_current_a.flags.push_back("uncertain");
+        flag_if_uncertain(out.exchange_current_a);
         if (i0 < 1.01 * kI0MinPerRef * b.grid.i_ref_a || i0 > 0.99 * kI0MaxPerRef * b.grid.i_ref_a)
             out.exchange_current_a.flags.push_back("at_bound");
         if (i0 < 50.0 * b.grid.i_ref_a)  // above that the polarization is linear over the currents seen
@@ -1095,7 +1100,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         out.slow_r_ohm = {r3, r3 * std::sqrt(cov(g2, g2)), {}};
         out.slow_tau_s = {tau3, tau3 * std::sqrt(cov(g3, g3)), {}};
         for (auto* v : {&out.slow_r_ohm, &out.slow_tau_s})
-            if (std::isfinite(v->sd) && v->sd > v->value) v->flags.push_back("uncertain");
+            flag_if_uncertain(*v);
         const bool absent = r3 < 100 * kSlowRMinOhm;  // at its lower bound: no slow pair
         if (absent) out.slow_r_ohm.flags.push_back("at_bound");
         if (tau3 < 1.01 * kSlowTauMinS || tau3 > 0.99 * b.grid.slow_tau_max_s) out.slow_tau_s.flags.push_back("at_bound");

@@ -35,6 +35,9 @@ struct EffectSpec {
     bool (*present)(const ParameterSet&) = nullptr;  // the parameter set already holds it
     // The recording's initial SOC moved by this much (a state of the recording, not of the parameter set).
     double (*start_soc_offset)(const std::vector<double>&) = nullptr;
+    // A state of the diagnosed recording (its start, its chamber's drift), not of the cell or the bench: it does not
+    // carry over to another recording (DiagnoseOptions::confirm).
+    bool recording_state = false;
 };
 
 const std::vector<EffectSpec>& specs() {
@@ -131,7 +134,8 @@ const std::vector<EffectSpec>& specs() {
          [](ParameterSet&, const std::vector<double>&) {},
          "parameters_wrong",
          nullptr,
-         [](const std::vector<double>& x) { return x[0]; }},
+         [](const std::vector<double>& x) { return x[0]; },
+         true},
         {"ocv_offset",
          // a plain offset: a slope along SOC is what a capacity error looks like on a drive that discharges
          // steadily (the two cannot be told apart there), and a local error is ocv_band's
@@ -154,7 +158,11 @@ const std::vector<EffectSpec>& specs() {
         {"ambient_drift",
          {{"offset_c", -5.0, 5.0, false, true}, {"rate_c_per_h", -10.0, 10.0, false, true}},
          {{0.0, 0.0}, {0.5, 1.0}, {-0.5, -1.0}},
-         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ambient_drift = AmbientDriftExt{x[0], x[1]}; }},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ambient_drift = AmbientDriftExt{x[0], x[1]}; },
+         "physics_missing",
+         nullptr,
+         nullptr,
+         true},
     };
     return s;
 }
@@ -399,6 +407,29 @@ nlohmann::json rms_json(const QuantityRms& q) {
     return {{"voltage_rms_v", n(q.voltage_v)}, {"temperature_rms_c", n(q.temperature_c)}, {"heat_flux_rms_w", n(q.heat_flux_w)}};
 }
 
+// The parameter set as it carries over to another recording of the cell: without the diagnosed recording's own
+// states (EffectSpec::recording_state; initial_soc never enters the parameter set).
+ParameterSet carried_over(ParameterSet p) {
+    p.extensions.ambient_drift.reset();
+    return p;
+}
+
+// The quantities a confirmation found worse (or better), with their RMS before -> after.
+std::string changes_in_words(const Confirmation& c, bool worse) {
+    std::string out;
+    auto one = [&](const char* name, const char* words, const std::optional<double>& b, const std::optional<double>& a,
+                   double scale, const char* fmt, const char* unit) {
+        const auto& list = worse ? c.worse : c.better;
+        if (!b || !a || std::find(list.begin(), list.end(), name) == list.end()) return;
+        out += (out.empty() ? "" : ", ") + std::string(words) + " " + printf_text(fmt, *b * scale) + " -> " +
+               printf_text(fmt, *a * scale) + " " + unit;
+    };
+    one("voltage", "voltage", c.before.voltage_v, c.after.voltage_v, 1e3, "%.2f", "mV");
+    one("temperature", "temperature", c.before.temperature_c, c.after.temperature_c, 1.0, "%.3f", "degC");
+    one("heat_flux", "heat flux", c.before.heat_flux_w, c.after.heat_flux_w, 1.0, "%.3f", "W");
+    return out;
+}
+
 std::string pct(double x) {
     char b[32];
     std::snprintf(b, sizeof b, "%.0f %%", 100.0 * x);
@@ -634,6 +665,23 @@ std::vector<ConditionError> locate_errors(const ParameterSet& params, const Reco
     return out;
 }
 
+void confirmation_verdict(Confirmation& c, double voltage_floor_v, double temperature_floor_c, double heat_flux_floor_w) {
+    constexpr double kRelative = 0.05;     // of the RMS before
+    constexpr double kFloorShare = 0.1;    // of the instrument's accuracy
+    c.better.clear();
+    c.worse.clear();
+    auto judge = [&](const char* name, const std::optional<double>& b, const std::optional<double>& a, double floor) {
+        if (!b || !a || !std::isfinite(*b) || !std::isfinite(*a)) return;
+        const double margin = std::max(kRelative * *b, kFloorShare * floor);
+        if (*a > floor && *a > *b + margin) c.worse.emplace_back(name);
+        if (*b > floor && *a < *b - margin) c.better.emplace_back(name);
+    };
+    judge("voltage", c.before.voltage_v, c.after.voltage_v, voltage_floor_v);
+    judge("temperature", c.before.temperature_c, c.after.temperature_c, temperature_floor_c);
+    judge("heat_flux", c.before.heat_flux_w, c.after.heat_flux_w, heat_flux_floor_w);
+    c.verdict = !c.worse.empty() ? "contradicts" : (!c.better.empty() ? "confirms" : "neutral");
+}
+
 std::size_t accepted_in_round(const std::vector<Finding>& round) {
     // A finding whose correction sits on its plausible limit ranks after every plausible one.
     auto stronger = [&](std::size_t a, std::size_t b) {
@@ -673,9 +721,12 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     if (duration < 60.0 * static_cast<double>(folds))
         throw InputError(rec_full.source + ": recording too short to cross-validate (" + std::to_string(duration) +
                          " s; needs at least " + std::to_string(60 * folds) + " s)");
+    for (const Recording* r : options.confirm)
+        if (!r || r->size() < 2) throw InputError("diagnose: a recording to confirm the findings on has fewer than two rows");
     if (options.cancel && options.cancel->load()) throw DiagnoseCancelled();
     progress(0.0, "baseline simulation");
     Diagnosis d;
+    for (const Recording* r : options.confirm) d.confirm_recordings.push_back(r->source);
     d.baseline = rms_of(params, rec_full, &d.baseline_trace);
     d.breakdown = locate_errors(params, rec_full, d.baseline_trace);
     {
@@ -763,6 +814,10 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         const double j_base_all = objective(pb, base_e, all, evidence);
         std::vector<double> j_base_test(folds);
         for (std::size_t f = 0; f < folds; ++f) j_base_test[f] = objective(pb, base_e, test[f], evidence);
+
+        // The confirm recordings under the current base: each candidate is compared with it.
+        std::vector<QuantityRms> confirm_base;
+        for (const Recording* r : options.confirm) confirm_base.push_back(rms_of(carried_over(current), *r));
 
         std::vector<std::string> todo;
         for (const auto& id : candidates)
@@ -879,6 +934,30 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                                               "e.g. a hysteresis, or its SOC differs)";
                         }
                     }
+                    // Another recording of the cell that the correction makes worse contradicts it.
+                    if (!spec.recording_state && !options.confirm.empty()) {
+                        const ParameterSet carried = carried_over(p);
+                        std::string against;
+                        for (std::size_t r = 0; r < options.confirm.size(); ++r) {
+                            Confirmation cf;
+                            cf.recording = options.confirm[r]->source;
+                            cf.before = confirm_base[r];
+                            cf.after = rms_of(carried, *options.confirm[r]);
+                            confirmation_verdict(cf, options.voltage_floor_v, options.temperature_floor_c,
+                                                 options.heat_flux_floor_w);
+                            if (cf.verdict == "contradicts") {
+                                fd.contradicted = true;
+                                against += (against.empty() ? "" : "; ") + cf.recording + ": " + changes_in_words(cf, true);
+                            }
+                            fd.confirmation.push_back(std::move(cf));
+                        }
+                        if (fd.contradicted) {
+                            fd.explanation += std::string(fd.significant ? "; it passes the significance test on this recording, but"
+                                                                         : "; and") +
+                                              " another recording of the cell contradicts it (" + against + ")";
+                            fd.significant = false;
+                        }
+                    }
                     round_x[c] = full.x;
                 }
                 const std::size_t k = ++done;
@@ -982,6 +1061,14 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                          printf_text("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
                          printf_text("%.2f", options.temperature_floor_c) + " degC, heat flux " +
                          printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
+        std::string contradicted;
+        for (const auto& f : d.findings)
+            if (f.contradicted && f.score >= options.min_cv_improvement && f.folds_improved + 1 >= folds &&
+                f.delta_bic < options.bic_threshold)
+                contradicted += (contradicted.empty() ? "" : ", ") + f.effect;
+        if (!contradicted.empty())
+            d.summary += "; " + contradicted + " would pass it on this recording, but another recording of the cell "
+                         "contradicts it (see the finding)";
         d.summary += d.unexplained ? ", but the model is NOT adequate: " + d.unexplained->summary + "."
                                    : " and the residual is at the noise level: the model is adequate for this recording.";
     } else {
@@ -1019,6 +1106,27 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
                                  {"explanation", f.explanation},
                                  {"parameters", f.parameters},
                                  {"improved", rms_json(f.improved)}});
+    if (!d.confirm_recordings.empty()) {
+        auto& fj = j["findings"];
+        for (std::size_t k = 0; k < d.findings.size() && k < fj.size(); ++k) {
+            nlohmann::json c = nlohmann::json::array();
+            for (const auto& cf : d.findings[k].confirmation)
+                c.push_back({{"recording", cf.recording},
+                             {"verdict", cf.verdict},
+                             {"before", rms_json(cf.before)},
+                             {"after", rms_json(cf.after)},
+                             {"better", cf.better},
+                             {"worse", cf.worse}});
+            fj[k]["confirmation"] = std::move(c);
+            fj[k]["contradicted"] = d.findings[k].contradicted;
+        }
+        j["confirmation"] = {
+            {"recordings", d.confirm_recordings},
+            {"rule", "each candidate is simulated on these recordings with and without its correction; a quantity is worse "
+                     "when its RMS rises above the instrument's accuracy by more than 5 % and a tenth of that accuracy; a "
+                     "finding any recording makes worse is contradicted and never significant; effects that are a state "
+                     "of the diagnosed recording (initial_soc, ambient_drift) are not checked"}};
+    }
     j["accepted"] = d.accepted;
     j["skipped_in_baseline"] = d.skipped;
     j["holdout"] = d.holdout.is_null() ? nlohmann::json::object() : d.holdout;

@@ -1,7 +1,7 @@
 // diagnose on the real P45B Random Walk with parameters from the default global fit of the real HPPC and 4C
 // discharge: a significant finding, never "adequate" while the residual is above twice the recording's own noise,
 // nothing the baseline holds proposed again, and what it finds must not make the cell's voltage or temperature
-// worse on another real recording (the 4C discharge) or on the HPPC.
+// worse on another real recording (the 4C discharge, given as --confirm) or on the HPPC.
 #include <cmath>
 #include <gtest/gtest.h>
 
@@ -44,8 +44,9 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
     // The default global fit: it already holds the temperature and current dependence (resistance_temperature,
     // resistance_current), which diagnose must not propose again.
     ASSERT_EQ(sh("-q fit " + o + "hppc.bdf.csv " + d + "cc_4c_30degC.bdf.csv -o " + o + "p.json", &out), 0) << out;
+    // The 4C discharge as the other recording every finding must hold on (--confirm).
     ASSERT_EQ(sh("-q diagnose --params " + o + "p.json " + o + "rw.bdf.csv --json " + o + "d.json --improved " + o +
-                     "pi.json --report " + o + "report.html", &out), 0) << out;
+                     "pi.json --report " + o + "report.html --confirm " + d + "cc_4c_30degC.bdf.csv", &out), 0) << out;
     std::printf("%s\n", out.c_str());
     const auto dg = read_json(dir / "d.json");
     EXPECT_EQ(dg["schema"], "cellbench.diagnosis/1");
@@ -61,6 +62,19 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
         EXPECT_EQ(dg["summary"].get<std::string>().find("adequate for this recording"), std::string::npos);
     }
     EXPECT_TRUE(fs::file_size(dir / "report.html") > 10000);
+    // Every candidate that is a property of the cell or the bench was checked on the 4C, and none the 4C makes
+    // worse is significant.
+    ASSERT_TRUE(dg.contains("confirmation")) << dg.dump(2);
+    EXPECT_EQ(dg["confirmation"]["recordings"].size(), 1u);
+    for (const auto& f : dg["findings"]) {
+        ASSERT_TRUE(f.contains("confirmation")) << f.dump(2);
+        const bool state = f["effect"] == "initial_soc" || f["effect"] == "ambient_drift";
+        EXPECT_EQ(f["confirmation"].size(), state ? 0u : 1u) << f.dump(2);
+        for (const auto& c : f["confirmation"]) {
+            std::printf("%s on the 4C: %s\n", f["effect"].get<std::string>().c_str(), c["verdict"].get<std::string>().c_str());
+            if (c["verdict"] == "contradicts") EXPECT_FALSE(f["significant"].get<bool>()) << f.dump(2);
+        }
+    }
     bool any_significant = false;
     for (const auto& f : dg["findings"]) {
         EXPECT_TRUE(f["kind"] == "physics_missing" || f["kind"] == "parameters_wrong");

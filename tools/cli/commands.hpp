@@ -48,6 +48,7 @@ int run_simulate(const SimulateOptions& o);
 struct DiagnoseCliOptions {
     std::string params, recording, json, report, improved;
     std::vector<std::string> effects;  // empty = whole catalogue
+    std::vector<std::string> confirm;  // other BDF recordings of the cell the findings must not make worse
     // The instruments' accuracy (DiagnoseOptions' floors); unset: the library's defaults.
     std::optional<double> voltage_floor_mv, temperature_floor_c, heat_flux_floor_w;
 };

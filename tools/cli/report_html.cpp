@@ -357,6 +357,23 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
         o << "<div class='evidence'>RMS with it: " << rms_cell_json(imp, "voltage_rms_v", 1e3, 1, "mV") << " · "
           << rms_cell_json(imp, "temperature_rms_c", 1, 2, "°C") << " · " << rms_cell_json(imp, "heat_flux_rms_w", 1, 3, "W")
           << "</div>";
+        // What the other recordings of the cell (diagnose --confirm) say about it.
+        if (f.contains("confirmation") && f["confirmation"].is_array()) {
+            if (f["confirmation"].empty() && f.contains("contradicted"))
+                o << "<div class='evidence'>Not checked on the other recordings: a state of this recording, not of the cell</div>";
+            for (const auto& c : f["confirmation"]) {
+                const std::string verdict = c.value("verdict", "");
+                const auto& b = c.contains("before") ? c["before"] : nlohmann::json();
+                const auto& a = c.contains("after") ? c["after"] : nlohmann::json();
+                o << "<div class='evidence'>" << (verdict == "contradicts" ? "<span class='flag'>contradicted</span> " : "")
+                  << html_escape(std::filesystem::path(c.value("recording", "")).filename().string()) << ": "
+                  << html_escape(verdict) << " — voltage " << rms_cell_json(b, "voltage_rms_v", 1e3, 1, "mV") << " → "
+                  << rms_cell_json(a, "voltage_rms_v", 1e3, 1, "mV") << ", temperature "
+                  << rms_cell_json(b, "temperature_rms_c", 1, 2, "°C") << " → " << rms_cell_json(a, "temperature_rms_c", 1, 2, "°C")
+                  << ", heat flux " << rms_cell_json(b, "heat_flux_rms_w", 1, 3, "W") << " → "
+                  << rms_cell_json(a, "heat_flux_rms_w", 1, 3, "W") << "</div>";
+            }
+        }
         o << "<p>" << html_escape(f.value("explanation", "")) << "</p></section>";
     }
     o << "</div>";

@@ -24,6 +24,8 @@
 // 5. Kinds: a finding is "physics_missing" (an effect of the catalogue) or "parameters_wrong" (the base set is
 //    off: OCV table offset in a SOC band, capacity; re-identified on this recording). A capacity correction
 //    within twice the parameter set's capacity_ah_sd (the characterization's own uncertainty) is not significant.
+//    With other recordings of the cell (DiagnoseOptions::confirm), a candidate that makes one of them worse is
+//    contradicted and never significant (confirmation_verdict).
 // 6. No false reassurance: the measurement noise is estimated from the recording itself (sample-to-sample
 //    scatter in rests); when a quantity's residual after the accepted findings stays above noise_factor times
 //    its noise, `unexplained` says where, how large, what it correlates with and which terms a sparse
@@ -70,6 +72,12 @@ struct DiagnoseOptions {
     // Set by another thread to give up: diagnose() stops after the candidate fits under way and throws
     // DiagnoseCancelled (cellbenchd's shutdown). nullptr = never.
     const std::atomic<bool>* cancel = nullptr;
+    // Other recordings of the same cell on the same bench (the characterization's own, another drive cycle):
+    // every candidate is simulated on each, with the current base and with its correction added. One that it
+    // makes worse (confirmation_verdict) contradicts it: a finding a recording contradicts is not significant,
+    // whatever the diagnosed recording says. Effects that are a state of the diagnosed recording (initial_soc,
+    // ambient_drift) do not carry over to another one and are not checked. Not owned: they must outlive the call.
+    std::vector<const Recording*> confirm;
 };
 
 // Thrown by diagnose() when DiagnoseOptions::cancel was set.
@@ -92,6 +100,19 @@ struct ConditionError {
     std::optional<double> temperature_rms_c, temperature_bias_c;
 };
 
+// What another recording of the cell says about a finding (DiagnoseOptions::confirm).
+struct Confirmation {
+    std::string recording;                   // its source
+    QuantityRms before, after;               // RMS with the current base, and with the finding added
+    std::vector<std::string> better, worse;  // "voltage", "temperature", "heat_flux"
+    std::string verdict;                     // "confirms" (better, none worse), "neutral", "contradicts" (a worse)
+};
+
+// A quantity is worse when its RMS rises above the instrument's accuracy and by more than 5 % and a tenth of that
+// accuracy; better when it falls by as much from above the accuracy (changes inside the accuracy are no evidence).
+// Fills better, worse and verdict from before and after.
+void confirmation_verdict(Confirmation& c, double voltage_floor_v, double temperature_floor_c, double heat_flux_floor_w);
+
 struct Finding {
     std::string effect;
     std::string kind = "physics_missing";  // or "parameters_wrong"
@@ -104,6 +125,9 @@ struct Finding {
     nlohmann::json parameters = nlohmann::json::object();
     QuantityRms improved;         // full-resolution RMS with this effect added to the accepted ones
     std::string explanation;
+    // On each DiagnoseOptions::confirm recording (empty: none given, or a state of the diagnosed recording).
+    std::vector<Confirmation> confirmation;
+    bool contradicted = false;    // a confirm recording contradicts it: never significant
 };
 
 // Measurement noise (1 sigma) estimated from the recording: robust sample-to-sample scatter in rests.
@@ -153,6 +177,7 @@ struct Diagnosis {
     std::optional<Unexplained> unexplained;  // null: residual at the noise level or explained
     std::vector<std::string> skipped;        // candidates the parameter set already holds
     nlohmann::json holdout;                  // the hold-out scheme ({"scheme": "interleaved_blocks", ...})
+    std::vector<std::string> confirm_recordings;  // sources of DiagnoseOptions::confirm
 };
 
 // Which of one round's candidate findings diagnose accepts (an index; round.size() when none is significant): the

@@ -242,16 +242,40 @@ json BenchDaemon::diagnose_run(RunId id, const DiagnoseRequest& request) {
     } else {
         std::tie(params, used) = load_named_params(d.cfg.config_dir, request.params);
     }
+    // The runs to confirm the findings on: other ended runs (a body reference, so an unknown one is a bad request).
+    std::vector<RunId> confirm;
+    for (const RunId c : request.confirm_runs) {
+        if (c == id)
+            throw BadRequest("\"confirm_runs\": run " + std::to_string(c) +
+                             " is the run diagnosed; name other runs of the cell to confirm its findings on");
+        if (std::find(confirm.begin(), confirm.end(), c) != confirm.end()) continue;
+        json other;
+        try {
+            other = d.run_json(c);
+        } catch (const NotFound&) {
+            throw BadRequest("\"confirm_runs\": no run " + std::to_string(c));
+        }
+        if (other["outcome"].is_null())
+            throw Conflict("\"confirm_runs\": run " + std::to_string(c) + " is still " + other.value("state", "live") +
+                           "; confirm on it once it has ended");
+        confirm.push_back(c);
+    }
     json info = {{"source", {{"kind", "run"}, {"run_id", id}, {"program", run.value("program", "")},
                              {"cell", run.value("cell", "")}}},
                  {"params", request.params},
                  {"params_used", used}};
+    if (!confirm.empty()) info["confirm_runs"] = confirm;
     RunStore* store = d.store.get();
     return d.diagnoses->submit(std::move(info), request.effects,
-                               [store, id, params = std::move(params)](const std::function<void(std::string_view)>& stage) {
+                               [store, id, confirm, params = std::move(params)](const std::function<void(std::string_view)>& stage) {
                                    stage("reading run " + std::to_string(id) + " from the database");
-                                   DiagnoseInput in{params, store->export_recording(id)};
+                                   DiagnoseInput in{params, store->export_recording(id), {}};
                                    in.recording.source = "run " + std::to_string(id);
+                                   for (const RunId c : confirm) {
+                                       stage("reading run " + std::to_string(c) + " (to confirm on) from the database");
+                                       in.confirm.push_back(store->export_recording(c));
+                                       in.confirm.back().source = "run " + std::to_string(c);
+                                   }
                                    return in;
                                });
 }
@@ -287,7 +311,7 @@ json BenchDaemon::diagnose_recording(const DiagnoseRequest& request, std::string
         [csv = std::move(csv), params = std::move(params), source](const std::function<void(std::string_view)>& stage) {
             stage("parsing the recording");
             protocol::BdfReadReport report;
-            DiagnoseInput in{params, protocol::parse_bdf_csv(csv, source, &report)};
+            DiagnoseInput in{params, protocol::parse_bdf_csv(csv, source, &report), {}};
             if (report.repaired_timestamps > 0)
                 spdlog::info("diagnosis: {}: repaired {} repeated or slightly backward timestamps", source,
                              report.repaired_timestamps);

@@ -178,6 +178,7 @@ void DiagnoseJobs::run(const std::shared_ptr<Job>& job) {
         o.threads = opt_.threads ? opt_.threads : std::max(1u, std::thread::hardware_concurrency()) - 1;
         if (o.threads == 0) o.threads = 1;
         o.cancel = &cancel_;
+        for (const auto& c : in.confirm) o.confirm.push_back(&c);
         // The estimator reports 1.0 when its work is done; the job is done when its results are stored.
         o.progress = [&](double f, std::string_view stage) { set_stage(std::min(f, 0.99), stage); };
         const estimator::Diagnosis d = estimator::diagnose(in.params, in.recording, o);

@@ -31,7 +31,7 @@ std::optional<Reply> Router::check_diagnose_request(const DiagnoseRequest& dr) {
     return std::nullopt;
 }
 
-// POST /runs/{id}/diagnose {"params": NAME, "effects": [...]?}
+// POST /runs/{id}/diagnose {"params": NAME, "effects": [...]?, "confirm_runs": [run ids]?}
 Reply Router::diagnose_run(RunId id) {
     const std::string example = R"(expected a JSON object like {"params": "p45b-thesis"} or {"params": "run"})";
     nlohmann::json body;
@@ -48,6 +48,15 @@ Reply Router::diagnose_run(RunId id) {
             if (!x.is_string())
                 return error(http::status::bad_request, "\"effects\": expected an array of effect ids (strings)");
             dr.effects.push_back(x.get<std::string>());
+        }
+    }
+    if (const auto c = body.find("confirm_runs"); c != body.end() && !c->is_null()) {
+        const std::string expected = "\"confirm_runs\": expected an array of at most " + std::to_string(kMaxConfirmRuns) +
+                                     " run ids (positive integers)";
+        if (!c->is_array() || c->size() > kMaxConfirmRuns) return error(http::status::bad_request, expected);
+        for (const auto& x : *c) {
+            if (!x.is_number_integer() || x.get<std::int64_t>() <= 0) return error(http::status::bad_request, expected);
+            dr.confirm_runs.push_back(x.get<std::int64_t>());
         }
     }
     if (auto bad = check_diagnose_request(dr)) return std::move(*bad);

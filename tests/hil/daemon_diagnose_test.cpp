@@ -8,7 +8,9 @@
 //    simulated cell IS the parameter set, so only sensor noise and sampling remain), with no significant finding
 //    (a clean bench diagnosed against its own parameter set: issue 13), and decimated traces of equal lengths;
 //  - the run exported as BDF CSV (GET /runs/{id}/export.bdf.csv) and uploaded to POST /diagnose is diagnosed
-//    too; a malformed upload is a 400 JSON error.
+//    too; a malformed upload is a 400 JSON error;
+//  - with "confirm_runs" naming a second run of the cell, every finding that is a property of the cell carries its
+//    verdict on that run; the run itself, an unknown run or a malformed list is a 400, a run still recording a 409.
 // CELLBENCH_HIL_TIME_SCALE overrides the time scale; the wall times of the run and the jobs are printed.
 #include <gtest/gtest.h>
 
@@ -239,9 +241,41 @@ TEST(DaemonDiagnoseHil, DiagnosesARunAndAnUploadedRecording) {
     EXPECT_TRUE(json_error(api.post("/diagnose?params=p45b-thesis",
                                     "Test Time / s,Voltage / V,Current / A\n0,3.7,0\n1,abc,0\n", true, "text/csv"), 400));
     EXPECT_TRUE(json_error(api.post("/diagnose?params=no-such-cell", exported.body(), true, "text/csv"), 400));
-    // Both jobs are listed, newest first.
+    // A second run of the cell: the first one's findings confirmed on it (confirm_runs).
+    const auto id2 = d.start_run({"hppc_short", "p45b", {{"program", "hppc_short"}, {"cell", "p45b"}}})["id"].get<daemon::RunId>();
+    auto with_confirm = [](const std::string& runs) {
+        return R"({"params": "p45b-thesis", "effects": ["series_resistance_offset", "ocv_hysteresis", "initial_soc"], )"
+               R"("confirm_runs": )" + runs + "}";
+    };
+    EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id2) + "]")), 409))
+        << "not on a run still recording";
+    ASSERT_TRUE(eventually([&] { return terminal(d.get_run(id2)["state"].get<std::string>()); }, 300s, 250ms));
+    d.store().flush();
+    EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id) + "]")), 400)) << "the run itself";
+    EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id2 + 100) + "]")), 400)) << "no such run";
+    EXPECT_TRUE(json_error(api.post(run_path, with_confirm("\"" + std::to_string(id2) + "\"")), 400)) << "not an array";
+    EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[0]")), 400));
+    const auto posted2 = api.post(run_path, with_confirm("[" + std::to_string(id2) + "]"));
+    ASSERT_EQ(posted2.result_int(), 202u) << posted2.body();
+    double confirm_job_s = 0;
+    const json confirm_job = wait_for_job(api, json::parse(posted2.body())["id"].get<std::int64_t>(), confirm_job_s);
+    ASSERT_EQ(confirm_job["state"], "done") << confirm_job.dump(2);
+    EXPECT_EQ(confirm_job["confirm_runs"], json::array({id2}));
+    const json& dg2 = confirm_job["diagnosis"];
+    EXPECT_EQ(dg2["confirmation"]["recordings"], json::array({"run " + std::to_string(id2)})) << dg2.dump(2);
+    ASSERT_EQ(dg2["findings"].size(), 3u);
+    for (const auto& f : dg2["findings"]) {
+        EXPECT_FALSE(f["significant"].get<bool>()) << "a clean bench: " << f.dump();
+        EXPECT_EQ(f["confirmation"].size(), f["effect"] == "initial_soc" ? 0u : 1u) << f.dump();
+        for (const auto& c : f["confirmation"]) {
+            EXPECT_EQ(c["recording"], "run " + std::to_string(id2));
+            EXPECT_TRUE(c["verdict"] == "confirms" || c["verdict"] == "neutral" || c["verdict"] == "contradicts") << c.dump();
+        }
+    }
+
+    // Every job is listed, newest first.
     const json list = json::parse(api.get("/diagnoses").body());
-    ASSERT_GE(list["diagnoses"].size(), 2u);
+    ASSERT_GE(list["diagnoses"].size(), 3u);
     EXPECT_FALSE(list["diagnoses"][0].contains("traces"));
 
     std::printf("hppc_short at time scale %.0f: run %.1f s wall, %zu rows; diagnosis of the run %.1f s, of the "

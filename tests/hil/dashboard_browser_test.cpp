@@ -334,6 +334,9 @@ TEST(DashboardBrowser, LivePlotUpdatesAndFitsTableFillsDuringAShortHppc) {
         return wd.script("const r = document.getElementById('diag-run'), p = document.getElementById('diag-params');"
                          "return !!(r && p && r.value === '" + std::to_string(id) + "' && p.value);").get<bool>();
     }, 15s)) << "diagnosis page did not list the run";
+    // The only run: nothing to confirm the findings on.
+    EXPECT_TRUE(wd.script("const c = document.getElementById('diag-confirm'); return !!c && c.disabled && c.options.length === 0;")
+                    .get<bool>());
     wd.script("document.getElementById('diag-start').click(); return null;");
     const bool diagnosed = eventually([&] {
         return wd.script("return document.querySelectorAll('#diag-findings .finding').length > 0 && "

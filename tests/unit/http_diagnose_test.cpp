@@ -98,7 +98,12 @@ TEST(HttpDiagnose, RunDiagnosisValidatesTheRunAndTheBody) {
                                   std::string(R"({"params": "../etc/passwd"})"), std::string(R"({"params": ".hidden"})"),
                                   std::string(R"({"params": "p45b-thesis", "effects": "ocv_hysteresis"})"),
                                   std::string(R"({"params": "p45b-thesis", "effects": [1]})"),
-                                  std::string(R"({"params": "p45b-thesis", "effects": ["a/b"]})")})
+                                  std::string(R"({"params": "p45b-thesis", "effects": ["a/b"]})"),
+                                  std::string(R"({"params": "p45b-thesis", "confirm_runs": 2})"),
+                                  std::string(R"({"params": "p45b-thesis", "confirm_runs": ["2"]})"),
+                                  std::string(R"({"params": "p45b-thesis", "confirm_runs": [0]})"),
+                                  std::string(R"({"params": "p45b-thesis", "confirm_runs": [2.5]})"),
+                                  std::string(R"({"params": "p45b-thesis", "confirm_runs": [1,2,3,4,5,6,7,8,9]})")})
         EXPECT_TRUE(is_json_error(post("/api/v1/runs/1/diagnose", bad), 400)) << bad;
     EXPECT_EQ(be.run_calls, calls) << "malformed bodies never reach the backend";
 
@@ -107,6 +112,11 @@ TEST(HttpDiagnose, RunDiagnosisValidatesTheRunAndTheBody) {
     ASSERT_TRUE(be.last);
     EXPECT_EQ(be.last->params, "run");
     EXPECT_EQ(be.last->effects, (std::vector<std::string>{"ocv_hysteresis", "extra_rc"}));
+    EXPECT_TRUE(be.last->confirm_runs.empty());
+
+    const auto c = post("/api/v1/runs/1/diagnose", R"({"params": "p45b-thesis", "confirm_runs": [2, 5]})");
+    ASSERT_EQ(c.result_int(), 202u) << c.body();
+    EXPECT_EQ(be.last->confirm_runs, (std::vector<std::int64_t>{2, 5}));
 }
 
 TEST(HttpDiagnose, UploadValidatesTokenParamsAndBody) {

@@ -91,6 +91,8 @@ export function diagnosisView(app, runId) {
   tokenInput.addEventListener("change", () => apiToken.set(tokenInput.value.trim()));
   const runSel = h("select", { id: "diag-run" });
   const paramsSel = h("select", { id: "diag-params" });
+  // Other finished runs of the cell every finding must not make worse (confirm_runs; none selected: not checked).
+  const confirmSel = h("select", { id: "diag-confirm", multiple: true, size: 3, title: "Ctrl/Cmd-click to choose several" });
   const runBtn = h("button.btn.primary", { id: "diag-start", onclick: () => start("run") }, "Diagnose run");
   const fileInput = h("input", { type: "file", id: "diag-file", accept: ".csv,text/csv" });
   const upParamsSel = h("select", { id: "diag-upload-params" });
@@ -107,7 +109,8 @@ export function diagnosisView(app, runId) {
       h("p.muted", { style: "margin-top:0" },
         "The daemon simulates the recording with a parameter set, shows where the simulation misses it and names the physics ",
         "the model leaves out (cellbench diagnose). It runs in the background, one job at a time; a diagnosis takes seconds to minutes."),
-      h("div.toolbar", null, field("run", runSel), field("parameter set", paramsSel), runBtn),
+      h("div.toolbar", null, field("run", runSel), field("parameter set", paramsSel),
+        field("confirm on other runs (optional)", confirmSel), runBtn),
       h("div.toolbar", null, field("or a recording (BDF CSV)", fileInput), field("parameter set", upParamsSel), upBtn),
       h("div.toolbar", { style: "margin-bottom:0" }, field("API token (for starting jobs; kept in this browser)", tokenInput)),
       msg, jobBox),
@@ -134,8 +137,18 @@ export function diagnosisView(app, runId) {
     const pick = runs.find((r) => String(r.id) === String(runId) && !isActive(r)) || runs.find((r) => !isActive(r));
     if (pick) runSel.value = String(pick.id);
     runBtn.disabled = !pick || null;
+    fillConfirm();
+  }
+  // The finished runs other than the one diagnosed, those of its cell first.
+  function fillConfirm() {
+    const r = runs.find((x) => String(x.id) === runSel.value);
+    const others = runs.filter((x) => !isActive(x) && String(x.id) !== runSel.value)
+      .sort((a, b) => (b.cell === r?.cell) - (a.cell === r?.cell));
+    confirmSel.replaceChildren(...others.map((x) => h("option", { value: x.id }, `run ${x.id} · ${x.program} · ${x.cell}`)));
+    confirmSel.disabled = !others.length || null;
   }
   runSel.addEventListener("change", () => {
+    fillConfirm();
     const r = runs.find((x) => String(x.id) === runSel.value);
     paramOptions(paramsSel, true, cellParams(r));
     if (cellParams(r)) paramsSel.value = cellParams(r);
@@ -147,7 +160,9 @@ export function diagnosisView(app, runId) {
       let j;
       if (kind === "run") {
         if (!runSel.value) return note("Choose a finished run.");
-        j = await post(`/runs/${runSel.value}/diagnose`, { params: paramsSel.value });
+        const confirm = [...confirmSel.selectedOptions].map((o) => Number(o.value));
+        j = await post(`/runs/${runSel.value}/diagnose`, confirm.length ? { params: paramsSel.value, confirm_runs: confirm }
+                                                                          : { params: paramsSel.value });
       } else {
         const f = fileInput.files[0];
         if (!f) return note("Choose a BDF CSV recording first.");
@@ -313,7 +328,12 @@ function diagnosisCard(d, title) {
         f.implausible ? [" ", pill("implausible", "warning")] : null,
         h("span.muted.small", null, ` score ${fmt(f.score, 2)}`)),
       h("div", null, f.explanation),
-      f.improved ? h("div.small.muted", { style: "margin-top:4px" }, "with it: ", metrics(f.improved)) : null))
+      f.improved ? h("div.small.muted", { style: "margin-top:4px" }, "with it: ", metrics(f.improved)) : null,
+      // What the other recordings of the cell say (diagnose --confirm, confirm_runs).
+      Array.isArray(f.confirmation) ? (f.confirmation.length ? f.confirmation.map((c) =>
+        h("div.small.confirm", { style: "margin-top:4px" }, pill(c.verdict, c.verdict === "contradicts" ? "warning" : (c.verdict === "confirms" ? "ok" : "")),
+          ` on ${c.recording}: `, metrics(c.before), " → ", metrics(c.after)))
+        : h("div.small.muted", { style: "margin-top:4px" }, "not checked on the other recordings: a state of this recording, not of the cell")) : null))
       : h("div.empty", null, "no candidate was tried")));
 }
 

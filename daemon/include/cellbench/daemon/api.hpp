@@ -110,8 +110,12 @@ struct StartRequest {
 struct DiagnoseRequest {
     std::string params;
     std::vector<std::string> effects;
+    // Other ended runs of the cell every finding must not make worse (estimator DiagnoseOptions::confirm).
+    std::vector<std::int64_t> confirm_runs;
     nlohmann::json body;  // the request object (empty object for an upload)
 };
+// The most runs a diagnosis request may name to confirm its findings on (each is read from the database).
+inline constexpr std::size_t kMaxConfirmRuns = 8;
 // The largest recording POST /diagnose accepts (HttpServerOptions::max_upload_bytes defaults to it).
 inline constexpr std::size_t kMaxUploadBytes = 64 * 1024 * 1024;
 

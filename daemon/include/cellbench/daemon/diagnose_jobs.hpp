@@ -43,6 +43,7 @@ struct DiagnoseJobsOptions {
 struct DiagnoseInput {
     estimator::ParameterSet params;
     Recording recording;
+    std::vector<Recording> confirm;  // other recordings of the cell the findings must hold on (may be empty)
 };
 
 class DiagnoseJobs {

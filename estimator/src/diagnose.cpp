@@ -190,6 +190,11 @@ double from_u(const ParamSpec& s, double u) { return s.log ? std::exp(u) : u; }
 
 // ------------------------------------------------------------------------------------------------ objective
 
+// Divisors of each quantity's mean squared error in an objective.
+struct Scale {
+    double v, t, q;
+};
+
 // The data a search needs: the merged recording, which rows train, the baseline's mean squared errors.
 struct Problem {
     const Recording* rec = nullptr;  // merged copy
@@ -198,6 +203,17 @@ struct Problem {
     // The instruments' accuracy (DiagnoseOptions' floors), squared.
     double floor2_v = 0, floor2_t = 0, floor2_q = 0;
     double area_m2 = 0.0;
+    // The cell's other recordings (DiagnoseOptions::confirm), merged like rec: a candidate that is a property of
+    // the cell or the bench is fitted to them as well, so what they measure constrains it (an OCV branch another
+    // drive pins down); the evidence stays the diagnosed recording's held-out blocks. Each quantity of each is
+    // scaled by its mean squared error under the parameter set (at least the accuracy's square): every recording's
+    // relative improvement counts alike, and one the model misses by far for other reasons (a 4C discharge's 40 mV
+    // near empty) does not pull the candidate its own way.
+    struct Confirm {
+        const Recording* rec = nullptr;
+        Scale scale{};
+    };
+    std::vector<Confirm> confirm;
 };
 
 struct Errors {
@@ -257,28 +273,47 @@ constexpr Quantities kSearch{true, true, true, true};
 
 // What each quantity's mean squared error is divided by: the current base's mean squared error (the evidence) or
 // the instrument's accuracy squared (use.by_accuracy: the searches).
-struct Scale {
-    double v, t, q;
-};
 Scale scale_of(const Problem& pb, Quantities use) {
     return use.by_accuracy ? Scale{pb.floor2_v, pb.floor2_t, pb.floor2_q} : Scale{pb.ms_v, pb.ms_t, pb.ms_q};
 }
 
-// Sum over quantities of mean squared error / scale_of(use), over the masked rows.
-double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask, Quantities use) {
+// Sum over the quantities in use of mean squared error / ms, over the masked rows (nullptr: every row).
+double scaled_objective(const Errors& e, const std::vector<char>* mask, Scale ms, Quantities use) {
     double sv = 0, st = 0, sq = 0;
     std::size_t nv = 0, nt = 0, nq = 0;
     for (std::size_t k = 0; k < e.v.size(); ++k) {
-        if (!mask[k]) continue;
+        if (mask && !(*mask)[k]) continue;
         if (std::isfinite(e.v[k])) sv += e.v[k] * e.v[k], ++nv;
         if (std::isfinite(e.t[k])) st += e.t[k] * e.t[k], ++nt;
         if (std::isfinite(e.q[k])) sq += e.q[k] * e.q[k], ++nq;
     }
-    const Scale ms = scale_of(pb, use);
     double j = 0;
     if (use.v && nv && ms.v > 0) j += sv / nv / ms.v;
     if (use.t && nt && ms.t > 0) j += st / nt / ms.t;
     if (use.q && nq && ms.q > 0) j += sq / nq / ms.q;
+    return j;
+}
+
+// Sum over quantities of mean squared error / scale_of(use), over the masked rows.
+double objective(const Problem& pb, const Errors& e, const std::vector<char>& mask, Quantities use) {
+    return scaled_objective(e, &mask, scale_of(pb, use), use);
+}
+
+// The parameter set as it carries over to another recording of the cell: without the diagnosed recording's own
+// states (EffectSpec::recording_state; initial_soc never enters the parameter set).
+ParameterSet carried_over(ParameterSet p) {
+    p.extensions.ambient_drift.reset();
+    return p;
+}
+
+// Whether the search of spec also fits the confirm recordings (a state of the diagnosed recording does not carry).
+bool fits_confirm(const Problem& pb, const EffectSpec& spec) { return !pb.confirm.empty() && !spec.recording_state; }
+
+// The confirm recordings' part of the search objective (each quantity over its scale in Problem::Confirm).
+double confirm_objective(const Problem& pb, const ParameterSet& p) {
+    const ParameterSet carried = carried_over(p);
+    double j = 0;
+    for (const auto& c : pb.confirm) j += scaled_objective(errors_of(carried, *c.rec), nullptr, c.scale, kSearch);
     return j;
 }
 
@@ -295,7 +330,12 @@ public:
             nq_ += pb.rec->has_heat_flux() && std::isfinite(pb.rec->heat_flux_w_per_m2[k]);
         }
     }
-    int residuals() const { return static_cast<int>(3 * rows_.size()); }
+    int residuals() const {
+        std::size_t n = rows_.size();
+        if (fits_confirm(pb_, spec_))
+            for (const auto& c : pb_.confirm) n += c.rec->size();
+        return static_cast<int>(3 * n);
+    }
 
     bool operator()(double const* const* u, double* r) const {
         ParameterSet p = base_;
@@ -309,16 +349,36 @@ public:
             return false;
         }
         // the weights of objective(..., kSearch)
-        const Scale ms = scale_of(pb_, kSearch);
-        const double wv = nv_ && ms.v > 0 ? 1.0 / std::sqrt(nv_ * ms.v) : 0.0;
-        const double wt = nt_ && ms.t > 0 ? 1.0 / std::sqrt(nt_ * ms.t) : 0.0;
-        const double wq = nq_ && ms.q > 0 ? 1.0 / std::sqrt(nq_ * ms.q) : 0.0;
-        for (std::size_t i = 0; i < rows_.size(); ++i) {
-            const std::size_t k = rows_[i];
-            r[3 * i] = std::isfinite(e.v[k]) ? wv * e.v[k] : 0.0;
-            r[3 * i + 1] = std::isfinite(e.t[k]) ? wt * e.t[k] : 0.0;
-            r[3 * i + 2] = std::isfinite(e.q[k]) ? wq * e.q[k] : 0.0;
-            if (!std::isfinite(r[3 * i] + r[3 * i + 1] + r[3 * i + 2])) return false;
+        auto put = [](const Errors& err, const std::vector<std::size_t>* rows, std::size_t n, std::size_t nt,
+                      std::size_t nq, Scale ms, double* out) {
+            const double wv = n && ms.v > 0 ? 1.0 / std::sqrt(n * ms.v) : 0.0;
+            const double wt = nt && ms.t > 0 ? 1.0 / std::sqrt(nt * ms.t) : 0.0;
+            const double wq = nq && ms.q > 0 ? 1.0 / std::sqrt(nq * ms.q) : 0.0;
+            for (std::size_t i = 0; i < n; ++i) {
+                const std::size_t k = rows ? (*rows)[i] : i;
+                out[3 * i] = std::isfinite(err.v[k]) ? wv * err.v[k] : 0.0;
+                out[3 * i + 1] = std::isfinite(err.t[k]) ? wt * err.t[k] : 0.0;
+                out[3 * i + 2] = std::isfinite(err.q[k]) ? wq * err.q[k] : 0.0;
+                if (!std::isfinite(out[3 * i] + out[3 * i + 1] + out[3 * i + 2])) return false;
+            }
+            return true;
+        };
+        if (!put(e, &rows_, rows_.size(), nt_, nq_, scale_of(pb_, kSearch), r)) return false;
+        if (!fits_confirm(pb_, spec_)) return true;
+        r += 3 * rows_.size();
+        const ParameterSet carried = carried_over(p);
+        for (const auto& c : pb_.confirm) {
+            Errors ec;
+            try {
+                ec = errors_of(carried, *c.rec);
+            } catch (const std::exception&) {
+                return false;
+            }
+            const std::size_t n = c.rec->size();
+            std::size_t nt = 0, nq = 0;
+            for (std::size_t k = 0; k < n; ++k) nt += std::isfinite(ec.t[k]), nq += std::isfinite(ec.q[k]);
+            if (!put(ec, nullptr, n, nt, nq, c.scale, r)) return false;
+            r += 3 * n;
         }
         return true;
     }
@@ -343,7 +403,8 @@ double objective_at(const Problem& pb, const ParameterSet& base, const EffectSpe
     ParameterSet p = base;
     spec.apply(p, x);
     try {
-        return objective(pb, errors_of(p, *pb.rec, start_offset(pb, spec, x)), mask, use);
+        return objective(pb, errors_of(p, *pb.rec, start_offset(pb, spec, x)), mask, use) +
+               (fits_confirm(pb, spec) && use.by_accuracy ? confirm_objective(pb, p) : 0.0);
     } catch (const std::exception&) {
         return INFINITY;
     }
@@ -405,13 +466,6 @@ QuantityRms rms_of(const ParameterSet& p, const Recording& rec, SimulationTrace*
 nlohmann::json rms_json(const QuantityRms& q) {
     auto n = [](const std::optional<double>& x) -> nlohmann::json { return x ? nlohmann::json(*x) : nlohmann::json(nullptr); };
     return {{"voltage_rms_v", n(q.voltage_v)}, {"temperature_rms_c", n(q.temperature_c)}, {"heat_flux_rms_w", n(q.heat_flux_w)}};
-}
-
-// The parameter set as it carries over to another recording of the cell: without the diagnosed recording's own
-// states (EffectSpec::recording_state; initial_soc never enters the parameter set).
-ParameterSet carried_over(ParameterSet p) {
-    p.extensions.ambient_drift.reset();
-    return p;
 }
 
 // The quantities a confirmation found worse (or better), with their RMS before -> after.
@@ -741,6 +795,15 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     const Recording rec = merge_intervals(rec_full, options.search_step_s);
     Problem pb;
     pb.rec = &rec;
+    // The confirm recordings merged to at most as many intervals as the diagnosed one (a C/20 discharge of a day
+    // logged every second would otherwise cost the searches twenty times the drive's simulation).
+    std::vector<Recording> confirm_merged;
+    for (const Recording* c : options.confirm) {
+        const double span_s = c->time_s.back() - c->time_s.front();
+        confirm_merged.push_back(
+            merge_intervals(*c, std::max(options.search_step_s, span_s / static_cast<double>(std::max<std::size_t>(rec.size(), 1)))));
+    }
+
     pb.area_m2 = params.thermal.area_m2;
     {
         const Errors e = errors_of(params, rec);
@@ -751,6 +814,11 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
         pb.ms_v = std::max(mean_square(e.v), pb.floor2_v);
         pb.ms_t = std::max(mean_square(e.t), pb.floor2_t);
         pb.ms_q = std::max(mean_square(e.q), pb.floor2_q);
+    }
+    for (const auto& c : confirm_merged) {
+        const Errors e = errors_of(carried_over(params), c);
+        pb.confirm.push_back({&c, {std::max(mean_square(e.v), pb.floor2_v), std::max(mean_square(e.t), pb.floor2_t),
+                                   std::max(mean_square(e.q), pb.floor2_q)}});
     }
     const std::size_t n = rec.size();
     std::vector<char> all(n, 1);

@@ -182,6 +182,7 @@ std::optional<double> chamber_setpoint(int port) {
     std::optional<double> sp;
     std::uint16_t reg = 0;
     modbus_set_slave(mb, 1);
+    modbus_set_response_timeout(mb, 10, 0);  // not libmodbus' 0.5 s: a busy machine answers late, not never
     if (modbus_connect(mb) == 0 && modbus_read_registers(mb, 2, 1, &reg) == 1)
         sp = static_cast<std::int16_t>(reg) * 0.1;  // holding 2: set point, int16, 0.1 degC
     modbus_close(mb);

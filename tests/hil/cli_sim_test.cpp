@@ -121,6 +121,8 @@ TEST(SimulatedBench, IndependentClientsTalkToCellbenchSim) {
     // Chamber: Modbus function 3 answers; an unsupported function gets an exception.
     modbus_t* mb = modbus_new_tcp("127.0.0.1", sim.chamber_port);
     ASSERT_NE(mb, nullptr);
+    // libmodbus waits 0.5 s for a reply by default: too short for a busy machine (a reply only ever comes late).
+    modbus_set_response_timeout(mb, 10, 0);
     ASSERT_EQ(modbus_connect(mb), 0);
     std::uint16_t regs[2] = {};
     EXPECT_EQ(modbus_read_registers(mb, 1, 2, regs), 2) << modbus_strerror(errno);

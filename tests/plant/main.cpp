@@ -32,6 +32,9 @@ int main(int argc, char** argv) {
     double thesis_pulse_s = 30.0;
     app.add_option("--thesis-discharge-pulse-s", thesis_pulse_s, "thesis layout: discharge pulse length (Table 2.12: 30 s)")
         ->check(CLI::Range(1.0, 600.0));
+    bool second_drive = false;
+    app.add_flag("--second-drive", second_drive,
+                 "also write drive2.bdf.csv: another drive of the same cell and bench set-up (to confirm a diagnosis on)");
     app.add_option("-o,--output", out_dir, "output directory (created)")->required();
     CLI11_PARSE(app, argc, argv);
 
@@ -65,7 +68,9 @@ int main(int argc, char** argv) {
                             {"cc_low.bdf.csv", plant::generate_cc_low},
                             {"cc_high.bdf.csv", plant::generate_cc_high},
                             {"drive.bdf.csv", plant::generate_drive}};
-        for (const auto& job : jobs) {
+        std::vector<Job> todo(std::begin(jobs), std::end(jobs));
+        if (second_drive) todo.push_back({"drive2.bdf.csv", plant::generate_second_drive});
+        for (const auto& job : todo) {
             const auto t0 = std::chrono::steady_clock::now();
             const auto rec = job.make(cell, o);
             const double gen_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

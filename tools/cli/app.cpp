@@ -82,8 +82,9 @@ int run_cli(int argc, char** argv) {
     diag_cmd->add_option("--improved", diag.improved, "Write the parameter set with the accepted extensions");
     diag_cmd->add_option("--effects", diag.effects, "Only try these effect ids (default: the whole catalogue)");
     diag_cmd->add_option("--confirm", diag.confirm,
-                         "Other BDF recordings of the same cell and bench (e.g. the characterization's); a finding that "
-                         "makes one of them worse is contradicted and never significant")
+                         "Other BDF recordings of the same cell and bench set-up, best ones the parameter set was not "
+                         "fitted to (another drive cycle): candidates are fitted to them too, and a finding that makes one "
+                         "of them worse is contradicted and never significant")
         ->check(CLI::ExistingFile);
     // The evidence only counts a quantity the parameter set misses by more than its instrument's accuracy.
     diag_cmd->add_option("--voltage-floor-mv", diag.voltage_floor_mv,

@@ -309,6 +309,13 @@ Recording generate_drive(const CellSpec& c, const PlantOptions& o) {
     return simulate(c, drive_program(c, c.seed), start, true, splitmix64(c.seed) ^ 4, o.noise, "drive");
 }
 
+Recording generate_second_drive(const CellSpec& c, const PlantOptions& o) {
+    Rng rng(c.seed, 36);
+    const InitialState start{rng.uniform(0.9, 0.98), true};
+    return simulate(c, drive_program(c, splitmix64(c.seed) ^ 0x5eedULL), start, true, splitmix64(c.seed) ^ 5, o.noise,
+                    "drive2");
+}
+
 Dataset generate(const PlantOptions& o) {
     Dataset d;
     d.cell = make_cell(o);

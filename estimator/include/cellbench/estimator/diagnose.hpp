@@ -24,8 +24,9 @@
 // 5. Kinds: a finding is "physics_missing" (an effect of the catalogue) or "parameters_wrong" (the base set is
 //    off: OCV table offset in a SOC band, capacity; re-identified on this recording). A capacity correction
 //    within twice the parameter set's capacity_ah_sd (the characterization's own uncertainty) is not significant.
-//    With other recordings of the cell (DiagnoseOptions::confirm), a candidate that makes one of them worse is
-//    contradicted and never significant (confirmation_verdict).
+//    With other recordings of the cell (DiagnoseOptions::confirm), a candidate is fitted to them together with the
+//    diagnosed one (each recording's error relative to the parameter set's), and one that still makes one of them
+//    worse is contradicted and never significant (confirmation_verdict).
 // 6. No false reassurance: the measurement noise is estimated from the recording itself (sample-to-sample
 //    scatter in rests); when a quantity's residual after the accepted findings stays above noise_factor times
 //    its noise, `unexplained` says where, how large, what it correlates with and which terms a sparse
@@ -72,11 +73,13 @@ struct DiagnoseOptions {
     // Set by another thread to give up: diagnose() stops after the candidate fits under way and throws
     // DiagnoseCancelled (cellbenchd's shutdown). nullptr = never.
     const std::atomic<bool>* cancel = nullptr;
-    // Other recordings of the same cell on the same bench (the characterization's own, another drive cycle):
-    // every candidate is simulated on each, with the current base and with its correction added. One that it
-    // makes worse (confirmation_verdict) contradicts it: a finding a recording contradicts is not significant,
-    // whatever the diagnosed recording says. Effects that are a state of the diagnosed recording (initial_soc,
-    // ambient_drift) do not carry over to another one and are not checked. Not owned: they must outlive the call.
+    // Other recordings of the same cell on the same bench set-up, best ones the parameter set was not fitted to
+    // (another drive cycle): every candidate is fitted to them together with the diagnosed recording (the held-out
+    // evidence stays the diagnosed recording's), then simulated on each with the current base and with its
+    // correction. One that it makes worse (confirmation_verdict) contradicts it: a finding a recording contradicts
+    // is not significant, whatever the diagnosed recording says. Effects that are a state of the diagnosed
+    // recording (initial_soc, ambient_drift) do not carry over to another one and are not fitted to nor checked on
+    // them. Not owned: they must outlive the call.
     std::vector<const Recording*> confirm;
 };
 

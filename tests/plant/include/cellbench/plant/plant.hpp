@@ -269,6 +269,9 @@ Recording generate_hppc(const CellSpec& cell, const PlantOptions& options);
 Recording generate_cc_low(const CellSpec& cell, const PlantOptions& options);   // C/20
 Recording generate_cc_high(const CellSpec& cell, const PlantOptions& options);  // 3-4C by seed
 Recording generate_drive(const CellSpec& cell, const PlantOptions& options);
+// A second drive of the same cell on the same bench set-up (its effects included): another randomized profile,
+// start and noise; an independent recording to confirm a diagnosis of the first on (diagnose --confirm).
+Recording generate_second_drive(const CellSpec& cell, const PlantOptions& options);
 Dataset generate(const PlantOptions& options);
 
 // BDF CSV (INTERFACES.md "Recordings"), shortest round-trip numbers. Throws std::runtime_error on I/O failure.

@@ -1020,8 +1020,9 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                             fd.confirmation.push_back(std::move(cf));
                         }
                         if (fd.contradicted) {
-                            fd.explanation += std::string(fd.significant ? "; it passes the significance test on this recording, but"
-                                                                         : "; and") +
+                            fd.withdrawn = fd.significant;
+                            fd.explanation += std::string(fd.withdrawn ? "; it passes the significance test on this recording, but"
+                                                                       : "; and") +
                                               " another recording of the cell contradicts it (" + against + ")";
                             fd.significant = false;
                         }
@@ -1131,9 +1132,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
                          printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         std::string contradicted;
         for (const auto& f : d.findings)
-            if (f.contradicted && f.score >= options.min_cv_improvement && f.folds_improved + 1 >= folds &&
-                f.delta_bic < options.bic_threshold)
-                contradicted += (contradicted.empty() ? "" : ", ") + f.effect;
+            if (f.withdrawn) contradicted += (contradicted.empty() ? "" : ", ") + f.effect;
         if (!contradicted.empty())
             d.summary += "; " + contradicted + " would pass it on this recording, but another recording of the cell "
                          "contradicts it (see the finding)";
@@ -1190,10 +1189,12 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
         }
         j["confirmation"] = {
             {"recordings", d.confirm_recordings},
-            {"rule", "each candidate is simulated on these recordings with and without its correction; a quantity is worse "
-                     "when its RMS rises above the instrument's accuracy by more than 5 % and a tenth of that accuracy; a "
-                     "finding any recording makes worse is contradicted and never significant; effects that are a state "
-                     "of the diagnosed recording (initial_soc, ambient_drift) are not checked"}};
+            {"rule", "each candidate is fitted to the diagnosed recording and these together (each recording's errors "
+                     "relative to the parameter set's), then simulated on these with and without its correction; a "
+                     "quantity is worse when its RMS rises above the instrument's accuracy by more than 5 % and a tenth of "
+                     "that accuracy; a finding any recording makes worse is contradicted and never significant; effects "
+                     "that are a state of the diagnosed recording (initial_soc, ambient_drift) are neither fitted to these "
+                     "nor checked on them"}};
     }
     j["accepted"] = d.accepted;
     j["skipped_in_baseline"] = d.skipped;

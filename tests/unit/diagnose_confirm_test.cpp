@@ -71,6 +71,7 @@ TEST(DiagnoseConfirm, AFindingAnotherRecordingOfTheCellContradictsIsNotSignifica
     const auto& f = finding(d, "series_resistance_offset");
     EXPECT_FALSE(f.significant);
     EXPECT_TRUE(f.contradicted);
+    EXPECT_TRUE(f.withdrawn) << "it passed on the diagnosed recording alone";
     EXPECT_TRUE(d.accepted.empty());
     ASSERT_EQ(f.confirmation.size(), 1u);
     const auto& c = f.confirmation.front();

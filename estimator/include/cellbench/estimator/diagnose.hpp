@@ -131,6 +131,7 @@ struct Finding {
     // On each DiagnoseOptions::confirm recording (empty: none given, or a state of the diagnosed recording).
     std::vector<Confirmation> confirmation;
     bool contradicted = false;    // a confirm recording contradicts it: never significant
+    bool withdrawn = false;       // it passed the significance test here, and a confirm recording contradicts it
 };
 
 // Measurement noise (1 sigma) estimated from the recording: robust sample-to-sample scatter in rests.

@@ -32,12 +32,16 @@ struct EffectSpec {
     std::vector<std::vector<double>> starts;  // natural units
     void (*apply)(ParameterSet&, const std::vector<double>&);
     const char* kind = "physics_missing";     // or "parameters_wrong": the base set re-identified in part
-    bool (*present)(const ParameterSet&) = nullptr;  // the parameter set already holds it
+    // The parameter set already holds it (then it is not proposed as missing); none for a re-identification of the
+    // base set, which is always proposed.
+    bool (*present)(const ParameterSet&) = nullptr;
     // The recording's initial SOC moved by this much (a state of the recording, not of the parameter set).
     double (*start_soc_offset)(const std::vector<double>&) = nullptr;
     // A state of the diagnosed recording (its start, its chamber's drift), not of the cell or the bench: it does not
     // carry over to another recording (DiagnoseOptions::confirm).
     bool recording_state = false;
+    // A recording state held in the parameter set: how it leaves it (carried_over).
+    void (*remove)(ParameterSet&) = nullptr;
 };
 
 const std::vector<EffectSpec>& specs() {
@@ -45,7 +49,9 @@ const std::vector<EffectSpec>& specs() {
         {"entropic_heat",
          {{"ehc_v_per_k", -1e-3, 1e-3, false, true}, {"ehc_slope_v_per_k", -2e-3, 2e-3, false}},
          {{0.0, 0.0}, {2e-4, 0.0}, {-2e-4, 0.0}},
-         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.entropic_heat = EntropicHeatExt{x[0], x[1]}; }},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.entropic_heat = EntropicHeatExt{x[0], x[1]}; },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.entropic_heat.has_value(); }},
         {"thermal_second_order",
          // The characterization fitted one lump to a cell that is not one: its C_th and R_th absorbed part of the
          // second node, so they are re-identified together with it (c_th_scale, r_th_scale).
@@ -56,7 +62,9 @@ const std::vector<EffectSpec>& specs() {
              p.extensions.thermal_second_order = ThermalSecondOrderExt{x[0], x[1]};
              p.thermal.c_th_j_per_k *= x[2];
              p.thermal.r_th_k_per_w *= x[3];
-         }},
+         },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.thermal_second_order.has_value(); }},
         {"resistance_temperature",
          {{"activation_energy_j_per_mol", -2e4, 1.2e5, false}},
          {{3e4}, {6e4}},
@@ -85,7 +93,9 @@ const std::vector<EffectSpec>& specs() {
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.ocv_hysteresis = OcvHysteresisExt{x[0], x[1]};
              for (auto& v : p.ocv_v) v += x[2];
-         }},
+         },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.ocv_hysteresis.has_value(); }},
         {"extra_rc",
          // A characterization with two RC pairs puts part of a slower process into its second pair (a larger R2
          // and a longer tau2 than the cell's): that pair is re-identified together with the new one
@@ -100,12 +110,15 @@ const std::vector<EffectSpec>& specs() {
                      t->r2_ohm[k] *= x[2];
                      t->c2_f[k] *= x[3] / x[2];  // tau2 = R2*C2 scales by tau2_scale
                  }
-         }},
+         },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.extra_rc.has_value(); }},
         {"capacity_error",
          {{"capacity_scale", 0.6, 1.4, false, true}},
          {{0.95}, {1.05}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.capacity_error = CapacityErrorExt{x[0]}; },
-         "parameters_wrong"},
+         "parameters_wrong",
+         [](const ParameterSet& p) { return p.extensions.capacity_error.has_value(); }},
         {"thermal_parameters",
          // wide: a characterization without a long cooling can miss C_th by an order of magnitude
          {{"c_th_scale", 0.02, 200.0, true, true}, {"r_th_scale", 0.1, 10.0, true, true}},
@@ -150,36 +163,29 @@ const std::vector<EffectSpec>& specs() {
          {{1e-3}, {-1e-3}},
          [](ParameterSet& p, const std::vector<double>& x) {
              p.extensions.series_resistance_offset = SeriesResistanceOffsetExt{x[0]};
-         }},
+         },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.series_resistance_offset.has_value(); }},
         {"heat_flux_sensor_gain",
          {{"gain", 0.4, 2.5, true, true}},
          {{0.9}, {1.1}},
-         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.heat_flux_sensor_gain = HeatFluxSensorGainExt{x[0]}; }},
+         [](ParameterSet& p, const std::vector<double>& x) { p.extensions.heat_flux_sensor_gain = HeatFluxSensorGainExt{x[0]}; },
+         "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.heat_flux_sensor_gain.has_value(); }},
         {"ambient_drift",
          {{"offset_c", -5.0, 5.0, false, true}, {"rate_c_per_h", -10.0, 10.0, false, true}},
          {{0.0, 0.0}, {0.5, 1.0}, {-0.5, -1.0}},
          [](ParameterSet& p, const std::vector<double>& x) { p.extensions.ambient_drift = AmbientDriftExt{x[0], x[1]}; },
          "physics_missing",
+         [](const ParameterSet& p) { return p.extensions.ambient_drift.has_value(); },
          nullptr,
-         nullptr,
-         true},
+         true,
+         [](ParameterSet& p) { p.extensions.ambient_drift.reset(); }},
     };
     return s;
 }
 
-bool already_present(const EffectSpec& spec, const ParameterSet& p) {
-    if (spec.present) return spec.present(p);
-    const auto& e = p.extensions;
-    if (spec.id == "entropic_heat") return e.entropic_heat.has_value();
-    if (spec.id == "thermal_second_order") return e.thermal_second_order.has_value();
-    if (spec.id == "ocv_hysteresis") return e.ocv_hysteresis.has_value();
-    if (spec.id == "extra_rc") return e.extra_rc.has_value();
-    if (spec.id == "capacity_error") return e.capacity_error.has_value();
-    if (spec.id == "series_resistance_offset") return e.series_resistance_offset.has_value();
-    if (spec.id == "heat_flux_sensor_gain") return e.heat_flux_sensor_gain.has_value();
-    if (spec.id == "ambient_drift") return e.ambient_drift.has_value();
-    return false;
-}
+bool already_present(const EffectSpec& spec, const ParameterSet& p) { return spec.present && spec.present(p); }
 
 bool has_entropic_table(const ParameterSet& p) {
     return std::any_of(p.thermal.ehc_v_per_k.begin(), p.thermal.ehc_v_per_k.end(), [](double v) { return v != 0.0; });
@@ -300,9 +306,10 @@ double objective(const Problem& pb, const Errors& e, const std::vector<char>& ma
 }
 
 // The parameter set as it carries over to another recording of the cell: without the diagnosed recording's own
-// states (EffectSpec::recording_state; initial_soc never enters the parameter set).
+// states (EffectSpec::recording_state: those the parameter set holds leave it; initial_soc never enters it).
 ParameterSet carried_over(ParameterSet p) {
-    p.extensions.ambient_drift.reset();
+    for (const EffectSpec& s : specs())
+        if (s.recording_state && s.remove) s.remove(p);
     return p;
 }
 

@@ -5,6 +5,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <span>
 #include <ostream>
 #include <stdexcept>
 #include <system_error>
@@ -225,11 +226,13 @@ std::string quote_cells(const std::vector<std::string_view>& cells) {
 }
 
 double read_physical(const RecordReader& reader, std::string_view cell, std::string_view column, PhysicalRange range,
-                     std::string_view unit) {
-    const double v = read_number(reader, cell, column, true);
+                     std::string_view unit, UnitConversion to_si) {
+    const double v = to_si.to_si(read_number(reader, cell, column, true));
     if (!range.contains(v))
-        reader.fail_column(column, "impossible value " + quote_cell(cell) + " (expected " + format_number(range.lo) +
-                                       ".." + format_number(range.hi) + " " + std::string(unit) + ")");
+        reader.fail_column(column, "impossible value " + quote_cell(cell) +
+                                       (to_si.identity() ? "" : " (" + format_number(v) + " " + std::string(unit) + ")") +
+                                       " (expected " + format_number(range.lo) + ".." + format_number(range.hi) + " " +
+                                       std::string(unit) + ")");
     return v;
 }
 
@@ -334,33 +337,91 @@ namespace {
 
 enum class Channel { time, voltage, current, unix_time, step_count, cycle_count, step_type, ambient, surface, t1, t2, heat_flux };
 
+// A unit a column may be given in (matched ignoring case and whitespace) and its conversion to SI.
+struct UnitName {
+    std::string_view name;
+    csv::UnitConversion to_si;
+};
+constexpr UnitName kSeconds[] = {{"s", {}}, {"ms", {1e-3, 0.0}}, {"min", {60.0, 0.0}}, {"h", {3600.0, 0.0}}};
+constexpr UnitName kUnixSeconds[] = {{"s", {}}, {"ms", {1e-3, 0.0}}};
+constexpr UnitName kVolts[] = {{"V", {}}, {"mV", {1e-3, 0.0}}};
+constexpr UnitName kAmperes[] = {{"A", {}}, {"mA", {1e-3, 0.0}}};
+constexpr UnitName kCelsius[] = {{"degC", {}}, {"\u00b0C", {}}, {"\u2103", {}}, {"celsius", {}}, {"K", {1.0, -273.15}}};
+constexpr UnitName kWattsPerSquareMetre[] = {{"W/m^2", {}}, {"W/m2", {}}};
+constexpr UnitName kCount[] = {{"1", {}}};
+
 struct Label {
-    std::string_view label;
+    std::string_view label;    // the BDF preferred label, written verbatim
+    std::string_view mr_name;  // the BDF machine-readable name (empty: our extension has none)
     Channel channel;
     bool required;
     std::vector<double> Recording::*values;  // nullptr for the text channel (Step Type)
+    std::span<const UnitName> units;         // the first is the label's own (SI)
 };
 
 // Header order when writing: as in the bench's own files (time, electrical, step info, temperatures, flux).
-constexpr std::array<Label, 12> kLabels{{
-    {kBdfTestTime, Channel::time, true, &Recording::time_s},
-    {kBdfVoltage, Channel::voltage, true, &Recording::voltage_v},
-    {kBdfCurrent, Channel::current, true, &Recording::current_a},
-    {kBdfUnixTime, Channel::unix_time, false, &Recording::unix_time_s},
-    {kBdfStepCount, Channel::step_count, false, &Recording::step_count},
-    {kBdfCycleCount, Channel::cycle_count, false, &Recording::cycle_count},
-    {kBdfStepType, Channel::step_type, false, nullptr},
-    {kBdfAmbientTemperature, Channel::ambient, false, &Recording::ambient_c},
-    {kBdfSurfaceTemperature, Channel::surface, false, &Recording::surface_c},
-    {kBdfTemperatureT1, Channel::t1, false, &Recording::t1_c},
-    {kBdfTemperatureT2, Channel::t2, false, &Recording::t2_c},
-    {kBdfHeatFluxDensity, Channel::heat_flux, false, &Recording::heat_flux_w_per_m2},
+const std::array<Label, 12> kLabels{{
+    {kBdfTestTime, "test_time_second", Channel::time, true, &Recording::time_s, kSeconds},
+    {kBdfVoltage, "voltage_volt", Channel::voltage, true, &Recording::voltage_v, kVolts},
+    {kBdfCurrent, "current_ampere", Channel::current, true, &Recording::current_a, kAmperes},
+    {kBdfUnixTime, "unix_time_second", Channel::unix_time, false, &Recording::unix_time_s, kUnixSeconds},
+    {kBdfStepCount, "step_count", Channel::step_count, false, &Recording::step_count, kCount},
+    {kBdfCycleCount, "cycle_count", Channel::cycle_count, false, &Recording::cycle_count, kCount},
+    {kBdfStepType, "step_type", Channel::step_type, false, nullptr, {}},
+    {kBdfAmbientTemperature, "ambient_temperature_celsius", Channel::ambient, false, &Recording::ambient_c, kCelsius},
+    {kBdfSurfaceTemperature, "surface_temperature_celsius", Channel::surface, false, &Recording::surface_c, kCelsius},
+    {kBdfTemperatureT1, "temperature_t1_celsius", Channel::t1, false, &Recording::t1_c, kCelsius},
+    {kBdfTemperatureT2, "temperature_t2_celsius", Channel::t2, false, &Recording::t2_c, kCelsius},
+    {kBdfHeatFluxDensity, "", Channel::heat_flux, false, &Recording::heat_flux_w_per_m2, kWattsPerSquareMetre},
 }};
 
 struct UsedColumn {
     std::size_t index;  // position in the header
     const Label* label;
+    csv::UnitConversion to_si;
 };
+
+// What a header cell names: a label, with the conversion of its unit; nullptr where it names nothing we read.
+// Throws (through `reader`) where it names a quantity we read in a unit we do not know.
+std::pair<const Label*, csv::UnitConversion> resolve_column(std::string_view cell, const csv::RecordReader& reader) {
+    const std::string name = csv::normalize_column_name(cell);
+    for (const Label& l : kLabels) {
+        if (name == csv::normalize_column_name(l.label) || (!l.mr_name.empty() && name == l.mr_name))
+            return {&l, {}};
+    }
+    // "Base / unit" with another unit of a quantity we read: the base before the first '/'.
+    const auto slash = name.find('/');
+    if (slash == std::string::npos) return {nullptr, {}};
+    const std::string_view base = std::string_view(name).substr(0, slash);
+    const std::string_view unit = std::string_view(name).substr(slash + 1);
+    for (const Label& l : kLabels) {
+        const std::string own = csv::normalize_column_name(l.label);
+        if (own.substr(0, own.find('/')) != base || l.units.empty()) continue;
+        for (const UnitName& u : l.units)
+            if (csv::normalize_column_name(u.name) == unit) return {&l, u.to_si};
+        std::string known;
+        for (const UnitName& u : l.units) known += (known.empty() ? "" : ", ") + std::string(u.name);
+        reader.fail("column " + csv::quote_cell(cell) + ": a unit of " + std::string(l.label.substr(0, l.label.find(" /"))) +
+                    " this reader does not convert (it reads " + known + ")");
+    }
+    return {nullptr, {}};
+}
+
+// A time column that advances faster than the wall clock beside it is in another unit than its label says
+// (a test time in ms under "test_time_second"): its pulses would be read 1000 times too long.
+void check_time_against_unix_time(const Recording& rec, const std::string& source) {
+    if (rec.unix_time_s.size() != rec.time_s.size() || rec.time_s.size() < 2) return;
+    std::size_t first = 0, last = rec.time_s.size() - 1;
+    while (first < last && !std::isfinite(rec.unix_time_s[first])) ++first;
+    while (last > first && !std::isfinite(rec.unix_time_s[last])) --last;
+    const double wall_s = rec.unix_time_s[last] - rec.unix_time_s[first];
+    const double test_s = rec.time_s[last] - rec.time_s[first];
+    if (!(wall_s >= 60.0) || !(test_s > 1.5 * wall_s)) return;  // a test time may pause, never run ahead
+    throw InputError(source + ": " + std::string(kBdfTestTime) + " advances " + csv::format_number(std::round(test_s / wall_s)) +
+                     " times as fast as " + std::string(kBdfUnixTime) + " (" + csv::format_number(test_s) + " s against " +
+                     csv::format_number(wall_s) + " s between the first and the last row): is it in another unit than "
+                     "seconds? Say so in its label (e.g. \"Test Time / ms\")");
+}
 
 }  // namespace
 
@@ -380,19 +441,17 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     column_of.fill(SIZE_MAX);
     const std::size_t width = fields.size();
     for (std::size_t c = 0; c < width; ++c) {
-        const std::string name = csv::normalize_column_name(fields[c]);
-        const auto it = std::find_if(kLabels.begin(), kLabels.end(),
-                                     [&](const Label& l) { return csv::normalize_column_name(l.label) == name; });
-        if (it == kLabels.end()) {
+        const auto [label, to_si] = resolve_column(fields[c], reader);
+        if (label == nullptr) {
             if (!(fields[c].empty() && c + 1 == width)) ignored.emplace_back(fields[c]);  // not a trailing comma
             continue;
         }
-        const auto k = static_cast<std::size_t>(it - kLabels.begin());
+        const auto k = static_cast<std::size_t>(label - kLabels.data());
         if (column_of[k] != SIZE_MAX)
-            reader.fail("column \"" + std::string(it->label) + "\" appears twice (columns " +
+            reader.fail("column \"" + std::string(label->label) + "\" appears twice (columns " +
                         std::to_string(column_of[k] + 1) + " and " + std::to_string(c + 1) + ")");
         column_of[k] = c;
-        used.push_back({c, &*it});
+        used.push_back({c, label, to_si});
     }
     for (std::size_t k = 0; k < kLabels.size(); ++k)
         if (kLabels[k].required && column_of[k] == SIZE_MAX)
@@ -422,13 +481,17 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
             double v = kNaN;
             switch (u.label->channel) {
                 case Channel::time:
-                    v = csv::read_physical(reader, cell, column, csv::kTestTimeRangeS, "s");
+                    v = csv::read_physical(reader, cell, column, csv::kTestTimeRangeS, "s", u.to_si);
                     guard.check(v, reader);
                     break;
-                case Channel::voltage: v = csv::read_physical(reader, cell, column, csv::kVoltageRangeV, "V"); break;
-                case Channel::current: v = csv::read_physical(reader, cell, column, csv::kCurrentRangeA, "A"); break;
+                case Channel::voltage:
+                    v = csv::read_physical(reader, cell, column, csv::kVoltageRangeV, "V", u.to_si);
+                    break;
+                case Channel::current:
+                    v = csv::read_physical(reader, cell, column, csv::kCurrentRangeA, "A", u.to_si);
+                    break;
                 default: {
-                    v = csv::read_number(reader, cell, column, false);
+                    v = u.to_si.to_si(csv::read_number(reader, cell, column, false));
                     const auto range = u.label->channel == Channel::heat_flux   ? csv::kHeatFluxRangeWPerM2
                                        : u.label->channel == Channel::unix_time ? csv::kUnixTimeRangeS
                                        : (u.label->channel == Channel::step_count ||
@@ -443,6 +506,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     }
     if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
 
+    check_time_against_unix_time(rec, source);
     rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, kBdfTestTime);
     if (report != nullptr) {
         report->rows = rec.size();

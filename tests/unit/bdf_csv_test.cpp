@@ -72,6 +72,77 @@ TEST(BdfCsv, EveryOptionalLabelMapsToItsChannel) {
     EXPECT_EQ(rec.heat_flux_w_per_m2.at(0), 12.5);
 }
 
+// The Battery Data Alliance's reference files key their columns on the ontology's machine-readable names.
+TEST(BdfCsv, MachineReadableNamesOfTheBdfOntologyAreRead) {
+    const std::string text =
+        "test_time_second,voltage_volt,current_ampere,unix_time_second,step_count,cycle_count,step_type,"
+        "ambient_temperature_celsius,surface_temperature_celsius,temperature_t1_celsius,temperature_t2_celsius,"
+        "net_capacity_ah\n"
+        "1,3.7,2,1700000000.5,3,4,CHA,30,31,32,33,0.1\n";
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv(text, "x.csv", &report);
+    ASSERT_EQ(rec.size(), 1u);
+    EXPECT_EQ(rec.time_s.at(0), 1.0);
+    EXPECT_EQ(rec.voltage_v.at(0), 3.7);
+    EXPECT_EQ(rec.current_a.at(0), 2.0);
+    EXPECT_EQ(rec.unix_time_s.at(0), 1700000000.5);
+    EXPECT_EQ(rec.step_count.at(0), 3.0);
+    EXPECT_EQ(rec.cycle_count.at(0), 4.0);
+    EXPECT_EQ(rec.step_type.at(0), "CHA");
+    EXPECT_EQ(rec.ambient_c.at(0), 30.0);
+    EXPECT_EQ(rec.surface_c.at(0), 31.0);
+    EXPECT_EQ(rec.t1_c.at(0), 32.0);
+    EXPECT_EQ(rec.t2_c.at(0), 33.0);
+    EXPECT_EQ(report.ignored_columns, (std::vector<std::string>{"net_capacity_ah"}));
+    // One quantity under both of its names is one column twice.
+    EXPECT_EQ(error_of("Test Time / s,voltage_volt,Current / A,Voltage / V\n0,3.7,0,3.7\n"),
+              "rw.csv:1: column \"Voltage / V\" appears twice (columns 2 and 4)");
+}
+
+TEST(BdfCsv, OtherUnitsOfAQuantityAreConvertedToSi) {
+    const std::string text =
+        "Test Time / ms,Voltage / mV,Current / mA,Surface Temperature / K,Ambient Temperature / \u00b0C,"
+        "Temperature T1 / celsius\n"
+        "0,3700,-4500,303.15,30,31\n"
+        "1500,3650.5,250,304.15,30,31\n";
+    const Recording rec = parse_bdf_csv(text, "x.csv");
+    ASSERT_EQ(rec.size(), 2u);
+    EXPECT_DOUBLE_EQ(rec.time_s.at(1), 1.5);
+    EXPECT_DOUBLE_EQ(rec.voltage_v.at(1), 3.6505);
+    EXPECT_DOUBLE_EQ(rec.current_a.at(0), -4.5);
+    EXPECT_DOUBLE_EQ(rec.current_a.at(1), 0.25);
+    EXPECT_NEAR(rec.surface_c.at(0), 30.0, 1e-12);
+    EXPECT_EQ(rec.ambient_c.at(0), 30.0);
+    EXPECT_EQ(rec.t1_c.at(0), 31.0);
+    const Recording hours = parse_bdf_csv("Test Time / h,Voltage / V,Current / A\n0,3.7,0\n0.5,3.7,0\n", "x.csv");
+    EXPECT_DOUBLE_EQ(hours.time_s.at(1), 1800.0);
+    // The physical range holds in SI: 20000 mV is 20 V, beyond any cell.
+    const std::string msg = error_of("Test Time / s,Voltage / mV,Current / A\n0,20000,0\n");
+    EXPECT_NE(msg.find("impossible value \"20000\" (20 V)"), std::string::npos) << msg;
+}
+
+TEST(BdfCsv, AUnitTheReaderDoesNotConvertIsAnErrorNotAnIgnoredColumn) {
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / kA\n0,3.7,0\n"),
+              "rw.csv:1: column \"Current / kA\": a unit of Current this reader does not convert (it reads A, mA)");
+    const std::string msg = error_of("Test Time / s,Voltage / V,Current / A,Surface Temperature / degF\n0,3.7,0,80\n");
+    EXPECT_NE(msg.find("a unit of Surface Temperature this reader does not convert"), std::string::npos) << msg;
+}
+
+// A test time in ms under a seconds name (seen in a published BDF file): every pulse would read 1000 times too
+// long. A test time that pauses while the wall clock runs on is a test that was paused, and reads.
+TEST(BdfCsv, TestTimeRunningAheadOfTheUnixTimeIsAnError) {
+    std::string ms = "test_time_second,voltage_volt,current_ampere,unix_time_second\n";
+    std::string paused = ms;
+    for (int i = 0; i < 200; ++i) {
+        ms += std::to_string(1000 * i) + ",3.7,0," + std::to_string(1700000000 + i) + "\n";
+        paused += std::to_string(i) + ",3.7,0," + std::to_string(1700000000 + (i < 100 ? i : i + 3600)) + "\n";
+    }
+    const std::string msg = error_of(ms);
+    EXPECT_NE(msg.find("Test Time / s advances 1000 times as fast as Unix Time / s"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("\"Test Time / ms\""), std::string::npos) << "says how to fix it: " << msg;
+    EXPECT_EQ(error_of(paused), "");
+}
+
 TEST(BdfCsv, BomCrlfWhitespaceQuotesAndLabelCase) {
     const std::string text =
         "\xEF\xBB\xBF\"Test Time / s\" , voltage / v,CURRENT / A,\"Step Type\"\r\n"

@@ -45,7 +45,12 @@ struct BdfReadReport {
     bool ends_mid_line = false;  // the text does not end with a line end (a file cut short?)
 };
 
-// Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). Tolerates a
+// Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). A column is known by
+// its BDF preferred label ("Current / A"), by the label with another unit of the same quantity ("Current / mA",
+// "Test Time / ms", "Voltage / mV", "Surface Temperature / K": converted to SI on reading; a unit it does not
+// know is an error naming the units it does), or by its BDF machine-readable name ("current_ampere", the
+// normative form of the Battery Data Alliance's reference files). A time column that advances faster than the
+// Unix time column beside it (a test time in ms under a seconds label) is an error. Tolerates a
 // UTF-8 BOM, CRLF or LF line ends, blank lines, whitespace around cells and RFC 4180 quoted cells.
 // Empty cells are NaN in optional numeric columns and errors in required ones. Timestamps that repeat or
 // step back by less than 1 s are repaired (see csv::repair_timestamps); a step back of 1 s or more is an error.
@@ -160,10 +165,18 @@ inline constexpr PhysicalRange kTestTimeRangeS{-1e9, 1e10};      // ~300 years o
 inline constexpr PhysicalRange kUnixTimeRangeS{0.0, 1e11};
 inline constexpr PhysicalRange kCountRange{-1e9, 1e9};           // step and cycle counts
 
-// Reads a required numeric cell (read_number) and checks it against `range`: outside is an error naming the
-// line, the column and the value.
+// A column's unit to the SI unit of its quantity: si = value * scale + offset ("Current / mA": 1e-3, 0).
+struct UnitConversion {
+    double scale = 1.0;
+    double offset = 0.0;
+    [[nodiscard]] double to_si(double v) const { return v * scale + offset; }
+    [[nodiscard]] bool identity() const { return scale == 1.0 && offset == 0.0; }
+};
+
+// Reads a required numeric cell (read_number), converts it to SI (`to_si`) and checks it against `range`:
+// outside is an error naming the line, the column and the value.
 double read_physical(const RecordReader& reader, std::string_view cell, std::string_view column, PhysicalRange range,
-                     std::string_view unit);
+                     std::string_view unit, UnitConversion to_si = {});
 
 // Counts values of optional columns outside their physical range (they read as NaN).
 struct DroppedValues {

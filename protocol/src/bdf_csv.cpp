@@ -408,16 +408,20 @@ std::pair<const Label*, csv::UnitConversion> resolve_column(std::string_view cel
 }
 
 // A time column that advances faster than the wall clock beside it is in another unit than its label says
-// (a test time in ms under "test_time_second"): its pulses would be read 1000 times too long.
-void check_time_against_unix_time(const Recording& rec, const std::string& source) {
-    if (rec.unix_time_s.size() != rec.time_s.size() || rec.time_s.size() < 2) return;
+// (a published HPPC keeps milliseconds under "test_time_second"): its pulses would read 1000 times too long.
+// Exactly 1000 times as fast (within 1 %) is read as milliseconds, and says so (returns 1000); any other rate
+// ahead of the wall clock is an error. A test time may pause while the wall clock runs on (returns 1).
+double check_time_against_unix_time(const Recording& rec, const std::string& source) {
+    if (rec.unix_time_s.size() != rec.time_s.size() || rec.time_s.size() < 2) return 1.0;
     std::size_t first = 0, last = rec.time_s.size() - 1;
     while (first < last && !std::isfinite(rec.unix_time_s[first])) ++first;
     while (last > first && !std::isfinite(rec.unix_time_s[last])) --last;
     const double wall_s = rec.unix_time_s[last] - rec.unix_time_s[first];
     const double test_s = rec.time_s[last] - rec.time_s[first];
-    if (!(wall_s >= 60.0) || !(test_s > 1.5 * wall_s)) return;  // a test time may pause, never run ahead
-    throw InputError(source + ": " + std::string(kBdfTestTime) + " advances " + csv::format_number(std::round(test_s / wall_s)) +
+    if (!(wall_s >= 60.0) || !(test_s > 1.5 * wall_s)) return 1.0;
+    const double ratio = test_s / wall_s;
+    if (std::abs(ratio / 1000.0 - 1.0) <= 0.01) return 1000.0;
+    throw InputError(source + ": " + std::string(kBdfTestTime) + " advances " + csv::format_number(std::round(ratio)) +
                      " times as fast as " + std::string(kBdfUnixTime) + " (" + csv::format_number(test_s) + " s against " +
                      csv::format_number(wall_s) + " s between the first and the last row): is it in another unit than "
                      "seconds? Say so in its label (e.g. \"Test Time / ms\")");
@@ -506,7 +510,9 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     }
     if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
 
-    check_time_against_unix_time(rec, source);
+    const double time_divisor = check_time_against_unix_time(rec, source);
+    if (time_divisor != 1.0)
+        for (double& t : rec.time_s) t /= time_divisor;
     rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, kBdfTestTime);
     if (report != nullptr) {
         report->rows = rec.size();
@@ -519,6 +525,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
         report->gap_line = gap.line;
         report->typical_interval_s = gap.typical_interval_s;
         report->ends_mid_line = reader.ends_mid_line();
+        report->time_read_as_ms = time_divisor == 1000.0;
     }
     return rec;
 }

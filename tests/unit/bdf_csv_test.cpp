@@ -129,18 +129,27 @@ TEST(BdfCsv, AUnitTheReaderDoesNotConvertIsAnErrorNotAnIgnoredColumn) {
 }
 
 // A test time in ms under a seconds name (seen in a published BDF file): every pulse would read 1000 times too
-// long. A test time that pauses while the wall clock runs on is a test that was paused, and reads.
-TEST(BdfCsv, TestTimeRunningAheadOfTheUnixTimeIsAnError) {
+// long. Exactly 1000 times the wall clock's pace is read as ms, and the report says so; any other pace ahead of
+// the wall clock is an error; a test time that pauses while the wall clock runs on is a test that was paused.
+TEST(BdfCsv, TestTimeRunningAheadOfTheUnixTimeIsReadAsMsOrRefused) {
     std::string ms = "test_time_second,voltage_volt,current_ampere,unix_time_second\n";
-    std::string paused = ms;
+    std::string fast = ms, paused = ms;
     for (int i = 0; i < 200; ++i) {
-        ms += std::to_string(1000 * i) + ",3.7,0," + std::to_string(1700000000 + i) + "\n";
+        ms += std::to_string(1000 * i + (i % 3)) + ",3.7,0," + std::to_string(1700000000 + i) + "\n";
+        fast += std::to_string(10 * i) + ",3.7,0," + std::to_string(1700000000 + i) + "\n";
         paused += std::to_string(i) + ",3.7,0," + std::to_string(1700000000 + (i < 100 ? i : i + 3600)) + "\n";
     }
-    const std::string msg = error_of(ms);
-    EXPECT_NE(msg.find("Test Time / s advances 1000 times as fast as Unix Time / s"), std::string::npos) << msg;
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv(ms, "x.csv", &report);
+    EXPECT_TRUE(report.time_read_as_ms);
+    EXPECT_DOUBLE_EQ(rec.time_s.at(1), 1.001);
+    EXPECT_DOUBLE_EQ(rec.time_s.back(), 199.001);
+    const std::string msg = error_of(fast);
+    EXPECT_NE(msg.find("Test Time / s advances 10 times as fast as Unix Time / s"), std::string::npos) << msg;
     EXPECT_NE(msg.find("\"Test Time / ms\""), std::string::npos) << "says how to fix it: " << msg;
-    EXPECT_EQ(error_of(paused), "");
+    BdfReadReport paused_report;
+    EXPECT_EQ(parse_bdf_csv(paused, "x.csv", &paused_report).time_s.back(), 199.0);
+    EXPECT_FALSE(paused_report.time_read_as_ms);
 }
 
 TEST(BdfCsv, BomCrlfWhitespaceQuotesAndLabelCase) {

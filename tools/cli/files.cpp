@@ -57,6 +57,10 @@ std::string read_file(const std::filesystem::path& path, std::size_t max_line_by
 }
 
 void warn_bdf_report(const std::string& source, const protocol::BdfReadReport& report) {
+    if (report.time_read_as_ms)
+        spdlog::warn("{}: the test time runs 1000 times as fast as the Unix time beside it: read as milliseconds "
+                     "(label it \"Test Time / ms\" to say so)",
+                     source);
     if (report.repaired_timestamps > 0)
         spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", source, report.repaired_timestamps);
     if (report.dropped_values > 0)

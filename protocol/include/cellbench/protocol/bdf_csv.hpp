@@ -43,6 +43,8 @@ struct BdfReadReport {
     std::size_t gap_line = 0;
     double typical_interval_s = 0.0;
     bool ends_mid_line = false;  // the text does not end with a line end (a file cut short?)
+    // The time column advanced 1000 times as fast as the Unix time beside it (within 1 %) and was read as ms.
+    bool time_read_as_ms = false;
 };
 
 // Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). A column is known by
@@ -50,7 +52,8 @@ struct BdfReadReport {
 // "Test Time / ms", "Voltage / mV", "Surface Temperature / K": converted to SI on reading; a unit it does not
 // know is an error naming the units it does), or by its BDF machine-readable name ("current_ampere", the
 // normative form of the Battery Data Alliance's reference files). A time column that advances faster than the
-// Unix time column beside it (a test time in ms under a seconds label) is an error. Tolerates a
+// Unix time column beside it is read as ms where it runs exactly 1000 times as fast (within 1 %: a test time in ms
+// under a seconds name; BdfReadReport::time_read_as_ms) and is an error at any other rate. Tolerates a
 // UTF-8 BOM, CRLF or LF line ends, blank lines, whitespace around cells and RFC 4180 quoted cells.
 // Empty cells are NaN in optional numeric columns and errors in required ones. Timestamps that repeat or
 // step back by less than 1 s are repaired (see csv::repair_timestamps); a step back of 1 s or more is an error.

@@ -48,4 +48,10 @@ void Recording::pad_optional_channels() {
     pad(step_type, n, std::string{});
 }
 
+bool Recording::take_t1_as_surface() {
+    if (has_surface() || !has_values(t1_c)) return false;
+    surface_c = t1_c;
+    return true;
+}
+
 }  // namespace cellbench

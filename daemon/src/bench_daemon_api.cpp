@@ -315,6 +315,8 @@ json BenchDaemon::diagnose_recording(const DiagnoseRequest& request, std::string
             if (report.repaired_timestamps > 0)
                 spdlog::info("diagnosis: {}: repaired {} repeated or slightly backward timestamps", source,
                              report.repaired_timestamps);
+            if (in.recording.take_t1_as_surface())
+                spdlog::info("diagnosis: {}: no Surface Temperature column: the cell temperature is read from T1", source);
             if (report.time_read_as_ms)
                 spdlog::warn("diagnosis: {}: the test time runs 1000 times as fast as the Unix time: read as ms", source);
             return in;

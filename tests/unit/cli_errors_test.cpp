@@ -102,3 +102,25 @@ TEST_F(CliErrors, SimulateWritesMetricsJsonWithNullForUnmeasuredQuantities) {
     EXPECT_NE(j.find("\"temperature\": null"), std::string::npos) << j;
     EXPECT_NE(j.find("\"rms_v\""), std::string::npos) << j;
 }
+
+// A BDF file as the Battery Data Alliance publishes them (machine-readable names, a vendor's extra columns, one
+// thermocouple in T1, no surface temperature) is a recording every command reads: the cell temperature comes
+// from T1, and a test time kept in ms under the seconds name is read as ms with a warning.
+TEST_F(CliErrors, ReferenceFormBdfWithMachineNamesAndOnlyT1IsSimulated) {
+    std::string text = "test_time_second,voltage_volt,current_ampere,unix_time_second,step_id,temperature_t1_celsius\n";
+    for (int k = 0; k < 300; ++k)
+        text += std::to_string(1000 * k) + "," + (k < 100 ? "3.70" : "3.66") + "," + (k < 100 ? "0" : "-4.5") + "," +
+                std::to_string(1700000000 + k) + ",1,30.0\n";
+    const auto rec = write("reference.bdf.csv", text);
+    const auto r = run("simulate --params " + kThesis.string() + " " + rec.string() + " --json " +
+                       (dir_ / "m.json").string());
+    ASSERT_EQ(r.status, 0) << r.output;
+    EXPECT_NE(r.output.find("read as milliseconds"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("read from Temperature T1"), std::string::npos) << r.output;
+    std::ifstream in(dir_ / "m.json");
+    std::stringstream ss;
+    ss << in.rdbuf();
+    const auto j = ss.str();
+    EXPECT_EQ(j.find("\"temperature\": null"), std::string::npos) << "T1 is the cell temperature: " << j;
+    EXPECT_NE(r.output.find("(299 s)"), std::string::npos) << "299 s, not 299000 s: " << r.output;
+}

@@ -189,20 +189,27 @@ Recording load_recording(const std::filesystem::path& path) {
     const std::string text = read_file(path);
     const auto header = text.substr(0, text.find('\n'));
     Recording rec;
-    if (header.find("Test Time / s") != std::string::npos) {
-        protocol::BdfReadReport report;
-        rec = protocol::parse_bdf_csv(text, path.string(), &report);
-        warn_bdf_report(path.string(), report);
-    } else if (header.find("Current(A)") != std::string::npos || header.find("Voltage(V)") != std::string::npos) {
+    if (header.find("Current(A)") != std::string::npos || header.find("Voltage(V)") != std::string::npos) {
         rec = protocol::parse_neware_export(text, path.string());
         if (rec.repaired_timestamps > 0)
             spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", path.string(),
                          rec.repaired_timestamps);
-    } else {
-        throw InputError(path.string() +
-                         ":1: not a recording: expected a BDF CSV header with \"Test Time / s\", \"Voltage / V\", "
-                         "\"Current / A\" (use `cellbench import` for instrument exports)");
+        return rec;
     }
+    // Everything else is read as BDF CSV, whose reader knows its columns under every name and unit it takes
+    // (preferred labels, machine-readable names, other units) and says which required one is missing.
+    protocol::BdfReadReport report;
+    try {
+        rec = protocol::parse_bdf_csv(text, path.string(), &report);
+    } catch (const InputError& e) {
+        const std::string what = e.what();
+        if (what.find("missing required column") == std::string::npos) throw;
+        throw InputError(what + "; not a BDF recording? `cellbench import` turns Neware and DewesoftX exports into one");
+    }
+    warn_bdf_report(path.string(), report);
+    if (rec.take_t1_as_surface())
+        spdlog::info("{}: no Surface Temperature column: the cell temperature is read from Temperature T1",
+                     path.string());
     return rec;
 }
 

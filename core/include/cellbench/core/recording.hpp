@@ -52,6 +52,11 @@ struct Recording {
 
     // Resizes every present optional channel to size(), filling with NaN / "" (used by builders).
     void pad_optional_channels();
+
+    // A recording from another bench whose only cell temperature is a thermocouple in T1 (the usual single
+    // surface thermocouple of a lab without a heat flux sensor): T1 becomes the surface temperature the model
+    // reads. Returns whether it did (there was no surface temperature and T1 held values).
+    bool take_t1_as_surface();
 };
 
 // Bad input (file, line or JSON path, and what was expected). Maps to exit status 1.

@@ -1,4 +1,5 @@
 #include "cellbench/estimator/fit.hpp"
+#include "cellbench/estimator/stale_current.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -11,6 +12,7 @@
 #include "cellbench/estimator/thermal_characterization.hpp"
 
 #include "median.hpp"
+#include "printf_text.hpp"
 
 namespace cellbench::estimator {
 
@@ -344,7 +346,16 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
                                    " rows without a voltage (NaN, missing), the first at t = " +
                                    std::to_string(rec.time_s[first_v]) + " s: left out of the fits");
     }
-    const std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
+    std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
+    for (auto& rec : recordings) {
+        const auto rows = stale_current_rows(rec);
+        if (rows.empty()) continue;
+        out.warnings.push_back(rec.source + ": " + std::to_string(rows.size()) +
+                               " rows at current steps show the step's new voltage with the current before it (the "
+                               "first at t = " + printf_text("%.3f", rec.time_s[rows.front()]) +
+                               " s): their current is taken from the next row");
+        take_next_current_for_stale_rows(rec);
+    }
     std::vector<RecordingSegments> segs;
     for (const auto& rec : recordings) {
         if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");

@@ -53,6 +53,22 @@ TEST(BdfCsv, ColumnsInAnyOrderUnknownOnesIgnoredAndReported) {
     EXPECT_EQ(report.ignored_columns, (std::vector<std::string>{"Vendor Capacity / Ah"}));
 }
 
+// One row "1,3.7,2,1700000000.5,3,4,STEP,30,31,32,33[,...]" under the header's names, read into every channel.
+void expect_every_channel(const Recording& rec, const std::string& step_type) {
+    ASSERT_EQ(rec.size(), 1u);
+    EXPECT_EQ(rec.time_s.at(0), 1.0);
+    EXPECT_EQ(rec.voltage_v.at(0), 3.7);
+    EXPECT_EQ(rec.current_a.at(0), 2.0);
+    EXPECT_EQ(rec.unix_time_s.at(0), 1700000000.5);
+    EXPECT_EQ(rec.step_count.at(0), 3.0);
+    EXPECT_EQ(rec.cycle_count.at(0), 4.0);
+    EXPECT_EQ(rec.step_type.at(0), step_type);
+    EXPECT_EQ(rec.ambient_c.at(0), 30.0);
+    EXPECT_EQ(rec.surface_c.at(0), 31.0);
+    EXPECT_EQ(rec.t1_c.at(0), 32.0);
+    EXPECT_EQ(rec.t2_c.at(0), 33.0);
+}
+
 TEST(BdfCsv, EveryOptionalLabelMapsToItsChannel) {
     const std::string text =
         "Test Time / s,Voltage / V,Current / A,Unix Time / s,Step Count / 1,Cycle Count / 1,Step Type,"
@@ -60,15 +76,7 @@ TEST(BdfCsv, EveryOptionalLabelMapsToItsChannel) {
         "Heat Flux Density / W/m^2\n"
         "1,3.7,2,1700000000.5,3,4,CC Chg,30,31,32,33,12.5\n";
     const Recording rec = parse_bdf_csv(text, "x.csv");
-    ASSERT_EQ(rec.size(), 1u);
-    EXPECT_EQ(rec.unix_time_s.at(0), 1700000000.5);
-    EXPECT_EQ(rec.step_count.at(0), 3.0);
-    EXPECT_EQ(rec.cycle_count.at(0), 4.0);
-    EXPECT_EQ(rec.step_type.at(0), "CC Chg");
-    EXPECT_EQ(rec.ambient_c.at(0), 30.0);
-    EXPECT_EQ(rec.surface_c.at(0), 31.0);
-    EXPECT_EQ(rec.t1_c.at(0), 32.0);
-    EXPECT_EQ(rec.t2_c.at(0), 33.0);
+    expect_every_channel(rec, "CC Chg");
     EXPECT_EQ(rec.heat_flux_w_per_m2.at(0), 12.5);
 }
 
@@ -80,19 +88,7 @@ TEST(BdfCsv, MachineReadableNamesOfTheBdfOntologyAreRead) {
         "net_capacity_ah\n"
         "1,3.7,2,1700000000.5,3,4,CHA,30,31,32,33,0.1\n";
     BdfReadReport report;
-    const Recording rec = parse_bdf_csv(text, "x.csv", &report);
-    ASSERT_EQ(rec.size(), 1u);
-    EXPECT_EQ(rec.time_s.at(0), 1.0);
-    EXPECT_EQ(rec.voltage_v.at(0), 3.7);
-    EXPECT_EQ(rec.current_a.at(0), 2.0);
-    EXPECT_EQ(rec.unix_time_s.at(0), 1700000000.5);
-    EXPECT_EQ(rec.step_count.at(0), 3.0);
-    EXPECT_EQ(rec.cycle_count.at(0), 4.0);
-    EXPECT_EQ(rec.step_type.at(0), "CHA");
-    EXPECT_EQ(rec.ambient_c.at(0), 30.0);
-    EXPECT_EQ(rec.surface_c.at(0), 31.0);
-    EXPECT_EQ(rec.t1_c.at(0), 32.0);
-    EXPECT_EQ(rec.t2_c.at(0), 33.0);
+    expect_every_channel(parse_bdf_csv(text, "x.csv", &report), "CHA");
     EXPECT_EQ(report.ignored_columns, (std::vector<std::string>{"net_capacity_ah"}));
     // One quantity under both of its names is one column twice.
     EXPECT_EQ(error_of("Test Time / s,voltage_volt,Current / A,Voltage / V\n0,3.7,0,3.7\n"),

@@ -511,8 +511,10 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
 
     const double time_divisor = check_time_against_unix_time(rec, source);
-    if (time_divisor != 1.0)
+    if (time_divisor != 1.0) {
         for (double& t : rec.time_s) t /= time_divisor;
+        guard.rescale(time_divisor);
+    }
     rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, kBdfTestTime);
     if (report != nullptr) {
         report->rows = rec.size();

@@ -140,6 +140,7 @@ TEST(BdfCsv, TestTimeRunningAheadOfTheUnixTimeIsReadAsMsOrRefused) {
     EXPECT_TRUE(report.time_read_as_ms);
     EXPECT_DOUBLE_EQ(rec.time_s.at(1), 1.001);
     EXPECT_DOUBLE_EQ(rec.time_s.back(), 199.001);
+    EXPECT_EQ(report.gap_s, 0.0) << "steps of 1000 ms are no gap";
     const std::string msg = error_of(fast);
     EXPECT_NE(msg.find("Test Time / s advances 10 times as fast as Unix Time / s"), std::string::npos) << msg;
     EXPECT_NE(msg.find("\"Test Time / ms\""), std::string::npos) << "says how to fix it: " << msg;

@@ -143,6 +143,11 @@ public:
     // The largest forward step seen and the line of the row after it.
     [[nodiscard]] double largest_step_s() const { return largest_step_s_; }
     [[nodiscard]] std::size_t largest_step_line() const { return largest_step_line_; }
+    // The stamps seen were in units `divisor` times finer than seconds (a test time read as ms after the fact).
+    void rescale(double divisor) {
+        latest_s_ /= divisor;
+        largest_step_s_ /= divisor;
+    }
 
 private:
     std::string column_;

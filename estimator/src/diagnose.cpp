@@ -1,4 +1,5 @@
 #include "cellbench/estimator/diagnose.hpp"
+#include "cellbench/estimator/stale_current.hpp"
 #include "printf_text.hpp"
 
 #include <algorithm>
@@ -770,7 +771,39 @@ std::size_t accepted_in_round(const std::vector<Finding>& round) {
     return best;
 }
 
-Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options) {
+namespace {
+Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options);
+}  // namespace
+
+// The recordings as the fit reads them: a step's first row that shows the new voltage with the old current takes
+// the step's current (stale_current.hpp), else each such row would pass for a miss of the model at every step.
+Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options) {
+    std::vector<std::string> notes;
+    auto corrected = [&](const Recording& r) -> std::optional<Recording> {
+        const auto rows = stale_current_rows(r);
+        if (rows.empty()) return std::nullopt;
+        notes.push_back(r.source + ": " + std::to_string(rows.size()) +
+                        " rows at current steps show the step's new voltage with the current before it (the first at "
+                        "t = " + printf_text("%.3f", r.time_s[rows.front()]) + " s): their current is taken from the next row");
+        Recording c = r;
+        take_next_current_for_stale_rows(c);
+        return c;
+    };
+    const auto main = corrected(rec);
+    std::vector<std::optional<Recording>> confirm;
+    confirm.reserve(options.confirm.size());  // opts.confirm points into it
+    DiagnoseOptions opts = options;
+    for (std::size_t k = 0; k < options.confirm.size(); ++k) {
+        confirm.push_back(options.confirm[k] ? corrected(*options.confirm[k]) : std::nullopt);
+        if (confirm.back()) opts.confirm[k] = &*confirm.back();
+    }
+    Diagnosis d = diagnose_as_given(params, main ? *main : rec, notes.empty() ? options : opts);
+    d.notes = std::move(notes);
+    return d;
+}
+
+namespace {
+Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options) {
     // Progress: the baseline up to 5 %, the candidate rounds (at most max_accepted) to 95 %, then the final
     // simulation of the improved model. A search that stops early jumps to 95 %.
     ProgressReporter progress(options.progress);
@@ -1156,6 +1189,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec_full, const 
     progress(1.0, "done");
     return d;
 }
+}  // namespace
 
 nlohmann::json diagnosis_to_json(const Diagnosis& d) {
     nlohmann::json j;
@@ -1242,6 +1276,7 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
     }
     j["improved"] = rms_json(d.improved);
     j["summary"] = d.summary;
+    if (!d.notes.empty()) j["notes"] = d.notes;
     return j;
 }
 

@@ -7,9 +7,12 @@
 #include <vector>
 
 #include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/fit.hpp"
+#include "cellbench/estimator/simulate.hpp"
 #include "cellbench/estimator/stale_current.hpp"
 #include "unit/hppc_synthetic.hpp"
+#include "unit/thesis_params.hpp"
 
 namespace {
 
@@ -22,6 +25,37 @@ Recording rows(const std::vector<double>& current_a, const std::vector<double>& 
     for (std::size_t k = 0; k < current_a.size(); ++k) r.time_s.push_back(static_cast<double>(k));
     r.current_a = current_a;
     r.voltage_v = voltage_v;
+    return r;
+}
+
+// Every row where the current steps away from a rest reads the rest's 0 A; returns how many.
+std::size_t make_steps_from_rest_stale(Recording& r) {
+    std::size_t n = 0;
+    for (std::size_t k = 1; k + 1 < r.size(); ++k)
+        if (std::abs(r.current_a[k - 1]) < 1e-6 && std::abs(r.current_a[k]) > 1.0) {
+            r.current_a[k] = 0.0;
+            ++n;
+            ++k;
+        }
+    return n;
+}
+
+// 40 minutes at 1 s of 1C-4C pulses and rests, simulated by the thesis cell, voltage quantized to 0.1 mV.
+Recording thesis_pulses(const char* source, int phase) {
+    const auto truth = cellbench::test::thesis_parameter_set();
+    Recording r;
+    r.source = source;
+    const double pattern[] = {-1.0, 0.0, 2.0, 0.0, -4.0, 0.0, -2.0, 1.0, 0.0, -3.0, 0.0};
+    for (int k = 0; k <= 2400; ++k) {
+        r.time_s.push_back(k);
+        r.current_a.push_back(k < 60 ? 0.0 : pattern[(k / 45 + phase) % 11] * truth.capacity_ah);
+        r.voltage_v.push_back(0.0);
+    }
+    est::SimulationOptions so;
+    so.initial_soc = 0.8;
+    so.ambient_c = 25.0;
+    const auto tr = est::simulate(est::CellModel(truth), r, so);
+    for (std::size_t k = 0; k < r.size(); ++k) r.voltage_v[k] = std::round(tr.voltage_v[k] * 1e4) / 1e4;
     return r;
 }
 
@@ -83,6 +117,34 @@ TEST(StaleCurrentRows, TheFitOfAnHppcWithStaleStepRowsMatchesTheCleanOne) {
         EXPECT_NEAR(b.params.discharge.r1_ohm[k], a.params.discharge.r1_ohm[k], 1e-3 * a.params.discharge.r1_ohm[k])
             << "row " << k << " (SOC " << a.params.soc[k] << ")";
     }
+}
+
+// diagnose reads the recordings as the fit does: with the stale rows given their step's current, the diagnosis
+// (and its confirmation on another recording) is the clean recording's, and its notes say what was read so.
+TEST(StaleCurrentRows, DiagnoseReadsStaleStepRowsAsTheFitDoes) {
+    const Recording clean = thesis_pulses("walk", 0), clean_other = thesis_pulses("other", 5);
+    Recording stale = clean, stale_other = clean_other;
+    ASSERT_GE(make_steps_from_rest_stale(stale), 10u);
+    ASSERT_GE(make_steps_from_rest_stale(stale_other), 10u);
+    est::DiagnoseOptions o;
+    o.effects = {"series_resistance_offset"};
+    o.max_accepted = 1;
+    o.threads = 1;
+    const auto params = cellbench::test::thesis_parameter_set();
+    o.confirm = {&clean_other};
+    const auto a = est::diagnose(params, clean, o);
+    o.confirm = {&stale_other};
+    const auto b = est::diagnose(params, stale, o);
+    EXPECT_TRUE(a.notes.empty());
+    ASSERT_EQ(b.notes.size(), 2u);
+    EXPECT_NE(b.notes[0].find("walk: "), std::string::npos) << b.notes[0];
+    EXPECT_NE(b.notes[1].find("other: "), std::string::npos) << b.notes[1];
+    ASSERT_TRUE(a.baseline.voltage_v && b.baseline.voltage_v);
+    EXPECT_DOUBLE_EQ(*b.baseline.voltage_v, *a.baseline.voltage_v);
+    ASSERT_EQ(a.findings.size(), b.findings.size());
+    for (std::size_t k = 0; k < a.findings.size(); ++k) EXPECT_DOUBLE_EQ(b.findings[k].score, a.findings[k].score);
+    EXPECT_EQ(est::diagnosis_to_json(b).at("notes").size(), 2u);
+    EXPECT_FALSE(est::diagnosis_to_json(a).contains("notes"));
 }
 
 }  // namespace

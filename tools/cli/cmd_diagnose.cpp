@@ -29,6 +29,7 @@ int run_diagnose(const DiagnoseCliOptions& o) {
     opt.progress = progress.callback();
     const auto d = estimator::diagnose(params, rec, opt);
     progress.finish();
+    for (const auto& note : d.notes) spdlog::warn("{}", note);
 
     auto q = [](const estimator::QuantityRms& r) {
         char b[160];

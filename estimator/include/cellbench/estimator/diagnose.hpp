@@ -182,6 +182,8 @@ struct Diagnosis {
     std::vector<std::string> skipped;        // candidates the parameter set already holds
     nlohmann::json holdout;                  // the hold-out scheme ({"scheme": "interleaved_blocks", ...})
     std::vector<std::string> confirm_recordings;  // sources of DiagnoseOptions::confirm
+    // What was read differently from the file (rows at current steps with a stale current), in plain words.
+    std::vector<std::string> notes;
 };
 
 // Which of one round's candidate findings diagnose accepts (an index; round.size() when none is significant): the

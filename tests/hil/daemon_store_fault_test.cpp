@@ -90,6 +90,10 @@ TEST(DaemonStoreFault, ALockedDatabaseAbortsTheRunSafelyAndTheAbortIsRecordedOnc
 
     sqlite3* other = nullptr;  // another process holding the write lock
     ASSERT_EQ(sqlite3_open(f.d->database_path().c_str(), &other), SQLITE_OK);
+    // The daemon may be inside one of its own write transactions at this instant (it commits samples every few
+    // hundred ms): wait for it to end, as any other process taking the lock would (clean clone at 5207b62, on a
+    // loaded machine, got SQLITE_BUSY here at once).
+    sqlite3_busy_timeout(other, 30000);
     ASSERT_EQ(sqlite3_exec(other, "BEGIN EXCLUSIVE", nullptr, nullptr, nullptr), SQLITE_OK) << sqlite3_errmsg(other);
 
     json run;

@@ -780,13 +780,9 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
 Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options) {
     std::vector<std::string> notes;
     auto corrected = [&](const Recording& r) -> std::optional<Recording> {
-        const auto rows = stale_current_rows(r);
-        if (rows.empty()) return std::nullopt;
-        notes.push_back(r.source + ": " + std::to_string(rows.size()) +
-                        " rows at current steps show the step's new voltage with the current before it (the first at "
-                        "t = " + printf_text("%.3f", r.time_s[rows.front()]) + " s): their current is taken from the next row");
+        if (stale_current_rows(r).empty()) return std::nullopt;  // no copy of a recording that needs none
         Recording c = r;
-        take_next_current_for_stale_rows(c);
+        notes.push_back(correct_stale_current_rows(c));
         return c;
     };
     const auto main = corrected(rec);

@@ -12,7 +12,6 @@
 #include "cellbench/estimator/thermal_characterization.hpp"
 
 #include "median.hpp"
-#include "printf_text.hpp"
 
 namespace cellbench::estimator {
 
@@ -347,15 +346,8 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
                                    std::to_string(rec.time_s[first_v]) + " s: left out of the fits");
     }
     std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
-    for (auto& rec : recordings) {
-        const auto rows = stale_current_rows(rec);
-        if (rows.empty()) continue;
-        out.warnings.push_back(rec.source + ": " + std::to_string(rows.size()) +
-                               " rows at current steps show the step's new voltage with the current before it (the "
-                               "first at t = " + printf_text("%.3f", rec.time_s[rows.front()]) +
-                               " s): their current is taken from the next row");
-        take_next_current_for_stale_rows(rec);
-    }
+    for (auto& rec : recordings)
+        if (auto note = correct_stale_current_rows(rec); !note.empty()) out.warnings.push_back(std::move(note));
     std::vector<RecordingSegments> segs;
     for (const auto& rec : recordings) {
         if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");

@@ -3,6 +3,8 @@
 #include <cmath>
 #include <vector>
 
+#include "printf_text.hpp"
+
 namespace cellbench::estimator {
 
 namespace {
@@ -34,10 +36,25 @@ std::vector<std::size_t> stale_current_rows(const Recording& rec) {
     return rows;
 }
 
+namespace {
+void take_next_current(Recording& rec, const std::vector<std::size_t>& rows) {
+    for (const std::size_t k : rows) rec.current_a[k] = rec.current_a[k + 1];
+}
+}  // namespace
+
 std::size_t take_next_current_for_stale_rows(Recording& rec) {
     const auto rows = stale_current_rows(rec);
-    for (const std::size_t k : rows) rec.current_a[k] = rec.current_a[k + 1];
+    take_next_current(rec, rows);
     return rows.size();
+}
+
+std::string correct_stale_current_rows(Recording& rec) {
+    const auto rows = stale_current_rows(rec);
+    if (rows.empty()) return {};
+    take_next_current(rec, rows);
+    return rec.source + ": " + std::to_string(rows.size()) +
+           " rows at current steps show the step's new voltage with the current before it (the first at t = " +
+           printf_text("%.3f", rec.time_s[rows.front()]) + " s): their current is taken from the next row";
 }
 
 }  // namespace cellbench::estimator

@@ -90,13 +90,7 @@ TEST(StaleCurrentRows, TheFitOfAnHppcWithStaleStepRowsMatchesTheCleanOne) {
     so.voltage_noise_v = 2e-4;
     const Recording clean = cellbench::test::synthesize(cellbench::test::hppc_program(4), so);
     Recording stale = clean;
-    std::size_t corrupted = 0;
-    for (std::size_t k = 1; k + 1 < stale.size(); ++k)
-        if (std::abs(stale.current_a[k - 1]) < 1e-6 && std::abs(stale.current_a[k]) > 1.0) {
-            stale.current_a[k] = 0.0;
-            ++corrupted;
-            ++k;
-        }
+    const std::size_t corrupted = make_steps_from_rest_stale(stale);
     ASSERT_GE(corrupted, 8u);
     ASSERT_EQ(est::stale_current_rows(stale).size(), corrupted);
 

@@ -9,6 +9,7 @@
 // row's current steps (by at least 0.1 A), and the voltage of row k has already moved, in the direction the step
 // drives it, by more than 5 mV and more than half of the move to the next row.
 #include <cstddef>
+#include <string>
 #include <vector>
 
 #include "cellbench/core/recording.hpp"
@@ -22,5 +23,9 @@ std::vector<std::size_t> stale_current_rows(const Recording& rec);
 // sampling convention of electrical.hpp, the step's current then flowed over the interval before the row, as
 // the drop shows). Returns how many rows.
 std::size_t take_next_current_for_stale_rows(Recording& rec);
+
+// take_next_current_for_stale_rows, said in plain words for a fit's warnings or a diagnosis' notes ("SOURCE: N rows
+// ... the first at t = ..."); empty when the recording has no such row.
+std::string correct_stale_current_rows(Recording& rec);
 
 }  // namespace cellbench::estimator

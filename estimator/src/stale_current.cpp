@@ -52,9 +52,12 @@ std::string correct_stale_current_rows(Recording& rec) {
     const auto rows = stale_current_rows(rec);
     if (rows.empty()) return {};
     take_next_current(rec, rows);
+    const bool one = rows.size() == 1;
     return rec.source + ": " + std::to_string(rows.size()) +
-           " rows at current steps show the step's new voltage with the current before it (the first at t = " +
-           printf_text("%.3f", rec.time_s[rows.front()]) + " s): their current is taken from the next row";
+           (one ? " row at a current step shows the step's new voltage with the current before it (at t = "
+                : " rows at current steps show the step's new voltage with the current before it (the first at t = ") +
+           printf_text("%.3f", rec.time_s[rows.front()]) + " s): " + (one ? "its" : "their") +
+           " current is taken from the next row";
 }
 
 }  // namespace cellbench::estimator

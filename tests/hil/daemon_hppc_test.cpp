@@ -7,7 +7,8 @@
 //    them. CELLBENCH_HIL_SEED sets the simulated instruments' noise seed; CELLBENCH_HIL_KEEP_DB=PATH keeps the
 //    run's database (for `cellbench fit --db PATH --run 1`).
 //    Time scale: CELLBENCH_HIL_TIME_SCALE (default kHppcTimeScale); the wall time is printed.
-//    CELLBENCH_HIL_VERBOSE=1 logs at debug level and lists the steps.
+//    CELLBENCH_HIL_VERBOSE=1 logs at debug level and lists the steps; CELLBENCH_HIL_Z=1 prints beside each RC value
+//    its error and the fit's own 1-sigma, in % of the reference.
 //  - Safety: an over-temperature (a low max_temperature_c, heated by a 40 A discharge) stops the current
 //    within one DAQ sample period and aborts the run with the reason recorded as an event.
 #include <gtest/gtest.h>
@@ -15,6 +16,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -179,14 +181,42 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     // fit itself (its worst value 5-37 % off in five runs). It is printed; the test asserts that only the pulse
     // set at 100 % SOC turns CV.
     //
-    // The reference is the cell's values at the cell's own SOC at the pulse set's rested start: the SOC its OCV
-    // table gives for that rested voltage (the fit's OCV). The bench's SOC (the fit's "soc") counts from the end of
-    // a CCCV charge as 1.0, which leaves this cell ~0.2 % below its table's 1.0, and the cell's R2 triples between
-    // 30 % and 20 %: taken at the bench's SOC the reference alone would be 4 % off there. Both are printed.
+    // The reference is the cell's values over the rows a direction's pair is fitted on: the time mean of the cell's
+    // table values while its pulse runs and the cell rests after it (steps 8-9 for discharge, 10-11 for charge), at
+    // the cell's own SOC (from the SOC its OCV table gives for the pulse set's rested voltage, the fit's OCV, less
+    // the charge the steps moved). A pulse-set fit holds each value constant over those rows, and on this cell the
+    // values change within them: between 30 % and 20 % the discharge R2 triples, so over the 0.8 % SOC the
+    // discharge pulse removes at 29.5 % it rises by 14 %. Taken at the rested start, that alone put the fitted R2
+    // 10-12 % off in every run (seeds 1-4). Two more references are printed: the cell at the rested start, and at
+    // the bench's SOC (the fit's "soc", which counts from the end of a CCCV charge as 1.0 and leaves this cell
+    // ~0.2 % below its table's 1.0).
     const auto records = d.store().pulse_fits(id);
     ASSERT_EQ(records.size(), fits.size());
+    // Steps 8-11 of each pulse set (discharge pulse, rest, charge pulse, rest), in order.
+    std::vector<std::array<const daemon::StepRecord*, 4>> set_steps;
+    for (std::size_t k = 0; k + 3 < steps.size(); ++k)
+        if (steps[k].step_id == 8 && steps[k + 1].step_id == 9 && steps[k + 2].step_id == 10 && steps[k + 3].step_id == 11)
+            set_steps.push_back({&steps[k], &steps[k + 1], &steps[k + 2], &steps[k + 3]});
+    ASSERT_EQ(set_steps.size(), fits.size());
+    // The cell's R1, C1, R2, C2 of direction `sign`, time-averaged over a pulse (SOC moving linearly by `dsoc`
+    // from `soc0`) and the rest after it (at soc0 + dsoc).
+    auto mean_over_pulse_and_rest = [&](double soc0, double dsoc, double pulse_s, double rest_s, int sign) {
+        estimator::RcValues m{0, 0, 0, 0, 0};
+        constexpr int kPoints = 200;
+        for (int j = 0; j < kPoints; ++j) {
+            const double frac = (j + 0.5) / kPoints;
+            const auto v = estimator::to_rc_values(truth.rc_at(soc0 + dsoc * frac, sign));
+            for (auto [sum, x] : {std::pair{&m.r1_ohm, v.r1_ohm}, {&m.c1_f, v.c1_f}, {&m.r2_ohm, v.r2_ohm}, {&m.c2_f, v.c2_f}})
+                *sum += x * pulse_s / kPoints;
+        }
+        const auto rest = estimator::to_rc_values(truth.rc_at(soc0 + dsoc, sign));
+        for (auto [sum, x] : {std::pair{&m.r1_ohm, rest.r1_ohm}, {&m.c1_f, rest.c1_f}, {&m.r2_ohm, rest.r2_ohm}, {&m.c2_f, rest.c2_f}})
+            *sum = (*sum + x * rest_s) / (pulse_s + rest_s);
+        return m;
+    };
+    auto duration = [](const daemon::StepRecord* st) { return st->ended_t_s.value_or(st->started_t_s) - st->started_t_s; };
     std::printf("  set   SOC  cell SOC  dir        R1 mOhm (truth)      C1 F (truth)     R2 mOhm (truth)      C2 F (truth)\n");
-    double worst_rc = 0, worst_rc_bench_soc = 0, worst_rc_cv = 0;
+    double worst_rc = 0, worst_rc_rested = 0, worst_rc_bench_soc = 0, worst_rc_cv = 0;
     for (std::size_t k = 0; k < fits.size(); ++k) {
         const auto& f = fits[k];
         const double soc = f["soc"].get<double>();
@@ -206,23 +236,39 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
             ASSERT_TRUE(got.is_object()) << dir << " values missing, pulse set " << f["pulse_set"];
             const int sign = std::string(dir) == "charge" ? +1 : -1;
             const bool cv = turned_cv[sign > 0 ? 1 : 0];
-            const auto truth_rc = estimator::to_rc_values(truth.rc_at(cell_soc, sign));
+            // The cell's SOC over the direction's pulse: the discharge pulse starts at the rested SOC, the charge
+            // pulse where the discharge pulse left it (the tester's count of each step's charge).
+            const auto& st = set_steps[k];
+            const double q_discharge_soc = st[0]->capacity_ah.value_or(NAN) / truth.capacity_ah;
+            const double q_charge_soc = st[2]->capacity_ah.value_or(NAN) / truth.capacity_ah;
+            const auto truth_rc = sign < 0 ? mean_over_pulse_and_rest(cell_soc, -q_discharge_soc, duration(st[0]), duration(st[1]), sign)
+                                           : mean_over_pulse_and_rest(cell_soc - q_discharge_soc, q_charge_soc, duration(st[2]),
+                                                                      duration(st[3]), sign);
+            const auto rested_rc = estimator::to_rc_values(truth.rc_at(cell_soc, sign));
             const auto bench_rc = estimator::to_rc_values(truth.rc_at(soc, sign));
-            const std::tuple<const char*, double, double> want[] = {{"r1_ohm", truth_rc.r1_ohm, bench_rc.r1_ohm},
-                                                                    {"c1_f", truth_rc.c1_f, bench_rc.c1_f},
-                                                                    {"r2_ohm", truth_rc.r2_ohm, bench_rc.r2_ohm},
-                                                                    {"c2_f", truth_rc.c2_f, bench_rc.c2_f}};
+            const std::tuple<const char*, double, double, double> want[] = {
+                {"r1_ohm", truth_rc.r1_ohm, rested_rc.r1_ohm, bench_rc.r1_ohm},
+                {"c1_f", truth_rc.c1_f, rested_rc.c1_f, bench_rc.c1_f},
+                {"r2_ohm", truth_rc.r2_ohm, rested_rc.r2_ohm, bench_rc.r2_ohm},
+                {"c2_f", truth_rc.c2_f, rested_rc.c2_f, bench_rc.c2_f}};
             std::printf("  %3d  %5.3f  %6.4f  %-9s", f["pulse_set"].get<int>(), soc, cell_soc, dir);
-            for (const auto& [name, value, value_at_bench_soc] : want) {
+            for (const auto& [name, value, value_at_rested_soc, value_at_bench_soc] : want) {
                 const double v = got.contains(name) && got[name].is_number() ? got[name].get<double>() : NAN;
                 const double scale_v = name[0] == 'r' ? 1e3 : 1.0;
                 std::printf(" %8.3f (%8.3f)", v * scale_v, value * scale_v);
+                if (std::getenv("CELLBENCH_HIL_Z")) {
+                    const std::string sd_name = std::string(name) + "_sd";
+                    const double sd = got.contains(sd_name) && got[sd_name].is_number() ? got[sd_name].get<double>() : NAN;
+                    std::printf(" [%+5.1f%% sd %4.1f%%]", 100 * (v - value) / value, 100 * sd / value);
+                }
                 const double err = std::isfinite(v) ? std::abs(v - value) / value : INFINITY;
+                const double err_rested = std::isfinite(v) ? std::abs(v - value_at_rested_soc) / value_at_rested_soc : INFINITY;
                 const double err_bench = std::isfinite(v) ? std::abs(v - value_at_bench_soc) / value_at_bench_soc : INFINITY;
                 if (cv) {
                     worst_rc_cv = std::max(worst_rc_cv, err);
                 } else {
                     worst_rc = std::max(worst_rc, err);
+                    worst_rc_rested = std::max(worst_rc_rested, err_rested);
                     worst_rc_bench_soc = std::max(worst_rc_bench_soc, err_bench);
                 }
                 EXPECT_TRUE(std::isfinite(v) && v > 0.0) << dir << " " << name << ", pulse set " << f["pulse_set"];
@@ -240,9 +286,10 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
             EXPECT_TRUE(f["flags"].empty()) << "flags " << f["flags"].dump();
         }
     }
-    std::printf("  worst R1/C1/R2/C2 error %.1f %% (against the cell at the bench's SOC: %.1f %%); the pair whose pulse "
-                "turned CV: %.1f %%\n",
-                100.0 * worst_rc, 100.0 * worst_rc_bench_soc, 100.0 * worst_rc_cv);
+    std::printf("  worst R1/C1/R2/C2 error %.1f %% (against the cell at the rested start: %.1f %%, at the bench's SOC: "
+                "%.1f %%); the pair whose pulse turned CV: %.1f %%\n",
+                100.0 * worst_rc, 100.0 * worst_rc_rested, 100.0 * worst_rc_bench_soc, 100.0 * worst_rc_cv);
+    RecordProperty("worst_rc_error_at_rested_start_percent", std::to_string(100.0 * worst_rc_rested));
     RecordProperty("worst_rc_error_cv_pulse_percent", std::to_string(100.0 * worst_rc_cv));
     RecordProperty("worst_rc_error_at_bench_soc_percent", std::to_string(100.0 * worst_rc_bench_soc));
     RecordProperty("worst_rc_error_percent", std::to_string(100.0 * worst_rc));

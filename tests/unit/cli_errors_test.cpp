@@ -109,14 +109,18 @@ TEST_F(CliErrors, SimulateWritesMetricsJsonWithNullForUnmeasuredQuantities) {
 TEST_F(CliErrors, ReferenceFormBdfWithMachineNamesAndOnlyT1IsSimulated) {
     std::string text = "test_time_second,voltage_volt,current_ampere,unix_time_second,step_id,temperature_t1_celsius\n";
     for (int k = 0; k < 300; ++k)
-        text += std::to_string(1000 * k) + "," + (k < 100 ? "3.70" : "3.66") + "," + (k < 100 ? "0" : "-4.5") + "," +
-                std::to_string(1700000000 + k) + ",1,30.0\n";
+        text += std::to_string(1000 * k) + "," + (k < 100 ? "3.70" : "3.66") + "," + (k <= 100 ? "0" : "-4.5") + "," +
+                std::to_string(1700000000 + k) + ",1,30.0\n";  // row 100: the pulse's voltage, the rest's current
     const auto rec = write("reference.bdf.csv", text);
     const auto r = run("simulate --params " + kThesis.string() + " " + rec.string() + " --json " +
                        (dir_ / "m.json").string());
     ASSERT_EQ(r.status, 0) << r.output;
     EXPECT_NE(r.output.find("read as milliseconds"), std::string::npos) << r.output;
     EXPECT_NE(r.output.find("read from Temperature T1"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("1 row at a current step shows the step's new voltage with the current before it (at t = "
+                            "100.000 s): its current is taken from the next row"),
+              std::string::npos)
+        << r.output;
     std::ifstream in(dir_ / "m.json");
     std::stringstream ss;
     ss << in.rdbuf();

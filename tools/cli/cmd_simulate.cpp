@@ -4,6 +4,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "cellbench/estimator/stale_current.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
 #include "cli/commands.hpp"
 #include "cli/files.hpp"
@@ -25,7 +26,10 @@ nlohmann::json metrics_to_json(const estimator::SimulationMetrics& m) {
 int run_simulate(const SimulateOptions& o) {
     OutputFiles outputs({o.metrics_json, o.output});  // folders checked before the work, all written or none
     const auto params = load_params(o.params);
-    const auto rec = load_recording(o.recording);
+    auto rec = load_recording(o.recording);
+    // Rows at current steps that read the step's voltage beside the current before it (a logger that samples the
+    // current late) are the model's input here: they take the next row's current, as `fit` and `diagnose` do.
+    if (const auto note = estimator::correct_stale_current_rows(rec); !note.empty()) spdlog::warn("{}", note);
     const estimator::CellModel model(params);
     estimator::SimulationOptions so;
     so.initial_soc = o.initial_soc;

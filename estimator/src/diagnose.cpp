@@ -793,6 +793,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const Diagn
         confirm.push_back(options.confirm[k] ? corrected(*options.confirm[k]) : std::nullopt);
         if (confirm.back()) opts.confirm[k] = &*confirm.back();
     }
+    if (auto note = start_outside_ocv_range(params, rec); !note.empty()) notes.push_back(std::move(note));
     Diagnosis d = diagnose_as_given(params, main ? *main : rec, notes.empty() ? options : opts);
     d.notes = std::move(notes);
     return d;

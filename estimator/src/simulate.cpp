@@ -7,6 +7,8 @@
 #include <utility>
 #include <vector>
 
+#include "printf_text.hpp"
+
 namespace cellbench::estimator {
 
 namespace {
@@ -56,6 +58,24 @@ std::vector<double> time_weights(const std::vector<double>& t) {
         w[k + 1] += half;
     }
     return w;
+}
+
+std::string start_outside_ocv_range(const ParameterSet& params, const Recording& rec) {
+    if (rec.size() == 0 || params.ocv_v.empty()) return {};
+    const double v0 = rec.voltage_v[0], i0 = std::isfinite(rec.current_a[0]) ? rec.current_a[0] : 0.0;
+    if (!std::isfinite(v0)) return {};
+    const auto [lo, hi] = std::minmax_element(params.ocv_v.begin(), params.ocv_v.end());
+    double r_max = 0;
+    for (const auto* t : {&params.discharge, &params.charge})
+        for (std::size_t k = 0; k < t->r0_ohm.size(); ++k)
+            r_max = std::max(r_max, t->r0_ohm[k] + (k < t->r1_ohm.size() ? t->r1_ohm[k] : 0.0) +
+                                        (k < t->r2_ohm.size() ? t->r2_ohm[k] : 0.0));
+    const double margin_v = 0.1 + std::abs(i0) * r_max;
+    if (v0 >= *lo - margin_v && v0 <= *hi + margin_v) return {};
+    return rec.source + ": it starts at " + printf_text("%.3f V (%.3f A)", v0, i0) +
+           ", outside the parameter set's OCV range " + printf_text("%.3f-%.3f V", *lo, *hi) +
+           ": no SOC of that cell explains it, so the simulation starts at SOC " + (v0 < *lo ? "0" : "1") +
+           ". Is the parameter set this cell's?";
 }
 
 SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options) {

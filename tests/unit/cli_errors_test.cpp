@@ -106,6 +106,26 @@ TEST_F(CliErrors, SimulateWritesMetricsJsonWithNullForUnmeasuredQuantities) {
 // A BDF file as the Battery Data Alliance publishes them (machine-readable names, a vendor's extra columns, one
 // thermocouple in T1, no surface temperature) is a recording every command reads: the cell temperature comes
 // from T1, and a test time kept in ms under the seconds name is read as ms with a warning.
+// A recording of another cell (here a sodium-ion cell resting at 2.6 V, below the P45B's whole OCV table) simulated
+// with the P45B's parameter set: no SOC explains its voltage, and the user is told so instead of reading a 500 mV
+// "model error". The same recording within the table's range gets no such warning.
+TEST_F(CliErrors, SimulateSaysWhenTheRecordingStartsOutsideTheParameterSetsOcvRange) {
+    auto recording = [&](const char* name, double v0) {
+        std::string text = "Test Time / s,Voltage / V,Current / A\n";
+        for (int k = 0; k < 120; ++k)
+            text += std::to_string(k) + "," + std::to_string(v0 - (k < 60 ? 0.0 : 0.05)) + "," + (k < 60 ? "0" : "-2.0") + "\n";
+        return write(name, text);
+    };
+    const auto other = run("simulate --params " + kThesis.string() + " " + recording("sodium.bdf.csv", 2.604).string());
+    ASSERT_EQ(other.status, 0) << other.output;
+    EXPECT_NE(other.output.find("it starts at 2.604 V (0.000 A), outside the parameter set's OCV range"), std::string::npos)
+        << other.output;
+    EXPECT_NE(other.output.find("Is the parameter set this cell's?"), std::string::npos) << other.output;
+    const auto same = run("simulate --params " + kThesis.string() + " " + recording("p45b.bdf.csv", 3.7).string());
+    ASSERT_EQ(same.status, 0) << same.output;
+    EXPECT_EQ(same.output.find("outside the parameter set's OCV range"), std::string::npos) << same.output;
+}
+
 TEST_F(CliErrors, ReferenceFormBdfWithMachineNamesAndOnlyT1IsSimulated) {
     std::string text = "test_time_second,voltage_volt,current_ampere,unix_time_second,step_id,temperature_t1_celsius\n";
     for (int k = 0; k < 300; ++k)

@@ -30,6 +30,8 @@ int run_simulate(const SimulateOptions& o) {
     // Rows at current steps that read the step's voltage beside the current before it (a logger that samples the
     // current late) are the model's input here: they take the next row's current, as `fit` and `diagnose` do.
     if (const auto note = estimator::correct_stale_current_rows(rec); !note.empty()) spdlog::warn("{}", note);
+    if (!o.initial_soc)
+        if (const auto warning = estimator::start_outside_ocv_range(params, rec); !warning.empty()) spdlog::warn("{}", warning);
     const estimator::CellModel model(params);
     estimator::SimulationOptions so;
     so.initial_soc = o.initial_soc;

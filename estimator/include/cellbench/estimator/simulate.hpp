@@ -28,6 +28,12 @@ struct SimulationTrace {
 
 SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options = {});
 
+// A recording whose first voltage lies outside the parameter set's OCV range (by more than 100 mV plus the
+// set's largest ohmic drop at the first row's current) cannot be this cell at any SOC: most often the parameter set
+// of another cell was given. The words to say so (the simulation then starts clamped at SOC 0 or 1); empty
+// when the start is plausible.
+std::string start_outside_ocv_range(const ParameterSet& params, const Recording& rec);
+
 struct ErrorStats {
     std::optional<double> rms;      // nullopt: the recording does not measure this quantity
     std::optional<double> max_abs;

@@ -312,13 +312,14 @@ json BenchDaemon::diagnose_recording(const DiagnoseRequest& request, std::string
             stage("parsing the recording");
             protocol::BdfReadReport report;
             DiagnoseInput in{params, protocol::parse_bdf_csv(csv, source, &report), {}};
-            if (report.repaired_timestamps > 0)
-                spdlog::info("diagnosis: {}: repaired {} repeated or slightly backward timestamps", source,
-                             report.repaired_timestamps);
+            for (const auto& m : protocol::describe(report, source)) {
+                if (m.warning)
+                    spdlog::warn("diagnosis: {}", m.text);
+                else
+                    spdlog::info("diagnosis: {}", m.text);
+            }
             if (in.recording.take_t1_as_surface())
                 spdlog::info("diagnosis: {}: no Surface Temperature column: the cell temperature is read from T1", source);
-            if (report.time_read_as_ms)
-                spdlog::warn("diagnosis: {}: the test time runs 1000 times as fast as the Unix time: read as ms", source);
             return in;
         });
 }

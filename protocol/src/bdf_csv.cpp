@@ -5,6 +5,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <span>
 #include <ostream>
 #include <stdexcept>
@@ -407,6 +408,27 @@ std::pair<const Label*, csv::UnitConversion> resolve_column(std::string_view cel
     return {nullptr, {}};
 }
 
+bool is_step_index_name(std::string_view cell) {
+    const std::string name = csv::normalize_column_name(cell);
+    return name == csv::normalize_column_name("Step Index / 1") || name == "step_index" || name == "step_id";
+}
+
+// Step Count from a step index: 1 at the first row, one more at each row whose index differs from the row
+// before (an empty cell continues the step). A step that repeats at once under the same index (a one-step loop)
+// reads as one step.
+std::vector<double> step_count_from_index(const std::vector<double>& index) {
+    std::vector<double> count(index.size(), kNaN);
+    double n = 1, last = kNaN;
+    for (std::size_t k = 0; k < index.size(); ++k) {
+        if (std::isfinite(index[k])) {
+            if (std::isfinite(last) && index[k] != last) ++n;
+            last = index[k];
+        }
+        count[k] = n;
+    }
+    return count;
+}
+
 // A time column that advances faster than the wall clock beside it is in another unit than its label says
 // (a published HPPC keeps milliseconds under "test_time_second"): its pulses would read 1000 times too long.
 // Exactly 1000 times as fast (within 1 %) is read as milliseconds, and says so (returns 1000); any other rate
@@ -444,7 +466,14 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     std::array<std::size_t, kLabels.size()> column_of{};
     column_of.fill(SIZE_MAX);
     const std::size_t width = fields.size();
+    // A step index (the schedule's step number: "Step Index / 1", machine names step_index and step_id) marks the
+    // step boundaries where a file has no Step Count: a change of index is a new step.
+    std::size_t step_index_column = SIZE_MAX;
     for (std::size_t c = 0; c < width; ++c) {
+        if (is_step_index_name(fields[c])) {
+            if (step_index_column == SIZE_MAX) step_index_column = c;
+            continue;
+        }
         const auto [label, to_si] = resolve_column(fields[c], reader);
         if (label == nullptr) {
             if (!(fields[c].empty() && c + 1 == width)) ignored.emplace_back(fields[c]);  // not a trailing comma
@@ -471,10 +500,19 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
             rec.step_type.reserve(expected_rows);
     }
 
+    const bool has_step_count = std::any_of(used.begin(), used.end(), [](const UsedColumn& u) {
+        return u.label->channel == Channel::step_count;
+    });
+    const bool steps_from_index = step_index_column != SIZE_MAX && !has_step_count;
+    if (step_index_column != SIZE_MAX && has_step_count) ignored.emplace_back(fields[step_index_column]);
+    std::vector<double> step_index;
+    if (steps_from_index) step_index.reserve(expected_rows);
+
     csv::TimeStepGuard guard{std::string(kBdfTestTime)};
     csv::DroppedValues dropped;
     while (reader.next(fields)) {
         reader.check_width(fields, width);
+        if (steps_from_index) step_index.push_back(csv::read_number(reader, fields[step_index_column], "Step Index / 1", false));
         for (const auto& u : used) {
             const std::string_view cell = fields[u.index];
             if (u.label->values == nullptr) {
@@ -509,6 +547,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
         }
     }
     if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
+    if (steps_from_index) rec.step_count = step_count_from_index(step_index);
 
     const double time_divisor = check_time_against_unix_time(rec, source);
     if (time_divisor != 1.0) {
@@ -528,8 +567,36 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
         report->typical_interval_s = gap.typical_interval_s;
         report->ends_mid_line = reader.ends_mid_line();
         report->time_read_as_ms = time_divisor == 1000.0;
+        report->steps_counted_from_index = steps_from_index;
     }
     return rec;
+}
+
+std::vector<BdfReadMessage> describe(const BdfReadReport& report, const std::string& source) {
+    std::vector<BdfReadMessage> out;
+    if (report.time_read_as_ms)
+        out.push_back({true, source + ": the test time runs 1000 times as fast as the Unix time beside it: read as "
+                                      "milliseconds (label it \"Test Time / ms\" to say so)"});
+    if (report.steps_counted_from_index)
+        out.push_back({false, source + ": no Step Count column: the steps are counted from the step index (a new "
+                                       "step wherever it changes)"});
+    if (report.repaired_timestamps > 0)
+        out.push_back({true, source + ": repaired " + std::to_string(report.repaired_timestamps) +
+                                 " repeated or slightly backward timestamps"});
+    if (report.dropped_values > 0)
+        out.push_back({true, source + ": " + std::to_string(report.dropped_values) +
+                                 " physically impossible values in optional columns read as empty cells (first at line " +
+                                 report.first_dropped + ")"});
+    if (report.gap_s > 0) {
+        std::array<char, 160> buf{};
+        std::snprintf(buf.data(), buf.size(), "time jumps forward by %.6g s (typical step %.3g s)", report.gap_s,
+                      report.typical_interval_s);
+        out.push_back({true, source + ":" + std::to_string(report.gap_line) + ": GAP in the recording: " + buf.data() +
+                                 "; the rows after it are used as recorded"});
+    }
+    if (report.ends_mid_line)
+        out.push_back({true, source + ": the file ends mid-line (no line end after the last row): was it cut short?"});
+    return out;
 }
 
 // Writer: decimal places kept per column, chosen from the unit of its label (finer than any instrument of the

@@ -95,6 +95,29 @@ TEST(BdfCsv, MachineReadableNamesOfTheBdfOntologyAreRead) {
               "rw.csv:1: column \"Voltage / V\" appears twice (columns 2 and 4)");
 }
 
+// Many cyclers log the schedule's step number (Arbin, BioLogic, Digatron: step_id; Neware, Landt: step_index)
+// and no Step Count. The index marks the step boundaries the segmentation needs (a SOC-step discharge followed
+// at once by a discharge pulse is two steps): a new step wherever it changes, an empty cell continuing the step.
+TEST(BdfCsv, AStepIndexWithoutStepCountCountsTheSteps) {
+    for (const char* name : {"step_id", "step_index", "Step Index / 1"}) {
+        const std::string text = std::string("test_time_second,voltage_volt,current_ampere,") + name +
+                                 "\n0,3.7,0,28\n1,3.6,-2,29\n2,3.6,-2,29\n3,3.5,-10,30\n4,3.5,-10,\n5,3.7,0,28\n";
+        BdfReadReport report;
+        const Recording rec = parse_bdf_csv(text, "x.csv", &report);
+        EXPECT_EQ(rec.step_count, (std::vector<double>{1, 2, 2, 3, 3, 4})) << name;
+        EXPECT_TRUE(report.steps_counted_from_index) << name;
+        EXPECT_TRUE(report.ignored_columns.empty()) << name;
+    }
+    // A file's own Step Count is what counts; the index beside it is ignored (and listed as such).
+    BdfReadReport report;
+    const Recording rec =
+        parse_bdf_csv("Test Time / s,Voltage / V,Current / A,Step Count / 1,step_id\n0,3.7,0,5,1\n1,3.6,-2,6,1\n",
+                      "x.csv", &report);
+    EXPECT_EQ(rec.step_count, (std::vector<double>{5, 6}));
+    EXPECT_FALSE(report.steps_counted_from_index);
+    EXPECT_EQ(report.ignored_columns, (std::vector<std::string>{"step_id"}));
+}
+
 TEST(BdfCsv, OtherUnitsOfAQuantityAreConvertedToSi) {
     const std::string text =
         "Test Time / ms,Voltage / mV,Current / mA,Surface Temperature / K,Ambient Temperature / \u00b0C,"

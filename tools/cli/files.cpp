@@ -57,21 +57,12 @@ std::string read_file(const std::filesystem::path& path, std::size_t max_line_by
 }
 
 void warn_bdf_report(const std::string& source, const protocol::BdfReadReport& report) {
-    if (report.time_read_as_ms)
-        spdlog::warn("{}: the test time runs 1000 times as fast as the Unix time beside it: read as milliseconds "
-                     "(label it \"Test Time / ms\" to say so)",
-                     source);
-    if (report.repaired_timestamps > 0)
-        spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", source, report.repaired_timestamps);
-    if (report.dropped_values > 0)
-        spdlog::warn("{}: {} physically impossible values in optional columns read as empty cells (first at line {})",
-                     source, report.dropped_values, report.first_dropped);
-    if (report.gap_s > 0)
-        spdlog::warn("{}:{}: GAP in the recording: time jumps forward by {:.6g} s (typical step {:.3g} s); the "
-                     "rows after it are used as recorded",
-                     source, report.gap_line, report.gap_s, report.typical_interval_s);
-    if (report.ends_mid_line)
-        spdlog::warn("{}: the file ends mid-line (no line end after the last row): was it cut short?", source);
+    for (const auto& m : protocol::describe(report, source)) {
+        if (m.warning)
+            spdlog::warn("{}", m.text);
+        else
+            spdlog::info("{}", m.text);
+    }
 }
 
 namespace {

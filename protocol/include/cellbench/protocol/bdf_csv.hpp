@@ -45,6 +45,9 @@ struct BdfReadReport {
     bool ends_mid_line = false;  // the text does not end with a line end (a file cut short?)
     // The time column advanced 1000 times as fast as the Unix time beside it (within 1 %) and was read as ms.
     bool time_read_as_ms = false;
+    // No Step Count column: the steps were counted from a step index column ("Step Index / 1", step_index,
+    // step_id), a new step wherever the index changes.
+    bool steps_counted_from_index = false;
 };
 
 // Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). A column is known by
@@ -61,6 +64,15 @@ struct BdfReadReport {
 // (time, voltage, current) and read as empty cells, counted in the report, in the optional ones. A forward
 // gap in the time column is reported (gap_s), never repaired.
 Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfReadReport* report = nullptr);
+
+// What a reader of the file should be told about how it was read, one line each, prefixed with `source` (and the
+// line where it has one): `warning` when rows were changed or the file may be incomplete, else a note. The CLI and
+// the daemon log these same words.
+struct BdfReadMessage {
+    bool warning = false;
+    std::string text;
+};
+std::vector<BdfReadMessage> describe(const BdfReadReport& report, const std::string& source);
 
 // Writes a header of the BDF labels for the channels present (required ones always), then one row per
 // sample, LF line ends. Numbers are rounded to a resolution finer than any instrument's, chosen from the

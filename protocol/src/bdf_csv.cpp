@@ -245,21 +245,30 @@ double DroppedValues::check(double v, PhysicalRange range, const RecordReader& r
 }
 
 void TimeStepGuard::check(double time_s, const RecordReader& reader) {
+    const std::size_t row = rows_++;
     if (time_s - latest_s_ > largest_step_s_ && std::isfinite(latest_s_)) {
         largest_step_s_ = time_s - latest_s_;
         largest_step_line_ = reader.line();
     }
     if (latest_s_ - time_s >= kMaxRepairableBackwardStepS) {
-        // The step itself rounded to 6 digits: 5 - 3.9 reads 1.1, not 1.0999999999999996.
-        std::array<char, 64> buf{};
-        const auto [ptr, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), latest_s_ - time_s,
-                                             std::chars_format::general, 6);
-        const std::string step = ec == std::errc{} ? std::string(buf.data(), ptr) : format_number(latest_s_ - time_s);
-        reader.fail_column(column_, "time steps back by " + step + " s (from " +
-                                        format_number(latest_s_) + " s to " + format_number(time_s) +
-                                        " s); only steps back of less than 1 s are repaired");
+        const BackwardStep step{row, reader.line(), latest_s_, time_s};
+        if (!defer_) throw InputError(error(step, reader.source()));
+        backward_.push_back(step);
+        latest_s_ = time_s;  // the rows after it are guarded against this stamp
+        return;
     }
     latest_s_ = std::max(latest_s_, time_s);
+}
+
+std::string TimeStepGuard::error(const BackwardStep& step, const std::string& source) const {
+    // The step itself rounded to 6 digits: 5 - 3.9 reads 1.1, not 1.0999999999999996.
+    std::array<char, 64> buf{};
+    const double back = step.from_s - step.to_s;
+    const auto [ptr, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), back, std::chars_format::general, 6);
+    const std::string text = ec == std::errc{} ? std::string(buf.data(), ptr) : format_number(back);
+    return source + ":" + std::to_string(step.line) + ": column \"" + column_ + "\": time steps back by " + text +
+           " s (from " + format_number(step.from_s) + " s to " + format_number(step.to_s) +
+           " s); only steps back of less than 1 s are repaired";
 }
 
 namespace {
@@ -408,6 +417,28 @@ std::pair<const Label*, csv::UnitConversion> resolve_column(std::string_view cel
     return {nullptr, {}};
 }
 
+// A test time that steps back by 1 s or more (a cycler that restarts its test clock, the "Time_Bug" of a
+// published Neware export) while the Unix time beside it runs on: each run of rows after such a step keeps its own
+// intervals and is shifted so that its first row follows the row before by the Unix time's interval. Returns how
+// many steps were placed so; throws the guard's error where the Unix time cannot place one (missing, or stepping
+// back too).
+std::size_t place_rows_after_time_jumps_by_unix_time(Recording& rec, const csv::TimeStepGuard& guard,
+                                                     const std::string& source) {
+    const auto& steps = guard.backward_steps();
+    for (const auto& step : steps) {
+        const std::size_t k = step.row;
+        const bool placeable = k > 0 && k < rec.size() && rec.unix_time_s.size() == rec.size() &&
+                               std::isfinite(rec.unix_time_s[k]) && std::isfinite(rec.unix_time_s[k - 1]) &&
+                               rec.unix_time_s[k] >= rec.unix_time_s[k - 1];
+        if (!placeable)
+            throw InputError(guard.error(step, source) + " (the Unix time beside it does not run on there, so it cannot "
+                                                         "place the rows after it either)");
+        const double shift = rec.time_s[k - 1] + (rec.unix_time_s[k] - rec.unix_time_s[k - 1]) - rec.time_s[k];
+        for (std::size_t j = k; j < rec.size(); ++j) rec.time_s[j] += shift;
+    }
+    return steps.size();
+}
+
 bool is_step_index_name(std::string_view cell) {
     const std::string name = csv::normalize_column_name(cell);
     return name == csv::normalize_column_name("Step Index / 1") || name == "step_index" || name == "step_id";
@@ -509,6 +540,10 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     if (steps_from_index) step_index.reserve(expected_rows);
 
     csv::TimeStepGuard guard{std::string(kBdfTestTime)};
+    const bool has_unix_time = std::any_of(used.begin(), used.end(), [](const UsedColumn& u) {
+        return u.label->channel == Channel::unix_time;
+    });
+    if (has_unix_time) guard.defer_backward_steps();
     csv::DroppedValues dropped;
     while (reader.next(fields)) {
         reader.check_width(fields, width);
@@ -548,6 +583,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     }
     if (rec.time_s.empty()) throw InputError(source + ":1: header only: expected data rows after the header");
     if (steps_from_index) rec.step_count = step_count_from_index(step_index);
+    const std::size_t time_jumps = place_rows_after_time_jumps_by_unix_time(rec, guard, source);
 
     const double time_divisor = check_time_against_unix_time(rec, source);
     if (time_divisor != 1.0) {
@@ -568,6 +604,12 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
         report->ends_mid_line = reader.ends_mid_line();
         report->time_read_as_ms = time_divisor == 1000.0;
         report->steps_counted_from_index = steps_from_index;
+        report->time_jumps_placed_by_unix_time = time_jumps;
+        if (time_jumps > 0) {
+            const auto& first = guard.backward_steps().front();
+            report->first_time_jump = "line " + std::to_string(first.line) + ": from " + csv::format_number(first.from_s) +
+                                      " s to " + csv::format_number(first.to_s) + " s";
+        }
     }
     return rec;
 }
@@ -577,6 +619,13 @@ std::vector<BdfReadMessage> describe(const BdfReadReport& report, const std::str
     if (report.time_read_as_ms)
         out.push_back({true, source + ": the test time runs 1000 times as fast as the Unix time beside it: read as "
                                       "milliseconds (label it \"Test Time / ms\" to say so)"});
+    if (report.time_jumps_placed_by_unix_time > 0)
+        out.push_back({true, source + ": the test time steps back " +
+                                 (report.time_jumps_placed_by_unix_time == 1
+                                      ? "once (at " + report.first_time_jump + "): the rows after the step are"
+                                      : std::to_string(report.time_jumps_placed_by_unix_time) + " times (first at " +
+                                            report.first_time_jump + "): the rows after each step are") +
+                                 " placed by the Unix time beside them"});
     if (report.steps_counted_from_index)
         out.push_back({false, source + ": no Step Count column: the steps are counted from the step index (a new "
                                        "step wherever it changes)"});

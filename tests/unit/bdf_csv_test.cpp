@@ -318,6 +318,32 @@ TEST(BdfCsv, BackwardStepOfOneSecondOrMoreIsAnError) {
     EXPECT_EQ(parse_bdf_csv(bdf_with_times({"0", "5", "4.01", "6"}), "x").repaired_timestamps, 1u);
 }
 
+// A cycler that restarts its test clock mid-test (a published Neware export keeps such "non-monotonic total
+// time" on purpose, as the Battery Data Alliance's Time_Bug example) while the Unix time runs on: the rows after
+// each step back keep their own intervals and follow the row before by the Unix time's interval. Without a Unix
+// time, or where it steps back too, it stays an error.
+TEST(BdfCsv, ATestTimeThatStepsBackIsPlacedByTheUnixTimeBesideIt) {
+    const std::string text =
+        "test_time_second,voltage_volt,current_ampere,unix_time_second\n"
+        "0,3.7,0,1000\n10,3.7,0,1010\n20,3.7,0,1020\n5,3.6,-1,1031\n15.5,3.6,-1,1041.5\n2,3.7,0,1050\n3,3.7,0,1051\n";
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv(text, "x.csv", &report);
+    EXPECT_EQ(rec.time_s, (std::vector<double>{0, 10, 20, 31, 41.5, 50, 51}));
+    EXPECT_EQ(report.time_jumps_placed_by_unix_time, 2u);
+    EXPECT_EQ(report.first_time_jump, "line 5: from 20 s to 5 s");
+    const auto messages = cellbench::protocol::describe(report, "x.csv");
+    ASSERT_EQ(messages.size(), 1u);
+    EXPECT_TRUE(messages[0].warning);
+    EXPECT_EQ(messages[0].text, "x.csv: the test time steps back 2 times (first at line 5: from 20 s to 5 s): the rows "
+                                "after each step are placed by the Unix time beside them");
+    // The Unix time steps back as well: nothing can place the rows.
+    EXPECT_EQ(error_of("test_time_second,voltage_volt,current_ampere,unix_time_second\n0,3.7,0,1000\n10,3.7,0,1010\n"
+                       "5,3.7,0,1005\n"),
+              "rw.csv:4: column \"Test Time / s\": time steps back by 5 s (from 10 s to 5 s); only steps back of less "
+              "than 1 s are repaired (the Unix time beside it does not run on there, so it cannot place the rows after "
+              "it either)");
+}
+
 TEST(BdfCsv, TimeThatNeverAdvancesIsAnErrorButOneRowIsFine) {
     EXPECT_EQ(error_of(bdf_with_times({"7", "7", "7"})),
               "rw.csv: column \"Test Time / s\": time never advances (all 3 rows at 7 s)");

@@ -48,6 +48,11 @@ struct BdfReadReport {
     // No Step Count column: the steps were counted from a step index column ("Step Index / 1", step_index,
     // step_id), a new step wherever the index changes.
     bool steps_counted_from_index = false;
+    // The test time stepped back by 1 s or more this many times while the Unix time ran on: the rows after each
+    // such step were shifted to follow the row before by the Unix time's interval. first_time_jump: "line L: from
+    // X s to Y s".
+    std::size_t time_jumps_placed_by_unix_time = 0;
+    std::string first_time_jump;
 };
 
 // Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). A column is known by
@@ -150,8 +155,20 @@ std::string quote_cells(const std::vector<std::string_view>& cells);
 // seen so far (smaller steps back are left for repair_timestamps).
 class TimeStepGuard {
 public:
+    // A step back of 1 s or more, kept instead of thrown in deferred mode.
+    struct BackwardStep {
+        std::size_t row = 0;   // 0-based data row of the stamp that steps back
+        std::size_t line = 0;  // its line in the file
+        double from_s = 0.0, to_s = 0.0;
+    };
+
     explicit TimeStepGuard(std::string column) : column_(std::move(column)) {}
     void check(double time_s, const RecordReader& reader);
+    // Deferred mode (a reader with another clock to place the rows by): a step back of 1 s or more is recorded
+    // and the stamps after it are guarded from there on; the reader decides afterwards (error() words it).
+    void defer_backward_steps() { defer_ = true; }
+    [[nodiscard]] const std::vector<BackwardStep>& backward_steps() const { return backward_; }
+    [[nodiscard]] std::string error(const BackwardStep& step, const std::string& source) const;
     // The largest forward step seen and the line of the row after it.
     [[nodiscard]] double largest_step_s() const { return largest_step_s_; }
     [[nodiscard]] std::size_t largest_step_line() const { return largest_step_line_; }
@@ -163,6 +180,9 @@ public:
 
 private:
     std::string column_;
+    bool defer_ = false;
+    std::size_t rows_ = 0;
+    std::vector<BackwardStep> backward_;
     double latest_s_ = -std::numeric_limits<double>::infinity();
     double largest_step_s_ = 0.0;
     std::size_t largest_step_line_ = 0;

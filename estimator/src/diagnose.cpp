@@ -1,5 +1,6 @@
 #include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/stale_current.hpp"
+#include "cellbench/estimator/voltage_spikes.hpp"
 #include "printf_text.hpp"
 
 #include <algorithm>
@@ -780,9 +781,9 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
 Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options) {
     std::vector<std::string> notes;
     auto corrected = [&](const Recording& r) -> std::optional<Recording> {
-        if (stale_current_rows(r).empty()) return std::nullopt;  // no copy of a recording that needs none
+        if (stale_current_rows(r).empty() && voltage_spike_rows(r).empty()) return std::nullopt;  // no copy needed
         Recording c = r;
-        notes.push_back(correct_stale_current_rows(c));
+        for (auto& note : correct_logging_artifacts(c)) notes.push_back(std::move(note));
         return c;
     };
     const auto main = corrected(rec);

@@ -1,5 +1,5 @@
 #include "cellbench/estimator/fit.hpp"
-#include "cellbench/estimator/stale_current.hpp"
+#include "cellbench/estimator/voltage_spikes.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -347,7 +347,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     }
     std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
     for (auto& rec : recordings)
-        if (auto note = correct_stale_current_rows(rec); !note.empty()) out.warnings.push_back(std::move(note));
+        for (auto& note : correct_logging_artifacts(rec)) out.warnings.push_back(std::move(note));
     std::vector<RecordingSegments> segs;
     for (const auto& rec : recordings) {
         if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");

@@ -4,7 +4,7 @@
 
 #include <spdlog/spdlog.h>
 
-#include "cellbench/estimator/stale_current.hpp"
+#include "cellbench/estimator/voltage_spikes.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
 #include "cli/commands.hpp"
 #include "cli/files.hpp"
@@ -27,9 +27,10 @@ int run_simulate(const SimulateOptions& o) {
     OutputFiles outputs({o.metrics_json, o.output});  // folders checked before the work, all written or none
     const auto params = load_params(o.params);
     auto rec = load_recording(o.recording);
-    // Rows at current steps that read the step's voltage beside the current before it (a logger that samples the
-    // current late) are the model's input here: they take the next row's current, as `fit` and `diagnose` do.
-    if (const auto note = estimator::correct_stale_current_rows(rec); !note.empty()) spdlog::warn("{}", note);
+    // The recording as `fit` and `diagnose` read it: rows at current steps that read the step's voltage beside the
+    // current before it take the next row's current (the model's input), single-row voltage spikes the voltage
+    // between their neighbours.
+    for (const auto& note : estimator::correct_logging_artifacts(rec)) spdlog::warn("{}", note);
     if (!o.initial_soc)
         if (const auto warning = estimator::start_outside_ocv_range(params, rec); !warning.empty()) spdlog::warn("{}", warning);
     const estimator::CellModel model(params);

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <utility>
 
+#include "cellbench/estimator/voltage_spikes.hpp"
 #include "cellbench/estimator/segment.hpp"
 
 namespace cellbench::sequencer {
@@ -465,9 +466,12 @@ void Sequencer::resolve_pending_fit_locked(bool run_ending) {
 
 void Sequencer::dispatch_fit_locked(const Recording& window, const estimator::PulseSet& pset, double soc,
                                     double t_pulse, const estimator::PulseFitOptions& po) {
-    spawn([this, window, pset, soc, po, t = last_cycler_s_, t_pulse]() -> std::function<void()> {
+    spawn([this, rows = window, pset, soc, po, t = last_cycler_s_, t_pulse]() mutable -> std::function<void()> {
         try {
-            auto fit = std::make_shared<estimator::PulseSetFit>(estimator::fit_pulse_set(window, pset, po));
+            // The rows as `cellbench fit` reads them: a tester's stale step rows and voltage spikes corrected.
+            auto notes = estimator::correct_logging_artifacts(rows);
+            auto fit = std::make_shared<estimator::PulseSetFit>(estimator::fit_pulse_set(rows, pset, po));
+            for (auto& note : notes) fit->warnings.push_back(std::move(note));
             fit->soc = soc;
             return [this, fit, t_pulse] { sink_.on_pulse_fit(*fit, t_pulse); };
         } catch (const std::exception& e) {

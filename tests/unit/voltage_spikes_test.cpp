@@ -54,7 +54,7 @@ TEST(VoltageSpikes, CurrentStepsPulsesOfOneRowAndRealMovesAreLeftAlone) {
 
 // The synthetic HPPC with a glitch every 5 minutes (0.5 V, in rests and under current alike): the fit says so
 // and gives the clean recording's parameters. Read as they stand, one such row moved the P45B tables by up to 7 %
-// in R0 and a factor 80 in C2 (docs/command-line.md).
+// in R0 and a factor 84 in C2 (docs/command-line.md).
 TEST(VoltageSpikes, TheFitOfAnHppcWithVoltageSpikesMatchesTheCleanOne) {
     cellbench::test::SyntheticOptions so;
     so.dt_s = 1.0;

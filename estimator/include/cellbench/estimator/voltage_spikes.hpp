@@ -4,7 +4,7 @@
 // voltage outlier spikes" as an example). A cell cannot do that: at a constant current its voltage moves by the
 // RC pairs' and the OCV's slow drift, well under a millivolt per sample, and a step of the current is excluded by
 // the current test. One such row (0.5 V in a 3.5 V rest of the P45B HPPC) moved the fitted tables by up to 7 % in
-// R0 and a factor 80 in C2. Found by what it shows: the row's voltage differs from both neighbours by more than
+// R0 and a factor 84 in C2. Found by what it shows: the row's voltage differs from both neighbours by more than
 // 50 mV in the same direction, the neighbours agree with each other within a quarter of that, and the current of
 // the three rows is the same (within 0.05 A or 2 %).
 #include <cstddef>

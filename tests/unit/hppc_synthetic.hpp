@@ -59,6 +59,16 @@ struct SyntheticOptions {
 
 // Simulates a step program. CV steps are simulated by bisection on the current at each row so that the
 // terminal voltage stays at the limit (current tapers), the way a CCCV step of a cycler does.
+// A few hand-written rows, one second apart (the row-rule tests of stale_current.hpp and voltage_spikes.hpp).
+inline Recording rows_one_second_apart(const std::vector<double>& current_a, const std::vector<double>& voltage_v) {
+    Recording r;
+    r.source = "rows";
+    for (std::size_t k = 0; k < current_a.size(); ++k) r.time_s.push_back(static_cast<double>(k));
+    r.current_a = current_a;
+    r.voltage_v = voltage_v;
+    return r;
+}
+
 inline Recording synthesize(const std::vector<Step>& program, const SyntheticOptions& o = {}) {
     Recording rec;
     rec.source = "synthetic";

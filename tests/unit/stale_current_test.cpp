@@ -20,12 +20,7 @@ namespace est = cellbench::estimator;
 using cellbench::Recording;
 
 Recording rows(const std::vector<double>& current_a, const std::vector<double>& voltage_v) {
-    Recording r;
-    r.source = "rows";
-    for (std::size_t k = 0; k < current_a.size(); ++k) r.time_s.push_back(static_cast<double>(k));
-    r.current_a = current_a;
-    r.voltage_v = voltage_v;
-    return r;
+    return cellbench::test::rows_one_second_apart(current_a, voltage_v);
 }
 
 // Every row where the current steps away from a rest reads the rest's 0 A; returns how many.

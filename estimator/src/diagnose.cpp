@@ -1,5 +1,4 @@
 #include "cellbench/estimator/diagnose.hpp"
-#include "cellbench/estimator/stale_current.hpp"
 #include "cellbench/estimator/voltage_spikes.hpp"
 #include "printf_text.hpp"
 
@@ -776,14 +775,15 @@ namespace {
 Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_full, const DiagnoseOptions& options);
 }  // namespace
 
-// The recordings as the fit reads them: a step's first row that shows the new voltage with the old current takes
-// the step's current (stale_current.hpp), else each such row would pass for a miss of the model at every step.
+// The recordings as the fit reads them (correct_logging_artifacts: stale step rows, voltage spikes), else each
+// such row would pass for a miss of the model. A recording with nothing to correct is used as given.
 Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options) {
     std::vector<std::string> notes;
     auto corrected = [&](const Recording& r) -> std::optional<Recording> {
-        if (stale_current_rows(r).empty() && voltage_spike_rows(r).empty()) return std::nullopt;  // no copy needed
         Recording c = r;
-        for (auto& note : correct_logging_artifacts(c)) notes.push_back(std::move(note));
+        auto found = correct_logging_artifacts(c);
+        if (found.empty()) return std::nullopt;
+        for (auto& note : found) notes.push_back(std::move(note));
         return c;
     };
     const auto main = corrected(rec);

@@ -531,19 +531,17 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
             rec.step_type.reserve(expected_rows);
     }
 
-    const bool has_step_count = std::any_of(used.begin(), used.end(), [](const UsedColumn& u) {
-        return u.label->channel == Channel::step_count;
-    });
+    auto reads = [&used](Channel channel) {
+        return std::any_of(used.begin(), used.end(), [channel](const UsedColumn& u) { return u.label->channel == channel; });
+    };
+    const bool has_step_count = reads(Channel::step_count);
     const bool steps_from_index = step_index_column != SIZE_MAX && !has_step_count;
     if (step_index_column != SIZE_MAX && has_step_count) ignored.emplace_back(fields[step_index_column]);
     std::vector<double> step_index;
     if (steps_from_index) step_index.reserve(expected_rows);
 
     csv::TimeStepGuard guard{std::string(kBdfTestTime)};
-    const bool has_unix_time = std::any_of(used.begin(), used.end(), [](const UsedColumn& u) {
-        return u.label->channel == Channel::unix_time;
-    });
-    if (has_unix_time) guard.defer_backward_steps();
+    if (reads(Channel::unix_time)) guard.defer_backward_steps();
     csv::DroppedValues dropped;
     while (reader.next(fields)) {
         reader.check_width(fields, width);

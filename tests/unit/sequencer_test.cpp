@@ -189,13 +189,11 @@ void expect_rc_recovered(const estimator::PulseSetFit& f, const estimator::Param
     }
 }
 
-}  // namespace
-
-TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
-    ModelCell cell(cell_params());
+// The short HPPC on the simulated cell through a sequencer with online fits, each cycler sample changed by
+// alter_sample when given; returns when the run has completed and its fits are in `rec`.
+void run_short_hppc(ModelCell& cell, Recorder& rec, const std::function<void(CyclerSample&)>& alter_sample = {}) {
     FakeCycler cyc;
     FakeChamber ch;
-    Recorder rec;
     SequencerOptions opt;
     opt.capacity_ah = cell.model.params().capacity_ah;
     opt.fit_at_end = false;
@@ -203,9 +201,17 @@ TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
     Program p{"hppc_short",
               {{Segment::Kind::ChamberSetpoint, {}, 30.0, 0.5, 0, 0, "30 degC"}, {Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}};
     seq.start(p, 0.0);
-    run_bench(seq, cyc, cell, ch, 5 * 3600.0);
+    run_bench(seq, cyc, cell, ch, 5 * 3600.0, {}, alter_sample);
     seq.wait_for_fits();
     EXPECT_EQ(seq.state(), RunState::Completed) << (rec.events.empty() ? "" : rec.events.back());
+}
+
+}  // namespace
+
+TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
+    ModelCell cell(cell_params());
+    Recorder rec;
+    run_short_hppc(cell, rec);
     ASSERT_EQ(rec.fits.size(), 3u);
     for (const auto& f : rec.fits) {
         const double truth = cell.model.params().rc_at(f.soc, -1).r0_ohm;
@@ -224,16 +230,7 @@ TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
 // as on the clean tester (without the correction the rests the fit relies on carry the glitches).
 TEST(Sequencer, OnlineFitsReadVoltageSpikesAsTheOfflineFitDoes) {
     ModelCell cell(cell_params());
-    FakeCycler cyc;
-    FakeChamber ch;
     Recorder rec;
-    SequencerOptions opt;
-    opt.capacity_ah = cell.model.params().capacity_ah;
-    opt.fit_at_end = false;
-    Sequencer seq(cyc, ch, rec, opt);
-    Program p{"hppc_short",
-              {{Segment::Kind::ChamberSetpoint, {}, 30.0, 0.5, 0, 0, "30 degC"}, {Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}};
-    seq.start(p, 0.0);
     int step_id = -1;
     double step_started_s = 0.0;
     std::size_t spikes = 0;
@@ -248,9 +245,7 @@ TEST(Sequencer, OnlineFitsReadVoltageSpikesAsTheOfflineFitDoes) {
             ++spikes;
         }
     };
-    run_bench(seq, cyc, cell, ch, 5 * 3600.0, {}, glitch);
-    seq.wait_for_fits();
-    EXPECT_EQ(seq.state(), RunState::Completed) << (rec.events.empty() ? "" : rec.events.back());
+    run_short_hppc(cell, rec, glitch);
     EXPECT_GE(spikes, 20u);
     ASSERT_EQ(rec.fits.size(), 3u);
     for (const auto& f : rec.fits) {

@@ -536,6 +536,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     };
     const bool has_step_count = reads(Channel::step_count);
     const bool steps_from_index = step_index_column != SIZE_MAX && !has_step_count;
+    const std::string step_index_name(steps_from_index ? fields[step_index_column] : std::string_view());  // as the file names it
     if (step_index_column != SIZE_MAX && has_step_count) ignored.emplace_back(fields[step_index_column]);
     std::vector<double> step_index;
     if (steps_from_index) step_index.reserve(expected_rows);
@@ -545,7 +546,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     csv::DroppedValues dropped;
     while (reader.next(fields)) {
         reader.check_width(fields, width);
-        if (steps_from_index) step_index.push_back(csv::read_number(reader, fields[step_index_column], "Step Index / 1", false));
+        if (steps_from_index) step_index.push_back(csv::read_number(reader, fields[step_index_column], step_index_name, false));
         for (const auto& u : used) {
             const std::string_view cell = fields[u.index];
             if (u.label->values == nullptr) {

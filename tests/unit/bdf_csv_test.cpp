@@ -107,6 +107,9 @@ TEST(BdfCsv, AStepIndexWithoutStepCountCountsTheSteps) {
         EXPECT_EQ(rec.step_count, (std::vector<double>{1, 2, 2, 3, 3, 4})) << name;
         EXPECT_TRUE(report.steps_counted_from_index) << name;
         EXPECT_TRUE(report.ignored_columns.empty()) << name;
+        // A cell that is no step number is an error naming the column as the file names it.
+        const std::string bad = std::string("test_time_second,voltage_volt,current_ampere,") + name + "\n0,3.7,0,x\n";
+        EXPECT_NE(error_of(bad).find(std::string("column \"") + name + "\""), std::string::npos) << error_of(bad);
     }
     // A file's own Step Count is what counts; the index beside it is ignored (and listed as such).
     BdfReadReport report;

@@ -1114,15 +1114,23 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     {
         // Where the tables bend between two of the test's levels, say so: the values between them are a straight
         // line (their sd carries it), and a pulse level between would measure them.
-        std::string bends;
+        // The three largest, in SOC order, and how many there are.
+        std::vector<int> over;
         for (int k = 0; k + 1 < b.grid.n; ++k)
-            if (bend_r0[k] > kBendNoteRelative)
-                bends += printf_text("%s%.1f-%.1f %% (up to %.1f %%)", bends.empty() ? "" : ", ", 100 * b.grid.soc(k),
-                                     100 * b.grid.soc(k + 1), 100 * bend_r0[k]);
-        if (!bends.empty())
-            out.notes.push_back("the discharge R0 bends between the tables' knots (by default the test's SOC levels) at " +
-                                bends + ": between them the tables are a straight line that may be off by that much "
-                                "(their sd includes it); pulses between those levels would measure it");
+            if (bend_r0[k] > kBendNoteRelative) over.push_back(k);
+        std::vector<int> shown = over;
+        std::sort(shown.begin(), shown.end(), [&](int x, int y) { return bend_r0[x] > bend_r0[y]; });
+        shown.resize(std::min<std::size_t>(shown.size(), 3));
+        std::sort(shown.begin(), shown.end());
+        std::string bends;
+        for (const int k : shown)
+            bends += printf_text("%s%.1f-%.1f %% (up to %.1f %%)", bends.empty() ? "" : ", ", 100 * b.grid.soc(k),
+                                 100 * b.grid.soc(k + 1), 100 * bend_r0[k]);
+        if (over.size() > shown.size()) bends += printf_text(" and %zu more intervals", over.size() - shown.size());
+        if (!over.empty())
+            out.notes.push_back("the discharge R0 changes its slope between the tables' knots (by default the test's SOC "
+                                "levels) at " + bends + ": between them the tables are a straight line that may be off by "
+                                "that much (their sd includes it); pulses between those levels would measure it");
     }
     for (std::size_t j = 1; j < p.ocv_v.size(); ++j)
         if (p.ocv_v[j] <= p.ocv_v[j - 1]) {

@@ -10,28 +10,44 @@
 namespace cellbench::estimator {
 
 namespace {
-constexpr double kMinSpikeV = 0.05;         // there and back within one sample: no cell does 50 mV
+constexpr double kMinSpikeV = 0.05;         // there and back within a few samples: no cell does 50 mV
 constexpr double kNeighboursAgree = 0.25;   // of the spike: the rows either side tell the same voltage
-constexpr double kSameCurrentA = 0.05;      // the current holds over the three rows ...
+constexpr double kSameCurrentA = 0.05;      // the current holds over the spike and the rows either side ...
 constexpr double kSameCurrentShare = 0.02;  // ... or within 2 % of itself
+constexpr std::size_t kMaxSpikeRows = 3;    // a glitch of up to three rows in a row (a logger's dropout)
+
+// The spike of `length` rows starting at row k, between rows k - 1 and k + length: every row on the same side of
+// both by more than kMinSpikeV, the two agreeing within kNeighboursAgree of the smallest departure, the current
+// holding from the row before to the row after.
+bool is_spike(const Recording& rec, std::size_t k, std::size_t length) {
+    const auto& i = rec.current_a;
+    const auto& v = rec.voltage_v;
+    const std::size_t a = k - 1, b = k + length;
+    if (b >= rec.size()) return false;
+    for (std::size_t r = a; r <= b; ++r)
+        if (!std::isfinite(v[r]) || !std::isfinite(i[r])) return false;
+    const double tol = std::max(kSameCurrentA, kSameCurrentShare * std::abs(i[k]));
+    for (std::size_t r = a; r <= b; ++r)
+        if (std::abs(i[r] - i[k]) > tol) return false;
+    double smallest = INFINITY;
+    for (std::size_t r = k; r < b; ++r) {
+        const double up = v[r] - v[a], down = v[r] - v[b];
+        if (up * down <= 0.0 || up * (v[k] - v[a]) <= 0.0) return false;  // each row beyond both, all on one side
+        smallest = std::min({smallest, std::abs(up), std::abs(down)});
+    }
+    return smallest > kMinSpikeV && std::abs(v[b] - v[a]) < kNeighboursAgree * smallest;
+}
 }  // namespace
 
 std::vector<std::size_t> voltage_spike_rows(const Recording& rec) {
     std::vector<std::size_t> rows;
-    const auto& i = rec.current_a;
-    const auto& v = rec.voltage_v;
-    for (std::size_t k = 1; k + 1 < rec.size(); ++k) {
-        if (!(std::isfinite(v[k - 1]) && std::isfinite(v[k]) && std::isfinite(v[k + 1]) && std::isfinite(i[k - 1]) &&
-              std::isfinite(i[k]) && std::isfinite(i[k + 1])))
-            continue;
-        const double up = v[k] - v[k - 1], down = v[k] - v[k + 1];
-        if (up * down <= 0.0) continue;
-        const double spike = std::min(std::abs(up), std::abs(down));
-        if (spike <= kMinSpikeV || std::abs(v[k + 1] - v[k - 1]) >= kNeighboursAgree * spike) continue;
-        const double tol = std::max(kSameCurrentA, kSameCurrentShare * std::abs(i[k]));
-        if (std::abs(i[k] - i[k - 1]) > tol || std::abs(i[k + 1] - i[k]) > tol) continue;
-        rows.push_back(k);
-    }
+    for (std::size_t k = 1; k + 1 < rec.size(); ++k)
+        for (std::size_t length = 1; length <= kMaxSpikeRows; ++length)
+            if (is_spike(rec, k, length)) {
+                for (std::size_t r = k; r < k + length; ++r) rows.push_back(r);
+                k += length;  // the row after the run is its bracket, not the start of another
+                break;
+            }
     return rows;
 }
 
@@ -39,17 +55,27 @@ std::string correct_voltage_spikes(Recording& rec) {
     const auto rows = voltage_spike_rows(rec);
     if (rows.empty()) return {};
     const double first_v = rec.voltage_v[rows.front()];
-    for (const std::size_t k : rows) {
-        const double t0 = rec.time_s[k - 1], t1 = rec.time_s[k + 1];
-        const double w = t1 > t0 ? (rec.time_s[k] - t0) / (t1 - t0) : 0.5;
-        rec.voltage_v[k] = rec.voltage_v[k - 1] + w * (rec.voltage_v[k + 1] - rec.voltage_v[k - 1]);
+    // Each run of spike rows takes the line between the rows either side (not spike rows: voltage_spike_rows
+    // lists whole runs, at least one row apart).
+    for (std::size_t n = 0; n < rows.size();) {
+        std::size_t m = n + 1;
+        while (m < rows.size() && rows[m] == rows[m - 1] + 1) ++m;
+        const std::size_t a = rows[n] - 1, b = rows[m - 1] + 1;
+        const double t0 = rec.time_s[a], t1 = rec.time_s[b];
+        for (std::size_t q = n; q < m; ++q) {
+            const std::size_t k = rows[q];
+            const double w = t1 > t0 ? (rec.time_s[k] - t0) / (t1 - t0) : static_cast<double>(k - a) / static_cast<double>(b - a);
+            rec.voltage_v[k] = rec.voltage_v[a] + w * (rec.voltage_v[b] - rec.voltage_v[a]);
+        }
+        n = m;
     }
     const bool one = rows.size() == 1;
     return rec.source + ": " + std::to_string(rows.size()) +
            (one ? " row shows a voltage spike (at t = " : " rows show a voltage spike (the first at t = ") +
            printf_text("%.3f s: %.4f V", rec.time_s[rows.front()], first_v) +
-           ") that leaves and returns within one sample while the current holds, which no cell does: " +
-           (one ? "its" : "their") + " voltage is taken between the rows either side";
+           ") that leaves and returns within at most " + std::to_string(kMaxSpikeRows) +
+           " samples while the current holds, which no cell does: " + (one ? "its" : "their") +
+           " voltage is taken between the rows either side";
 }
 
 std::vector<std::string> correct_logging_artifacts(Recording& rec) {

@@ -139,6 +139,21 @@ const std::vector<EffectSpec>& specs() {
                  p.ocv_v[k] += x[0] * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
          },
          "parameters_wrong"},
+        {"resistance_band",
+         // The resistance tables re-identified in one SOC band: R0, R1, R2 scaled by a triangular factor of peak x0
+         // at x1, half width x2, the time constants kept (C1, C2 by its inverse). Where a characterization fits a
+         // SOC range poorly (towards empty, where the resistances rise steeply between two pulse levels) its
+         // tables there are the least trustworthy; a band twice or half as resistive is compensating something else.
+         {{"scale", 0.5, 2.0, true, true}, {"center_soc", 0.0, 1.0, false}, {"half_width_soc", 0.1, 0.35, false}},
+         {{1.2, 0.05, 0.12}, {0.85, 0.05, 0.12}, {1.2, 0.5, 0.25}, {0.85, 0.5, 0.25}, {1.2, 0.95, 0.12}, {0.85, 0.95, 0.12}},
+         [](ParameterSet& p, const std::vector<double>& x) {
+             for (RcTable* t : {&p.discharge, &p.charge})
+                 for (std::size_t k = 0; k < p.soc.size() && k < t->r0_ohm.size(); ++k) {
+                     const double f = 1.0 + (x[0] - 1.0) * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
+                     t->r0_ohm[k] *= f, t->r1_ohm[k] *= f, t->r2_ohm[k] *= f, t->c1_f[k] /= f, t->c2_f[k] /= f;
+                 }
+         },
+         "parameters_wrong"},
         {"initial_soc",
          // The recording did not start at the SOC its first voltage implies: the cell sat on another hysteresis
          // branch than the table's, or had not rested. Everything after the start then runs at the wrong SOC,
@@ -550,6 +565,10 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
         what = "the OCV table is off in one SOC band (parameters wrong, re-identified on this recording): " +
                printf_text("%+.1f", x[0] * 1e3) + " mV at SOC " + pct(x[1]) + ", fading to 0 at SOC " +
                pct(std::max(0.0, x[1] - x[2])) + " and " + pct(std::min(1.0, x[1] + x[2]));
+    else if (id == "resistance_band")
+        what = "the resistance tables are off in one SOC band (parameters wrong, re-identified on this recording): R0, "
+               "R1 and R2 x" + printf_text("%.2f", x[0]) + " at SOC " + pct(x[1]) + ", fading to x1 at SOC " +
+               pct(std::max(0.0, x[1] - x[2])) + " and " + pct(std::min(1.0, x[1] + x[2])) + " (time constants kept)";
     else if (id == "initial_soc")
         what = "the recording starts at a SOC " + printf_text("%+.1f", x[0] * 100.0) +
                " % of the capacity from the one its first voltage implies (its history: the cell sat on another "

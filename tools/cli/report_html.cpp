@@ -154,6 +154,7 @@ const std::map<std::string, std::string>& effect_words() {
         {"ambient_drift", "Ambient (chamber) temperature not constant"},
         {"ocv_offset", "OCV table off (re-identified on this recording)"},
         {"ocv_band", "OCV table off in one SOC band (re-identified on this recording)"},
+        {"resistance_band", "Resistance tables off in one SOC band (re-identified on this recording)"},
         {"thermal_parameters", "Lumped thermal parameters off (C_th, R_th re-identified)"},
     };
     return m;

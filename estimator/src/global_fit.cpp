@@ -965,7 +965,6 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // carry (assess).
     if (options.hold_unidentified_step_lag && std::isfinite(lag_sd_linearized) &&
         lag_sd_linearized > kStepLagUnidentifiedSd && b.step_lag > 1e-3) {
-        const double fitted_lag_sd = lag_sd_linearized;
         const double fitted_lag = b.step_lag;
         b.step_lag = 0.0;
         b.hold_step_lag = true;
@@ -973,7 +972,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         b.hold_step_lag = false;
         out.notes.push_back(printf_text("the data do not identify when a current step happens within its sample interval "
                                         "(fitted %.2f +- %.2f of an interval): held at 0, a record at the step's start",
-                                        fitted_lag, fitted_lag_sd));
+                                        fitted_lag, lag_sd_linearized));
         assess();
     }
     // Which knots have data of each direction nearby, and which OCV knots have rows near them.
@@ -1040,8 +1039,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // its chord by f''/2 (s - s_a)(s_b - s) between knots at s_a and s_b. f'' is taken from the second divided
     // differences over the two knot triples that hold the interval (their root mean square: where the tables
     // bend ever faster towards one end, the triple on that side reads more than the interval has, the other
-    // less); where no triple does (two knots) nothing is added. The data measure the knots, not the values between them, so this joins the reported sd
-    // of every value between two knots (a bias of either sign, not noise). Between two levels 10 % of SOC apart
+    // less); where no triple does (two knots) nothing is added. The data measure the knots, not the values
+    // between them, so this joins the reported sd of every value between two knots (a bias of either sign, not
+    // noise). Between two levels 10 % of SOC apart
     // towards empty, where resistances rise steeply, it is of the order of the chord's real error there (the
     // independent plant: R0 +2 % at 10 % SOC between levels at 2.6 and 12.3 %, its sd 0.3 % before).
     auto interpolation_sd = [&](int ka, int kb, int src, double w, int q) {
@@ -1078,8 +1078,6 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     for (int j = 0; j < n_ocv; ++j) {
         const int ka = std::min(j / m, b.grid.n - 1), kb = std::min(ka + 1, b.grid.n - 1);
         const double w = static_cast<double>(j - ka * m) / m;  // 0 at a knot
-        if (const double* x = b.knots[ka].data(); w > 0)
-            bend_r0[ka] = std::max(bend_r0[ka], interpolation_sd(ka, kb, 0, w, 0) / quantity(x, b.knots[kb].data(), w, 0));
         p.soc.push_back(b.grid.ocv_soc(j));
         p.ocv_v.push_back(b.ocv[j]);
         FittedValue ocv{b.ocv[j], std::sqrt(cov(n_rc + j, n_rc + j)), {}};
@@ -1091,9 +1089,11 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
             const double* pa = b.knots[ka].data() + 5 * src;
             const double* pb = b.knots[kb].data() + 5 * src;
             std::vector<FittedValue> v(7);
-            for (int q = 0; q < 7; ++q)
-                v[q] = {quantity(pa, pb, w, q), std::hypot(quantity_sd(ka, kb, src, w, q), interpolation_sd(ka, kb, src, w, q)),
-                        {}};
+            for (int q = 0; q < 7; ++q) {
+                const double interpolation = interpolation_sd(ka, kb, src, w, q);
+                v[q] = {quantity(pa, pb, w, q), std::hypot(quantity_sd(ka, kb, src, w, q), interpolation), {}};
+                if (d == 0 && q == 0) bend_r0[ka] = std::max(bend_r0[ka], interpolation / v[0].value);
+            }
             auto r_in = [](double r) { return r >= kRMinOhm && r <= kRMaxOhm; };
             const bool ok[7] = {r_in(v[0].value), r_in(v[1].value), true, r_in(v[3].value), true,
                                 v[5].value >= kTau1MinS && v[5].value <= kTau1MaxS,

@@ -45,6 +45,12 @@ struct EffectSpec {
     void (*remove)(ParameterSet&) = nullptr;
 };
 
+// The band corrections' shape (ocv_band, resistance_band): 1 at SOC `centre`, falling linearly to 0 at
+// `half_width` either side, 0 beyond.
+double triangle(double soc, double centre, double half_width) {
+    return std::max(0.0, 1.0 - std::abs(soc - centre) / half_width);
+}
+
 const std::vector<EffectSpec>& specs() {
     static const std::vector<EffectSpec> s = {
         {"entropic_heat",
@@ -136,7 +142,7 @@ const std::vector<EffectSpec>& specs() {
          [](ParameterSet& p, const std::vector<double>& x) {
              // the OCV table re-identified in one SOC band: a triangular correction of peak x0 at x1, half width x2
              for (std::size_t k = 0; k < p.ocv_v.size() && k < p.soc.size(); ++k)
-                 p.ocv_v[k] += x[0] * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
+                 p.ocv_v[k] += x[0] * triangle(p.soc[k], x[1], x[2]);
          },
          "parameters_wrong"},
         {"resistance_band",
@@ -149,7 +155,7 @@ const std::vector<EffectSpec>& specs() {
          [](ParameterSet& p, const std::vector<double>& x) {
              for (RcTable* t : {&p.discharge, &p.charge})
                  for (std::size_t k = 0; k < p.soc.size() && k < t->r0_ohm.size(); ++k) {
-                     const double f = 1.0 + (x[0] - 1.0) * std::max(0.0, 1.0 - std::abs(p.soc[k] - x[1]) / x[2]);
+                     const double f = 1.0 + (x[0] - 1.0) * triangle(p.soc[k], x[1], x[2]);
                      t->r0_ohm[k] *= f, t->r1_ohm[k] *= f, t->r2_ohm[k] *= f, t->c1_f[k] /= f, t->c2_f[k] /= f;
                  }
          },

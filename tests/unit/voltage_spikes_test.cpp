@@ -12,6 +12,7 @@
 #include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/voltage_spikes.hpp"
 #include "unit/hppc_synthetic.hpp"
+#include "unit/same_fit.hpp"
 #include "unit/thesis_params.hpp"
 
 namespace {
@@ -89,18 +90,11 @@ TEST(VoltageSpikes, TheFitOfAnHppcWithVoltageSpikesMatchesTheCleanOne) {
     const auto options = cellbench::test::characterization_options();
     const auto a = est::characterize({clean}, options);
     const auto b = est::characterize({spiked}, options);
-    bool said = false;
-    for (const auto& w : b.warnings) said = said || w.find("show a voltage spike") != std::string::npos;
-    EXPECT_TRUE(said);
+    EXPECT_TRUE(cellbench::test::warns(b.warnings, "show a voltage spike"));
     ASSERT_TRUE(a.global && b.global);
     EXPECT_EQ(b.pulse_fits.size(), a.pulse_fits.size());
-    ASSERT_EQ(a.params.discharge.r0_ohm.size(), b.params.discharge.r0_ohm.size());
-    for (std::size_t k = 0; k < a.params.discharge.r0_ohm.size(); ++k) {
-        EXPECT_NEAR(b.params.discharge.r0_ohm[k], a.params.discharge.r0_ohm[k], 1e-3 * a.params.discharge.r0_ohm[k])
-            << "row " << k << " (SOC " << a.params.soc[k] << ")";
-        EXPECT_NEAR(b.params.discharge.r2_ohm[k], a.params.discharge.r2_ohm[k], 1e-3 * a.params.discharge.r2_ohm[k])
-            << "row " << k << " (SOC " << a.params.soc[k] << ")";
-    }
+    cellbench::test::expect_discharge_column_near(a, b, &est::RcTable::r0_ohm, 1e-3);
+    cellbench::test::expect_discharge_column_near(a, b, &est::RcTable::r2_ohm, 1e-3);
     for (std::size_t k = 0; k < a.params.ocv_v.size(); ++k)
         EXPECT_NEAR(b.params.ocv_v[k], a.params.ocv_v[k], 1e-3) << "OCV row " << k;
 }

@@ -28,8 +28,8 @@ int run_simulate(const SimulateOptions& o) {
     const auto params = load_params(o.params);
     auto rec = load_recording(o.recording);
     // The recording as `fit` and `diagnose` read it: rows at current steps that read the step's voltage beside the
-    // current before it take the next row's current (the model's input), single-row voltage spikes the voltage
-    // between their neighbours.
+    // current before it take the next row's current (the model's input), voltage spikes of one to three rows the
+    // voltage between the rows either side.
     for (const auto& note : estimator::correct_logging_artifacts(rec)) spdlog::warn("{}", note);
     if (!o.initial_soc)
         if (const auto warning = estimator::start_outside_ocv_range(params, rec); !warning.empty()) spdlog::warn("{}", warning);

@@ -836,7 +836,7 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
     const double duration = rec_full.time_s.back() - rec_full.time_s.front();
     const std::size_t folds = std::max<std::size_t>(options.folds, 2);
     if (duration < 60.0 * static_cast<double>(folds))
-        throw InputError(rec_full.source + ": recording too short to cross-validate (" + std::to_string(duration) +
+        throw InputError(rec_full.source + ": recording too short to cross-validate (" + printf_text("%.1f", duration) +
                          " s; needs at least " + std::to_string(60 * folds) + " s)");
     for (const Recording* r : options.confirm)
         if (!r || r->size() < 2) throw InputError("diagnose: a recording to confirm the findings on has fewer than two rows");

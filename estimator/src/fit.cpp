@@ -12,6 +12,7 @@
 #include "cellbench/estimator/thermal_characterization.hpp"
 
 #include "median.hpp"
+#include "printf_text.hpp"
 
 namespace cellbench::estimator {
 
@@ -156,7 +157,7 @@ std::vector<Recording> merge_overlapping(const std::vector<Recording>& in, std::
                 if (al.edges_b < 3 || al.matched_edges * 5 < al.edges_b * 4) continue;
                 notes.push_back(fine.source + " and " + coarse.source + " record the same test (" +
                                 std::to_string(al.matched_edges) + " of " + std::to_string(al.edges_b) +
-                                " current steps at offset " + std::to_string(al.offset_s) +
+                                " current steps at offset " + printf_text("%.2f", al.offset_s) +
                                 " s): spliced, the finer rows serve once");
                 Recording spliced = splice_recordings(coarse, fine, al.offset_s);
                 spliced.source = coarse.source + " + " + fine.source;
@@ -343,7 +344,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         if (missing_v)
             out.warnings.push_back(rec.source + ": " + std::to_string(missing_v) +
                                    " rows without a voltage (NaN, missing), the first at t = " +
-                                   std::to_string(rec.time_s[first_v]) + " s: left out of the fits");
+                                   printf_text("%.1f", rec.time_s[first_v]) + " s: left out of the fits");
     }
     std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
     for (auto& rec : recordings)
@@ -404,7 +405,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
                 const bool rested_start = ph.begin == 0 || segs[r].phases[ph.index - 1].is_rest();
                 if (!rested_start || std::abs(ph.mean_current_a) >= best_rate) continue;
                 best_rate = std::abs(ph.mean_current_a);
-                out.capacity = {-ph.charge_ah, "full CC discharge at " + std::to_string(best_rate) + " A",
+                out.capacity = {-ph.charge_ah, "full CC discharge at " + printf_text("%.3g", best_rate) + " A",
                                 recordings[r].source};
                 capacity_test = {r, ph};
             }

@@ -1150,7 +1150,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         if (ea > 0) p.extensions.resistance_temperature = ResistanceTemperatureExt{ea};
     } else {
         out.notes.push_back("the recordings' cell temperature spans less than " +
-                            std::to_string(options.min_temperature_span_k) +
+                            printf_text("%g", options.min_temperature_span_k) +
                             " K: temperature dependence of the resistances not identified");
     }
     if (b.grid.current) {

@@ -1,4 +1,5 @@
 #include "cellbench/estimator/merge.hpp"
+#include "printf_text.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -71,7 +72,7 @@ CurrentAlignment align_by_current(const Recording& a, const Recording& b, double
     if (best.matched_edges * 2 < eb.size())
         throw InputError(b.source + ": cannot align with " + a.source + ": only " +
                          std::to_string(best.matched_edges) + " of " + std::to_string(eb.size()) +
-                         " current steps match at any offset within " + std::to_string(max_offset_s) + " s");
+                         " current steps match at any offset within " + printf_text("%g", max_offset_s) + " s");
     // Refine: least squares on the current near the edges of b, offsets within +-1.5 s in 0.05 s steps.
     double best_cost = INFINITY;
     const double coarse = best.offset_s;

@@ -7,6 +7,7 @@
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/estimator/simulate.hpp"
 #include "cellbench/estimator/thermal_fit.hpp"
+#include "printf_text.hpp"
 
 namespace cellbench::estimator {
 
@@ -268,7 +269,7 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         out.details["temperature_only_fit"] = {{"c_th_j_per_k", c_th}, {"r_th_k_per_w", best_r},
                                                {"temperature_rms_c", num(rms)}};
         out.notes.push_back("no heat flux measured: C_th and R_th identified together from the surface temperature "
-                            "(temperature RMS " + std::to_string(rms) + " degC); dU/dT left out");
+                            "(temperature RMS " + printf_text("%.3f", rms) + " degC); dU/dT left out");
         flag_thermal(out, cap);
         return out;
     }
@@ -358,9 +359,9 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
             const double rel = (flux.r_th_flux_k_per_w - cool.r_th_tau_k_per_w) /
                                (0.5 * (flux.r_th_flux_k_per_w + cool.r_th_tau_k_per_w));
             if (std::abs(rel) > 0.15)
-                out.notes.push_back(rec.source + ": R_th from heat flux (" + std::to_string(flux.r_th_flux_k_per_w) +
+                out.notes.push_back(rec.source + ": R_th from heat flux (" + printf_text("%.2f", flux.r_th_flux_k_per_w) +
                                     " K/W) and from the cooling time constant (" +
-                                    std::to_string(cool.r_th_tau_k_per_w) + " K/W) disagree by " +
+                                    printf_text("%.2f", cool.r_th_tau_k_per_w) + " K/W) disagree by " +
                                     std::to_string(static_cast<int>(std::round(100 * rel))) +
                                     " %: the sensor sees one patch of the lateral surface, not the terminals");
         }

@@ -1135,7 +1135,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     for (std::size_t j = 1; j < p.ocv_v.size(); ++j)
         if (p.ocv_v[j] <= p.ocv_v[j - 1]) {
             out.ocv[j].flags.push_back("implausible");
-            out.notes.push_back("fitted OCV not increasing at SOC " + std::to_string(p.soc[j]));
+            out.notes.push_back(printf_text("fitted OCV not increasing at SOC %.1f %%", 100 * p.soc[j]));
         }
     const int g0 = n_par - 5, g1 = n_par - 4, g2 = n_par - 3, g3 = n_par - 2;
     out.step_lag = {b.step_lag, std::sqrt(cov(g_lag, g_lag)), {}};
@@ -1162,7 +1162,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         if (i0 < 50.0 * b.grid.i_ref_a)  // above that the polarization is linear over the currents seen
             p.extensions.resistance_current = ResistanceCurrentExt{i0, b.grid.i_ref_a};
     } else {
-        out.notes.push_back("the recordings' currents span a ratio below " + std::to_string(options.min_current_ratio) +
+        out.notes.push_back("the recordings' currents span a ratio below " + printf_text("%g", options.min_current_ratio) +
                             ": current dependence of the polarization not identified");
     }
     if (b.grid.slow) {

@@ -31,12 +31,17 @@ int run_diagnose(const DiagnoseCliOptions& o) {
     progress.finish();
     for (const auto& note : d.notes) spdlog::warn("{}", note);
 
-    auto q = [](const estimator::QuantityRms& r) {
+    auto number = [](double x, const char* format) {
+        char b[48];
+        std::snprintf(b, sizeof b, format, x);
+        return std::string(b);
+    };
+    auto q = [&](const estimator::QuantityRms& r) {
         char b[160];
         std::snprintf(b, sizeof b, "voltage %s, temperature %s, heat flux %s",
-                      r.voltage_v ? (std::to_string(*r.voltage_v * 1e3).substr(0, 5) + " mV").c_str() : "-",
-                      r.temperature_c ? (std::to_string(*r.temperature_c).substr(0, 5) + " degC").c_str() : "-",
-                      r.heat_flux_w ? (std::to_string(*r.heat_flux_w).substr(0, 5) + " W").c_str() : "-");
+                      r.voltage_v ? number(*r.voltage_v * 1e3, "%.2f mV").c_str() : "-",
+                      r.temperature_c ? number(*r.temperature_c, "%.3f degC").c_str() : "-",
+                      r.heat_flux_w ? number(*r.heat_flux_w, "%.3f W").c_str() : "-");
         return std::string(b);
     };
     std::printf("baseline RMS: %s\n", q(d.baseline).c_str());

@@ -61,7 +61,11 @@ inline estimator::ParameterSet load_param_file(const std::filesystem::path& path
     if (!in) throw InputError(path.string() + ": cannot read the parameter set");
     std::stringstream text;
     text << in.rdbuf();
-    return estimator::ParameterSet::from_json(protocol::parse_json_input(text.str(), path.string()), path.string());
+    auto p = estimator::ParameterSet::from_json(protocol::parse_json_input(text.str(), path.string()), path.string());
+    for (const auto& id : p.extensions.unknown_ids())
+        spdlog::warn("{}: extension \"{}\" is not an effect this cellbench models: left out of the model",
+                     path.string(), id);
+    return p;
 }
 
 inline RunState store_state(sequencer::RunState s) {

@@ -101,6 +101,12 @@ json ModelExtensions::to_json() const {
     return j;
 }
 
+std::vector<std::string> ModelExtensions::unknown_ids() const {
+    std::vector<std::string> ids;
+    for (const auto& item : other.items()) ids.push_back(item.key());
+    return ids;
+}
+
 ModelExtensions ModelExtensions::from_json(const json& j, const std::string& source) {
     if (!j.is_object()) fail(source, "$.extensions", "expected an object keyed by effect id");
     ModelExtensions e;
@@ -217,6 +223,9 @@ void ParameterSet::validate(const std::string& source) const {
             if (!(v[i] > 0)) fail(source, path + "[" + std::to_string(i) + "]", "expected a positive value");
     };
     check_size(ocv_v, "$.ocv_v");
+    for (std::size_t i = 0; i < ocv_v.size(); ++i)
+        if (!(ocv_v[i] > 0 && ocv_v[i] < 10))
+            fail(source, "$.ocv_v[" + std::to_string(i) + "]", "expected an open-circuit voltage between 0 and 10 V");
     if (!ocv_v_sd.empty()) {
         check_size(ocv_v_sd, "$.ocv_v_sd");
         for (std::size_t i = 0; i < ocv_v_sd.size(); ++i)

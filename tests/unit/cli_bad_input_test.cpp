@@ -125,6 +125,31 @@ TEST_F(CliBadInput, SimulateWithAParameterSetThatIsNotJsonKeepsTheOldMetrics) {
     r = run(kCliBin.string() + " simulate --params " + at("short.json") + " " + rec.string() + " --json " + old.string());
     EXPECT_TRUE(fails_once_naming(r, "$.ocv_v")) << r.output;
     EXPECT_EQ(slurp(old), "old metrics\n");
+
+    // An OCV no cell has (a value in mV written as V) names the entry; it used to be taken and put the simulation's
+    // starting SOC at 12 % instead of 48 %.
+    j = nlohmann::json::parse(slurp(kThesisParams));
+    j["ocv_v"][3] = 3620.0;
+    write("mv.json", j.dump());
+    r = run(kCliBin.string() + " simulate --params " + at("mv.json") + " " + rec.string() + " --json " + old.string());
+    EXPECT_TRUE(fails_once_naming(r, "$.ocv_v[3]")) << r.output;
+    EXPECT_EQ(slurp(old), "old metrics\n");
+}
+
+TEST_F(CliBadInput, AnExtensionThisBuildDoesNotModelIsNamedNotSilentlyDropped) {
+    // A typo in an effect id (or a newer cellbench's effect): the set still loads, kept verbatim, but the user is
+    // told that the model runs without it.
+    const auto rec = write("ok.bdf.csv", kGoodBdf);
+    auto j = nlohmann::json::parse(slurp(kThesisParams));
+    j["extensions"]["resistance_temprature"] = {{"activation_energy_j_per_mol", 30000}};
+    write("typo.json", j.dump());
+    const auto r = run(kCliBin.string() + " simulate --params " + at("typo.json") + " " + rec.string() + " --json " +
+                       at("m.json"));
+    EXPECT_EQ(r.status, 0) << r.output;
+    EXPECT_NE(r.output.find("typo.json: extension \"resistance_temprature\" is not an effect this cellbench models"),
+              std::string::npos)
+        << r.output;
+    EXPECT_TRUE(fs::exists(at("m.json")));
 }
 
 TEST_F(CliBadInput, DiagnoseOfAMalformedRecordingWritesNoneOfItsOutputs) {

@@ -129,7 +129,7 @@ TEST(DiagnoseJobs, ADiagnosisWithItsReportAndTraces) {
     o.max_trace_points = 200;
     DiagnoseJobs jobs(o);
     const auto id = jobs.submit({{"params", "p45b-thesis"}}, {"series_resistance_offset"}, [](const auto&) {
-        return DiagnoseInput{thesis(), synthetic()};
+        return DiagnoseInput{thesis(), synthetic(), {}};
     })["id"].get<std::int64_t>();
     const json j = wait_done(jobs, id);
     ASSERT_EQ(j["state"], "done") << j.dump().substr(0, 1000);

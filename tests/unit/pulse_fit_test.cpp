@@ -303,7 +303,9 @@ TEST(PulseFit, DischargeOnlyPulseSetFitsTheDischargeDirectionAlone) {
         EXPECT_TRUE(std::isnan(fit.r0.charge_ohm));
         EXPECT_TRUE(std::isnan(fit.thesis_rms_v));
         EXPECT_LT(fit.joint_rms_v, 1e-3);
-        if (!from_steps) EXPECT_GT(fit.joint_discharge_sigma.r1_ohm, 0.0);
+        if (!from_steps) {
+            EXPECT_GT(fit.joint_discharge_sigma.r1_ohm, 0.0);
+        }
         bool said = false;
         for (const auto& w : fit.warnings) said = said || w.find("charge parameters not identified") != std::string::npos;
         EXPECT_TRUE(said);

@@ -173,7 +173,11 @@ nlohmann::json parse_json_file(const std::filesystem::path& path) {
 }
 
 estimator::ParameterSet load_params(const std::filesystem::path& path) {
-    return estimator::ParameterSet::from_json(parse_json_file(path), path.string());
+    auto p = estimator::ParameterSet::from_json(parse_json_file(path), path.string());
+    for (const auto& id : p.extensions.unknown_ids())
+        spdlog::warn("{}: extension \"{}\" is not an effect this cellbench models: kept as it is in any parameter set "
+                     "written from this one, left out of the model", path.string(), id);
+    return p;
 }
 
 Recording load_recording(const std::filesystem::path& path) {

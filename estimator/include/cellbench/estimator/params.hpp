@@ -78,6 +78,9 @@ struct ModelExtensions {
     nlohmann::json other = nlohmann::json::object();  // effects this build does not model: kept verbatim
 
     [[nodiscard]] bool empty() const;
+    // The ids in `other`: effects a parameter set names that this build neither simulates nor fits (a typo, or a
+    // newer cellbench's effect). A command that loads the set says so (tools/cli load_params, the daemon's cells).
+    [[nodiscard]] std::vector<std::string> unknown_ids() const;
     [[nodiscard]] nlohmann::json to_json() const;
     // Parses the known effect ids (parameters checked for range), keeps unknown ones in `other`.
     static ModelExtensions from_json(const nlohmann::json& j, const std::string& source);

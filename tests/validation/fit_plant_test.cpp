@@ -51,10 +51,10 @@ struct Errors {
     // The same over the grid points where R0 misses issue 11's 2 %: a miss must be one the fit's sd admits
     // (between two levels far apart, where the straight line cuts a bend, the sd carries the line's error).
     double r0_z_large = 0;
-    // The worst time constant (tau1, tau2) beyond issue 11's 25 % that the fit neither flags (uncertain,
-    // unidentified, implausible) at that SOC nor admits within its reported sd, in units of that sd: 0 when every
-    // such miss is flagged or none occurs.
-    double tau_z_unflagged = 0;
+    // The worst RC value beyond issue 11's bounds (tau1, tau2: 25 %; R1+R2: 10 %) that the fit does not flag
+    // (uncertain, unidentified, implausible) at that SOC, in units of its reported sd (R1+R2: R1's and R2's sds
+    // combined as if independent): 0 when every such miss is flagged or none occurs.
+    double rc_z_unflagged = 0;
 };
 
 // The sd the global fit reports for one discharge quantity (0 = R0) at SOC s, linear between its grid points.
@@ -150,8 +150,13 @@ Errors compare(const est::Characterization& c, const plant::Dataset& d, const Re
                 const auto& [fit, truth] = taus[i];
                 const auto& v = reported_at(c, s, 5 + i);
                 if (rel(fit, truth) > 0.25 && v.flags.empty())
-                    e.tau_z_unflagged = std::max(e.tau_z_unflagged, std::abs(fit - truth) / v.sd);
+                    e.rc_z_unflagged = std::max(e.rc_z_unflagged, std::abs(fit - truth) / v.sd);
             }
+            const auto &r1 = reported_at(c, s, 1), &r2 = reported_at(c, s, 3);
+            const double r12_truth = t.discharge.r1_ohm[k] + t.discharge.r2_ohm[k];
+            if (rel(rc.r1_ohm + rc.r2_ohm, r12_truth) > 0.10 && r1.flags.empty() && r2.flags.empty())
+                e.rc_z_unflagged = std::max(e.rc_z_unflagged,
+                                            std::abs(rc.r1_ohm + rc.r2_ohm - r12_truth) / std::hypot(r1.sd, r2.sd));
         }
         const double dd = 1e3 * (p.ehc_at(s) - t.entropic_v_per_k[k]);
         dudt_sq += dd * dd, ++n;
@@ -239,11 +244,11 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
                         c.thermal.r_th_k_per_w, c.thermal.r_th_sigma_k_per_w, d.truth.r_th_k_per_w);
         }
         const auto e = compare(c, d, to_recording(d.drive, "drive"), compared_soc_range(d, GetParam()));
-        std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %10.2f | %6.2f | %6.2f | %10.3f | %8.2f | %5.2f  (%s, %s, %zu pulse sets; R0's worst error %.1f of its reported sd, %.1f over its misses > 2 %%; unflagged tau misses > 25 %%: %.1f sd)\n",
+        std::printf("%4d | %6.2f | %5.2f | %7.2f | %6.1f | %6.1f | %5.2f | %10.2f | %6.2f | %6.2f | %10.3f | %8.2f | %5.2f  (%s, %s, %zu pulse sets; R0's worst error %.1f of its reported sd, %.1f over its misses > 2 %%; unflagged RC misses: %.1f sd)\n",
                     seed, e.ocv_mv, 100 * e.r0, 100 * e.r12, 100 * e.tau1, 100 * e.tau2, 100 * e.capacity,
                     100 * e.capacity_vs_cell, 100 * e.c_th, 100 * e.r_th, e.dudt_mv_per_k, e.drive_rms_mv,
                     100 * e.r0_at_levels, d.truth.chemistry.c_str(),
-                    c.capacity.method.c_str(), c.pulse_fits.size(), e.r0_z, e.r0_z_large, e.tau_z_unflagged);
+                    c.capacity.method.c_str(), c.pulse_fits.size(), e.r0_z, e.r0_z_large, e.rc_z_unflagged);
         // Layout-agnostic detection (issue 11): every layout the plant draws has pulse sets the per-pulse-set
         // comparison and the daemon's online fits find, and its drive profile (after a long rest too) has none.
         EXPECT_FALSE(c.pulse_fits.empty()) << "seed " << seed << ": no pulse set found in the HPPC";
@@ -253,6 +258,13 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         // thesis seed 2's R0 at 10 % SOC was 2.03 % off with an sd of 0.31 %, 6.5 sd). Smaller misses can be a
         // few sd: a bias of the model's form, e.g. random seed 4's R0 1.4 % low at every level, 0.33 % sd.
         EXPECT_LT(e.r0_z_large, 5.0) << "seed " << seed << ": R0 off by more than its reported uncertainty admits";
+        // The same for the RC pairs: a time constant beyond 25 % or an R1+R2 beyond 10 % is flagged at that SOC or
+        // lies within 5 of its reported sd. Session 41: thesis and USABC seeds 1-20 have no such miss; of random
+        // seeds 1-30 only seed 19, an LFP cell whose layout has 2 s discharge pulses and charges between its
+        // levels: its discharge tau2 is 35-49 % off at every level, flagged uncertain (sd 90-216 s on 80-125 s)
+        // but at 20 % SOC (84 +- 53 s against 145 s: 1.1 sd), R1+R2 up to 15 % off within 1 sd. The layout does not
+        // identify the discharge tau2, and the fit says so.
+        EXPECT_LT(e.rc_z_unflagged, 5.0) << "seed " << seed << ": an RC value off, unflagged, beyond its reported sd";
         EXPECT_TRUE(est::segment_recording(to_recording(d.drive, "drive")).pulse_sets.empty())
             << "seed " << seed << ": the drive profile taken for pulse sets";
         all.push_back(e);

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <vector>
 
+#include "cellbench/estimator/current_glitches.hpp"
 #include "cellbench/estimator/stale_current.hpp"
 #include "printf_text.hpp"
 
@@ -80,7 +81,7 @@ std::string correct_voltage_spikes(Recording& rec) {
 
 std::vector<std::string> correct_logging_artifacts(Recording& rec) {
     std::vector<std::string> notes;
-    for (auto* correct : {&correct_stale_current_rows, &correct_voltage_spikes})
+    for (auto* correct : {&correct_stale_current_rows, &correct_current_glitches, &correct_voltage_spikes})
         if (auto note = correct(rec); !note.empty()) notes.push_back(std::move(note));
     return notes;
 }

@@ -22,8 +22,9 @@ std::vector<std::size_t> voltage_spike_rows(const Recording& rec);
 // warnings or a diagnosis' notes ("SOURCE: N rows ... the first at t = ..."); empty when there is none.
 std::string correct_voltage_spikes(Recording& rec);
 
-// The recording as the estimator reads it: stale step rows (stale_current.hpp) and voltage spikes corrected, one
-// note per kind found. fit, simulate and diagnose all read their recordings through this.
+// The recording as the estimator reads it: stale step rows (stale_current.hpp), current glitches
+// (current_glitches.hpp) and voltage spikes corrected, in that order, one note per kind found. fit, simulate and
+// diagnose all read their recordings through this.
 std::vector<std::string> correct_logging_artifacts(Recording& rec);
 
 }  // namespace cellbench::estimator

@@ -1194,12 +1194,13 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                          printf_text("%.2f", options.temperature_floor_c) + " degC, heat flux " +
                          printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         std::string contradicted;
+        int n_contradicted = 0;
         for (const auto& f : d.findings)
-            if (f.withdrawn) contradicted += (contradicted.empty() ? "" : ", ") + f.effect;
+            if (f.withdrawn) contradicted += (contradicted.empty() ? "" : ", ") + f.effect, ++n_contradicted;
         if (!contradicted.empty())
-            d.summary += "; " + contradicted + " would pass it on this recording, but another recording of the cell "
-                         "contradicts it (see the finding)";
-        d.summary += d.unexplained ? ", but the model is NOT adequate: " + d.unexplained->summary + "."
+            d.summary += "; " + contradicted + " would pass it on this recording, but another recording of the cell " +
+                         (n_contradicted == 1 ? "contradicts it (see the finding)" : "contradicts them (see the findings)");
+        d.summary += d.unexplained ? ". The model is NOT adequate: " + d.unexplained->summary + "."
                                    : " and the residual is at the noise level: the model is adequate for this recording.";
     } else {
         d.summary = "In order of evidence:";

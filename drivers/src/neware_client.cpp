@@ -206,8 +206,11 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
             p.command = Command::connect;
             p.bytes = encode_request(*options.login);
             p.deadline = Clock::now() + options.request_timeout;
-            p.done = [self = shared_from_this(), gen](const std::optional<Response>& r, const std::string& error) {
-                if (gen != self->generation) return;
+            // Completions wait in the queue, inside this Impl: they hold it weakly (a strong hold would keep an Impl
+            // whose io_context stopped before stop()'s clean-up ran alive for ever; LeakSanitizer, `make sanitize`).
+            p.done = [weak = weak_from_this(), gen](const std::optional<Response>& r, const std::string& error) {
+                const auto self = weak.lock();
+                if (!self || gen != self->generation) return;
                 const auto* resp = r ? std::get_if<ConnectResponse>(&*r) : nullptr;
                 if (resp && resp->ok) return self->link_up();
                 self->connection_lost("login refused: " + (resp ? resp->result : error));
@@ -503,9 +506,9 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
         r.startpos = next_seq[download_member];
         r.count = kMaxDownloadCount;
         enqueue(Command::download, encode_request(r),
-                [self = shared_from_this(), member = download_member, gen = generation](
+                [weak = weak_from_this(), member = download_member, gen = generation](
                     const std::optional<Response>& response, const std::string& error) {
-                    self->on_download(member, gen, response, error);
+                    if (const auto self = weak.lock()) self->on_download(member, gen, response, error);
                 });
     }
 
@@ -652,8 +655,10 @@ struct NewareClient::Impl : std::enable_shared_from_this<Impl> {
             bytes = encode_request(ChannelListRequest{command, options.members});
         }
         enqueue(command, std::move(bytes),
-                [self = shared_from_this(), command, done = std::move(done)](const std::optional<Response>& response,
-                                                                            const std::string& error) {
+                [weak = weak_from_this(), command, done = std::move(done)](const std::optional<Response>& response,
+                                                                           const std::string& error) {
+                    const auto self = weak.lock();
+                    if (!self) return;  // the client is gone: nobody waits for the answer
                     auto result = command_result(command, self->options.members, response, error);
                     if (result.ok && command == Command::start) {
                         self->group.reset();  // a new run

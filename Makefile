@@ -123,9 +123,10 @@ FUZZ_LONG_SECONDS ?= 600
 fuzz-long:
 	$(MAKE) fuzz FUZZ_SECONDS=$(FUZZ_LONG_SECONDS) FUZZ_OPT=-O1
 
-# The unit and HIL tests built with AddressSanitizer and UndefinedBehaviorSanitizer (gcc -O1, $(SAN_BUILD): a
-# full build of its own, about 45 minutes on 2 cores the first time). A leak, an out-of-bounds access, a use after
-# free or undefined behaviour (signed overflow, a misaligned or null access, a bad enum or bool) fails its test.
+# The unit and HIL tests built with AddressSanitizer and UndefinedBehaviorSanitizer (gcc -O1, $(SAN_BUILD): a full
+# build of its own, about an hour on 2 cores the first time with other work beside it). A leak, an out-of-bounds
+# access, a use after free or undefined behaviour (signed overflow, a misaligned or null access, a bad enum or
+# bool) fails its test.
 # Not part of `make test`; docs/testing.md, "Sanitizers". Eigen switches to its own aligned allocator when it sees
 # ASan, and Debian's libceres (built without) frees such a block with free(): a bad-free in every covariance.
 # EIGEN_MALLOC_ALREADY_ALIGNED=1 keeps the allocator libceres was built with (glibc's and ASan's malloc align to 16).

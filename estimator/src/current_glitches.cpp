@@ -4,6 +4,7 @@
 #include <cmath>
 #include <vector>
 
+#include "artefact_runs.hpp"
 #include "median.hpp"
 #include "printf_text.hpp"
 
@@ -29,12 +30,10 @@ bool is_glitch(const Recording& rec, std::size_t k, std::size_t length, double r
     for (std::size_t r = a; r <= b; ++r)
         if (!std::isfinite(v[r]) || !std::isfinite(i[r]) || !std::isfinite(rec.time_s[r])) return false;
     if (!same_current(i[b], i[a])) return false;
-    const double t0 = rec.time_s[a], t1 = rec.time_s[b];
     for (std::size_t r = k; r < b; ++r) {
         const double di = std::abs(i[r] - i[a]);
         if (!(di > std::max(kMinGlitchA, kMinGlitchShare * std::abs(i[a])))) return false;
-        const double w = t1 > t0 ? (rec.time_s[r] - t0) / (t1 - t0) : static_cast<double>(r - a) / static_cast<double>(b - a);
-        const double line_v = v[a] + w * (v[b] - v[a]);
+        const double line_v = v[a] + bracket_weight(rec.time_s, r, a, b) * (v[b] - v[a]);
         if (!(std::abs(v[r] - line_v) < kVoltageShare * r_ohm * di)) return false;
     }
     return true;
@@ -55,35 +54,17 @@ double apparent_step_resistance_ohm(const Recording& rec) {
 }
 
 std::vector<std::size_t> current_glitch_rows(const Recording& rec) {
-    std::vector<std::size_t> rows;
     const double r_ohm = apparent_step_resistance_ohm(rec);
-    if (!(r_ohm > 0)) return rows;
-    for (std::size_t k = 1; k + 1 < rec.size(); ++k)
-        for (std::size_t length = 1; length <= kMaxGlitchRows; ++length)
-            if (is_glitch(rec, k, length, r_ohm)) {
-                for (std::size_t r = k; r < k + length; ++r) rows.push_back(r);
-                k += length;  // the row after the run is its bracket, not the start of another
-                break;
-            }
-    return rows;
+    if (!(r_ohm > 0)) return {};
+    return artefact_run_rows(rec.size(), kMaxGlitchRows,
+                             [&](std::size_t k, std::size_t length) { return is_glitch(rec, k, length, r_ohm); });
 }
 
 std::string correct_current_glitches(Recording& rec) {
     const auto rows = current_glitch_rows(rec);
     if (rows.empty()) return {};
     const double first_a = rec.current_a[rows.front()];
-    for (std::size_t n = 0; n < rows.size();) {
-        std::size_t m = n + 1;
-        while (m < rows.size() && rows[m] == rows[m - 1] + 1) ++m;
-        const std::size_t a = rows[n] - 1, b = rows[m - 1] + 1;
-        const double t0 = rec.time_s[a], t1 = rec.time_s[b];
-        for (std::size_t q = n; q < m; ++q) {
-            const std::size_t k = rows[q];
-            const double w = t1 > t0 ? (rec.time_s[k] - t0) / (t1 - t0) : static_cast<double>(k - a) / static_cast<double>(b - a);
-            rec.current_a[k] = rec.current_a[a] + w * (rec.current_a[b] - rec.current_a[a]);
-        }
-        n = m;
-    }
+    bridge_artefact_runs(rec.time_s, rec.current_a, rows);
     const bool one = rows.size() == 1;
     return rec.source + ": " + std::to_string(rows.size()) +
            (one ? " row shows a current glitch (at t = " : " rows show a current glitch (the first at t = ") +

@@ -6,6 +6,7 @@
 
 #include "cellbench/estimator/current_glitches.hpp"
 #include "cellbench/estimator/stale_current.hpp"
+#include "artefact_runs.hpp"
 #include "printf_text.hpp"
 
 namespace cellbench::estimator {
@@ -41,15 +42,8 @@ bool is_spike(const Recording& rec, std::size_t k, std::size_t length) {
 }  // namespace
 
 std::vector<std::size_t> voltage_spike_rows(const Recording& rec) {
-    std::vector<std::size_t> rows;
-    for (std::size_t k = 1; k + 1 < rec.size(); ++k)
-        for (std::size_t length = 1; length <= kMaxSpikeRows; ++length)
-            if (is_spike(rec, k, length)) {
-                for (std::size_t r = k; r < k + length; ++r) rows.push_back(r);
-                k += length;  // the row after the run is its bracket, not the start of another
-                break;
-            }
-    return rows;
+    return artefact_run_rows(rec.size(), kMaxSpikeRows,
+                             [&](std::size_t k, std::size_t length) { return is_spike(rec, k, length); });
 }
 
 std::string correct_voltage_spikes(Recording& rec) {
@@ -58,18 +52,7 @@ std::string correct_voltage_spikes(Recording& rec) {
     const double first_v = rec.voltage_v[rows.front()];
     // Each run of spike rows takes the line between the rows either side (not spike rows: voltage_spike_rows
     // lists whole runs, at least one row apart).
-    for (std::size_t n = 0; n < rows.size();) {
-        std::size_t m = n + 1;
-        while (m < rows.size() && rows[m] == rows[m - 1] + 1) ++m;
-        const std::size_t a = rows[n] - 1, b = rows[m - 1] + 1;
-        const double t0 = rec.time_s[a], t1 = rec.time_s[b];
-        for (std::size_t q = n; q < m; ++q) {
-            const std::size_t k = rows[q];
-            const double w = t1 > t0 ? (rec.time_s[k] - t0) / (t1 - t0) : static_cast<double>(k - a) / static_cast<double>(b - a);
-            rec.voltage_v[k] = rec.voltage_v[a] + w * (rec.voltage_v[b] - rec.voltage_v[a]);
-        }
-        n = m;
-    }
+    bridge_artefact_runs(rec.time_s, rec.voltage_v, rows);
     const bool one = rows.size() == 1;
     return rec.source + ": " + std::to_string(rows.size()) +
            (one ? " row shows a voltage spike (at t = " : " rows show a voltage spike (the first at t = ") +

@@ -9,7 +9,6 @@
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/estimator/current_glitches.hpp"
-#include "cellbench/estimator/fit.hpp"
 #include "cellbench/estimator/voltage_spikes.hpp"
 #include "unit/hppc_synthetic.hpp"
 #include "unit/same_fit.hpp"
@@ -81,32 +80,14 @@ TEST(CurrentGlitches, CurrentsTheVoltageFollowsAndSmallOrLastingChangesAreLeftAl
 // fit says so and gives the clean recording's parameters. Read as they stand, one -18 A row in a rest of the P45B
 // HPPC moved its discharge R0 by up to 74 % (current_glitches.hpp).
 TEST(CurrentGlitches, TheFitOfAnHppcWithCurrentGlitchesMatchesTheCleanOne) {
-    cellbench::test::SyntheticOptions so;
-    so.dt_s = 1.0;
-    so.voltage_noise_v = 2e-4;
-    const Recording clean = cellbench::test::synthesize(cellbench::test::hppc_program(4), so);
+    const Recording clean = cellbench::test::synthetic_hppc_one_second();
     Recording glitched = clean;
-    std::vector<std::size_t> planted;
-    for (std::size_t k = 300; k + 1 < glitched.size(); k += 300) {
-        const bool holds = glitched.current_a[k - 1] == glitched.current_a[k] && glitched.current_a[k] == glitched.current_a[k + 1];
-        if (!holds) continue;
-        glitched.current_a[k] = glitched.current_a[k] == 0.0 ? -18.0 : 0.0;
-        planted.push_back(k);
-    }
+    const auto planted = cellbench::test::corrupt_every_300th_held_row(
+        glitched, [](Recording& r, std::size_t k) { r.current_a[k] = r.current_a[k] == 0.0 ? -18.0 : 0.0; });
     ASSERT_GE(planted.size(), 8u);
     ASSERT_EQ(est::current_glitch_rows(glitched), planted);
     EXPECT_TRUE(est::current_glitch_rows(clean).empty());
-
-    const auto options = cellbench::test::characterization_options();
-    const auto a = est::characterize({clean}, options);
-    const auto b = est::characterize({glitched}, options);
-    EXPECT_TRUE(cellbench::test::warns(b.warnings, "show a current glitch"));
-    ASSERT_TRUE(a.global && b.global);
-    EXPECT_EQ(b.pulse_fits.size(), a.pulse_fits.size());
-    cellbench::test::expect_discharge_column_near(a, b, &est::RcTable::r0_ohm, 1e-3);
-    cellbench::test::expect_discharge_column_near(a, b, &est::RcTable::r2_ohm, 1e-3);
-    for (std::size_t k = 0; k < a.params.ocv_v.size(); ++k)
-        EXPECT_NEAR(b.params.ocv_v[k], a.params.ocv_v[k], 1e-3) << "OCV row " << k;
+    cellbench::test::expect_fits_as_clean(clean, glitched, "show a current glitch");
 }
 
 }  // namespace

@@ -81,10 +81,7 @@ TEST(StaleCurrentRows, OrdinaryStepsNoiseAndTaperingAreLeftAlone) {
 // kept): the fit says so and gives the parameters of the clean recording. Read as they stand, the pulses start a
 // row late and no per-pulse-set fit is usable (each rest ends in a 34 mV ohmic drop).
 TEST(StaleCurrentRows, TheFitOfAnHppcWithStaleStepRowsMatchesTheCleanOne) {
-    cellbench::test::SyntheticOptions so;
-    so.dt_s = 1.0;
-    so.voltage_noise_v = 2e-4;
-    const Recording clean = cellbench::test::synthesize(cellbench::test::hppc_program(4), so);
+    const Recording clean = cellbench::test::synthetic_hppc_one_second();
     Recording stale = clean;
     const std::size_t corrupted = make_steps_from_rest_stale(stale);
     ASSERT_GE(corrupted, 8u);

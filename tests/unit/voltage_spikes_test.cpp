@@ -71,32 +71,14 @@ TEST(VoltageSpikes, CurrentStepsPulsesOfOneRowAndRealMovesAreLeftAlone) {
 // and gives the clean recording's parameters. Read as they stand, one such row moved the P45B tables by up to 7 %
 // in R0 and a factor 84 in C2 (docs/command-line.md).
 TEST(VoltageSpikes, TheFitOfAnHppcWithVoltageSpikesMatchesTheCleanOne) {
-    cellbench::test::SyntheticOptions so;
-    so.dt_s = 1.0;
-    so.voltage_noise_v = 2e-4;
-    const Recording clean = cellbench::test::synthesize(cellbench::test::hppc_program(4), so);
+    const Recording clean = cellbench::test::synthetic_hppc_one_second();
     Recording spiked = clean;
-    std::vector<std::size_t> planted;
-    for (std::size_t k = 300; k + 1 < spiked.size(); k += 300) {
-        const bool holds = spiked.current_a[k - 1] == spiked.current_a[k] && spiked.current_a[k] == spiked.current_a[k + 1];
-        if (!holds) continue;
-        spiked.voltage_v[k] = 0.5;
-        planted.push_back(k);
-    }
+    const auto planted =
+        cellbench::test::corrupt_every_300th_held_row(spiked, [](Recording& r, std::size_t k) { r.voltage_v[k] = 0.5; });
     ASSERT_GE(planted.size(), 8u);
     ASSERT_EQ(est::voltage_spike_rows(spiked), planted);
     EXPECT_TRUE(est::voltage_spike_rows(clean).empty());
-
-    const auto options = cellbench::test::characterization_options();
-    const auto a = est::characterize({clean}, options);
-    const auto b = est::characterize({spiked}, options);
-    EXPECT_TRUE(cellbench::test::warns(b.warnings, "show a voltage spike"));
-    ASSERT_TRUE(a.global && b.global);
-    EXPECT_EQ(b.pulse_fits.size(), a.pulse_fits.size());
-    cellbench::test::expect_discharge_column_near(a, b, &est::RcTable::r0_ohm, 1e-3);
-    cellbench::test::expect_discharge_column_near(a, b, &est::RcTable::r2_ohm, 1e-3);
-    for (std::size_t k = 0; k < a.params.ocv_v.size(); ++k)
-        EXPECT_NEAR(b.params.ocv_v[k], a.params.ocv_v[k], 1e-3) << "OCV row " << k;
+    cellbench::test::expect_fits_as_clean(clean, spiked, "show a voltage spike");
 }
 
 }  // namespace

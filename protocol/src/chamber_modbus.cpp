@@ -3,24 +3,17 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
-#include <cstdio>
 #include <limits>
 
 #include <nlohmann/json.hpp>
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/core/json_fields.hpp"
+#include "cellbench/protocol/bdf_csv.hpp"  // csv::format_number
 
 namespace cellbench::protocol {
 
 namespace {
-// A temperature as a person reads it in a message: 85 degC, -40.5 degC (not std::to_string's 85.000000).
-std::string celsius_text(double c) {
-    char b[32];
-    std::snprintf(b, sizeof b, "%g", c);
-    return b;
-}
-
 using nlohmann::json;
 
 constexpr std::size_t kMaxReadRegisters = 125;  // Modbus limit for functions 3 and 4
@@ -239,7 +232,7 @@ void ChamberRegisterMap::validate(const std::string& source) const {
     if (!(setpoint_min_c < setpoint_max_c)) fail(source, "$.setpoint_range_c", "expected min < max");
     for (const double limit : {setpoint_min_c, setpoint_max_c})
         if (!encode_register_value(setpoint, limit))
-            fail(source, "$.setpoint_range_c", "the set point register cannot represent " + celsius_text(limit) + " degC");
+            fail(source, "$.setpoint_range_c", "the set point register cannot represent " + csv::format_number(limit) + " degC");
     if (alarms) {
         for (std::size_t i = 0; i < alarms->bits.size(); ++i) {
             if (alarms->bits[i].second > 15) fail(source, "$.alarms.bits." + alarms->bits[i].first, "expected a bit 0..15");
@@ -362,7 +355,7 @@ ChamberWriteResult ChamberRegisterMap::apply_write(RegisterBlock& holding, std::
     if (touches_setpoint) {
         const auto sp = decode_register_value(setpoint, next.find(RegisterTable::holding, setpoint.address, sp_width));
         if (!sp || *sp < setpoint_min_c || *sp > setpoint_max_c)
-            return reject(3, "set point outside " + celsius_text(setpoint_min_c) + ".." + celsius_text(setpoint_max_c) + " degC");
+            return reject(3, "set point outside " + csv::format_number(setpoint_min_c) + ".." + csv::format_number(setpoint_max_c) + " degC");
         result.setpoint_c = sp;
     }
     if (touches_run) {

@@ -3,6 +3,7 @@
 #include <string>
 #include <vector>
 
+#include <spdlog/fmt/fmt.h>
 #include <spdlog/spdlog.h>
 
 #include "cellbench/estimator/diagnose.hpp"
@@ -31,18 +32,11 @@ int run_diagnose(const DiagnoseCliOptions& o) {
     progress.finish();
     for (const auto& note : d.notes) spdlog::warn("{}", note);
 
-    auto number = [](double x, const char* format) {
-        char b[48];
-        std::snprintf(b, sizeof b, format, x);
-        return std::string(b);
-    };
-    auto q = [&](const estimator::QuantityRms& r) {
-        char b[160];
-        std::snprintf(b, sizeof b, "voltage %s, temperature %s, heat flux %s",
-                      r.voltage_v ? number(*r.voltage_v * 1e3, "%.2f mV").c_str() : "-",
-                      r.temperature_c ? number(*r.temperature_c, "%.3f degC").c_str() : "-",
-                      r.heat_flux_w ? number(*r.heat_flux_w, "%.3f W").c_str() : "-");
-        return std::string(b);
+    auto q = [](const estimator::QuantityRms& r) {
+        return fmt::format("voltage {}, temperature {}, heat flux {}",
+                           r.voltage_v ? fmt::format("{:.2f} mV", *r.voltage_v * 1e3) : "-",
+                           r.temperature_c ? fmt::format("{:.3f} degC", *r.temperature_c) : "-",
+                           r.heat_flux_w ? fmt::format("{:.3f} W", *r.heat_flux_w) : "-");
     };
     std::printf("baseline RMS: %s\n", q(d.baseline).c_str());
     std::printf("where the voltage error concentrates:\n");

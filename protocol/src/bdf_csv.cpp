@@ -17,17 +17,60 @@ namespace csv {
 namespace {
 constexpr std::string_view kUtf8Bom = "\xEF\xBB\xBF";
 
-bool is_blank(char c) { return c == ' ' || c == '\t'; }
+// The separator of the header line (the text's first line that is not blank): ',' if it holds a comma outside
+// quotes, else ';' or a tab if it holds one (the more frequent of the two), else ','.
+char header_separator(std::string_view text) {
+    std::size_t commas = 0, semicolons = 0, tabs = 0;
+    bool quoted = false, seen = false;
+    for (const char c : text) {
+        if (c == '"') quoted = !quoted;
+        if (quoted) continue;
+        if (c == '\n' || c == '\r') {
+            if (seen) break;
+            continue;
+        }
+        if (c != ' ' && c != '\t') seen = true;
+        commas += c == ',';
+        semicolons += c == ';';
+        tabs += c == '\t';
+    }
+    if (commas > 0 || (semicolons == 0 && tabs == 0)) return ',';
+    return semicolons >= tabs ? ';' : '\t';
+}
 
-std::string_view trim(std::string_view s) {
-    while (!s.empty() && is_blank(s.front())) s.remove_prefix(1);
-    while (!s.empty() && is_blank(s.back())) s.remove_suffix(1);
-    return s;
+// Whether `cell` is a number or a duration written with one decimal comma: digits, at most one comma, and
+// otherwise only sign, exponent and time characters ("-3,5", "1,2e-3", "00:00:01,500").
+bool has_decimal_comma(std::string_view cell) {
+    std::size_t commas = 0, digits = 0;
+    for (const char c : cell) {
+        if (c == ',') {
+            ++commas;
+        } else if (c >= '0' && c <= '9') {
+            ++digits;
+        } else if (c != '+' && c != '-' && c != 'e' && c != 'E' && c != ':') {
+            return false;
+        }
+    }
+    return commas == 1 && digits > 0;
 }
 }  // namespace
 
 RecordReader::RecordReader(std::string_view text, std::string source) : text_(text), source_(std::move(source)) {
     if (text_.substr(0, kUtf8Bom.size()) == kUtf8Bom) text_.remove_prefix(kUtf8Bom.size());
+    separator_ = header_separator(text_);
+}
+
+std::string_view RecordReader::trim(std::string_view s) const {
+    while (!s.empty() && is_blank(s.front())) s.remove_prefix(1);
+    while (!s.empty() && is_blank(s.back())) s.remove_suffix(1);
+    return s;
+}
+
+std::string_view RecordReader::decimal_point(std::string_view cell) {
+    if (separator_ == ',' || cell.find(',') == std::string_view::npos || !has_decimal_comma(cell)) return cell;
+    std::string& owned = unescaped_.emplace_back(cell);
+    std::replace(owned.begin(), owned.end(), ',', '.');
+    return owned;
 }
 
 bool RecordReader::next(std::vector<std::string_view>& fields) {
@@ -72,15 +115,17 @@ bool RecordReader::next(std::vector<std::string_view>& fields) {
                     cell = owned;
                 }
                 while (pos_ < n && is_blank(data[pos_])) ++pos_;
-                if (pos_ < n && data[pos_] != ',' && data[pos_] != '\n' && data[pos_] != '\r')
-                    fail("unexpected text after a closing quote (expected ',' or the end of the line)");
-                fields.push_back(cell);
+                if (pos_ < n && data[pos_] != separator_ && data[pos_] != '\n' && data[pos_] != '\r')
+                    fail("unexpected text after a closing quote (expected " +
+                         (separator_ == '\t' ? std::string("a tab") : "'" + std::string(1, separator_) + "'") +
+                         " or the end of the line)");
+                fields.push_back(decimal_point(cell));
             } else {
                 const std::size_t begin = pos_;
-                while (pos_ < n && data[pos_] != ',' && data[pos_] != '\n' && data[pos_] != '\r') ++pos_;
-                fields.push_back(trim(text_.substr(begin, pos_ - begin)));
+                while (pos_ < n && data[pos_] != separator_ && data[pos_] != '\n' && data[pos_] != '\r') ++pos_;
+                fields.push_back(decimal_point(trim(text_.substr(begin, pos_ - begin))));
             }
-            if (pos_ < n && data[pos_] == ',') {
+            if (pos_ < n && data[pos_] == separator_) {
                 ++pos_;
                 continue;
             }
@@ -434,7 +479,14 @@ std::size_t place_rows_after_time_jumps_by_unix_time(Recording& rec, const csv::
             throw InputError(guard.error(step, source) + " (the Unix time beside it does not run on there, so it cannot "
                                                          "place the rows after it either)");
         const double shift = rec.time_s[k - 1] + (rec.unix_time_s[k] - rec.unix_time_s[k - 1]) - rec.time_s[k];
-        for (std::size_t j = k; j < rec.size(); ++j) rec.time_s[j] += shift;
+        for (std::size_t j = k; j < rec.size(); ++j) {
+            rec.time_s[j] += shift;
+            // A Unix time that leaps by centuries would place the rows where no test time can be (and where this
+            // reader, given the file it writes, would refuse them).
+            if (!csv::kTestTimeRangeS.contains(rec.time_s[j]))
+                throw InputError(guard.error(step, source) + " (placed by the Unix time beside it, its rows would " +
+                                 "reach a test time of " + csv::format_number(rec.time_s[j]) + " s: no test runs so long)");
+        }
     }
     return steps.size();
 }
@@ -591,6 +643,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     }
     rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, kBdfTestTime);
     if (report != nullptr) {
+        report->separator = reader.separator();
         report->rows = rec.size();
         report->repaired_timestamps = rec.repaired_timestamps;
         report->ignored_columns = std::move(ignored);
@@ -615,6 +668,9 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
 
 std::vector<BdfReadMessage> describe(const BdfReadReport& report, const std::string& source) {
     std::vector<BdfReadMessage> out;
+    if (report.separator != ',')
+        out.push_back({false, source + ": " + (report.separator == ';' ? "semicolon" : "tab") +
+                                  "-separated (a decimal-comma locale's export): read so, numbers with a decimal comma as well"});
     if (report.time_read_as_ms)
         out.push_back({true, source + ": the test time runs 1000 times as fast as the Unix time beside it: read as "
                                       "milliseconds (label it \"Test Time / ms\" to say so)"});

@@ -169,6 +169,7 @@ DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& s
     out.gap_s = gap.gap_s;
     out.gap_line = gap.line;
     out.typical_interval_s = gap.typical_interval_s;
+    out.separator = reader.separator();
     return out;
 }
 

@@ -203,7 +203,7 @@ Recording parse_neware_export(std::string_view text, const std::string& source, 
                     csv::quote_cells(fields) + ")");
     }
     const bool wall_clock = layout == NewareExportLayout::newarenda || layout == NewareExportLayout::btsda_wall_clock;
-    if (info) *info = NewareExportInfo{layout, time_col->name};
+    if (info) *info = NewareExportInfo{layout, time_col->name, reader.separator()};
     if (!col(Role::current).present())
         reader.fail("missing required column \"Current(A)\" (the header has " + csv::quote_cells(fields) + ")");
     if (!col(Role::voltage).present())

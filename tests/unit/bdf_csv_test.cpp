@@ -345,6 +345,13 @@ TEST(BdfCsv, ATestTimeThatStepsBackIsPlacedByTheUnixTimeBesideIt) {
               "rw.csv:4: column \"Test Time / s\": time steps back by 5 s (from 10 s to 5 s); only steps back of less "
               "than 1 s are repaired (the Unix time beside it does not run on there, so it cannot place the rows after "
               "it either)");
+    // A Unix time that leaps by centuries (a corrupt stamp; found by the fuzzer, session 42) would place the rows at
+    // a test time beyond any test: an error, where it used to give a recording this reader refused to read back.
+    EXPECT_EQ(error_of("test_time_second,voltage_volt,current_ampere,unix_time_second\n0,3.7,0,1729695087\n"
+                       "12,3.7,0,1729695099\n1,3.75,0,29617591110\n"),
+              "rw.csv:4: column \"Test Time / s\": time steps back by 11 s (from 12 s to 1 s); only steps back of less "
+              "than 1 s are repaired (placed by the Unix time beside it, its rows would reach a test time of 27887896023 "
+              "s: no test runs so long)");
 }
 
 TEST(BdfCsv, TimeThatNeverAdvancesIsAnErrorButOneRowIsFine) {
@@ -503,4 +510,77 @@ TEST(BdfCsv, NumbersReadBitForBitAsFromChars) {
     double v = 0.0;
     for (const char* bad : {".", "-", "1.2.3", "1,5", "--1", "1-", "0x10", "1e"})
         EXPECT_NE(cellbench::protocol::csv::parse_double(bad, v), cellbench::protocol::csv::NumberStatus::ok) << bad;
+}
+
+// A spreadsheet or a DAQ program in a locale whose decimal mark is the comma writes ';' between cells (or a tab) and
+// "3,7125" for a number. Such a file reads as the comma-separated one with the same numbers, and the report says so,
+// where it used to be refused for a unit of "Test Time / s;Voltage / V;..." it did not know.
+namespace {
+const std::string kCommaBdf =
+    "Test Time / s,Voltage / V,Current / A,Step Type,Surface Temperature / degC\n"
+    "0,4.0964,0,Rest,29.45\n"
+    "0.1,4.0512,-4.5,CC DChg,29.46\n"
+    "0.2,4.0498,-4.5,CC DChg,\n"
+    "1.5e1,4.1,1.25e-3,\"CC, Chg\",29.5\n";
+
+void expect_same_recording(const Recording& a, const Recording& b) {
+    EXPECT_EQ(a.time_s, b.time_s);
+    EXPECT_EQ(a.voltage_v, b.voltage_v);
+    EXPECT_EQ(a.current_a, b.current_a);
+    EXPECT_EQ(a.step_type, b.step_type);
+    ASSERT_EQ(a.surface_c.size(), b.surface_c.size());
+    for (std::size_t k = 0; k < a.surface_c.size(); ++k)
+        EXPECT_TRUE(same_bits(a.surface_c[k], b.surface_c[k]) || (std::isnan(a.surface_c[k]) && std::isnan(b.surface_c[k])))
+            << "row " << k;
+}
+}  // namespace
+
+TEST(BdfCsvDialect, SemicolonsAndDecimalCommasReadAsTheCommaFile) {
+    const std::string euro =
+        "Test Time / s;Voltage / V;Current / A;Step Type;Surface Temperature / degC\r\n"
+        "0;4,0964;0;Rest;29,45\r\n"
+        "0,1;4,0512;-4,5;CC DChg;29,46\r\n"
+        "0,2 ; 4,0498 ;-4,5;CC DChg;\r\n"
+        "1,5e1;4,1;1,25e-3;\"CC, Chg\";29,5\r\n";
+    BdfReadReport comma_report, report;
+    const Recording comma = parse_bdf_csv(kCommaBdf, "x.csv", &comma_report);
+    const Recording rec = parse_bdf_csv(euro, "x.csv", &report);
+    expect_same_recording(rec, comma);
+    // Text keeps its commas: only a cell of digits with one comma is a number.
+    EXPECT_EQ(rec.step_type.back(), "CC, Chg");
+    EXPECT_EQ(comma_report.separator, ',');
+    EXPECT_EQ(report.separator, ';');
+    const auto messages = cellbench::protocol::describe(report, "x.csv");
+    ASSERT_FALSE(messages.empty());
+    EXPECT_NE(messages.front().text.find("semicolon-separated"), std::string::npos) << messages.front().text;
+    EXPECT_FALSE(messages.front().warning);
+    EXPECT_TRUE(cellbench::protocol::describe(comma_report, "x.csv").empty());
+}
+
+TEST(BdfCsvDialect, TabsSeparateCellsAndAreNotTrimmedAway) {
+    std::string tabbed = kCommaBdf;
+    // Every separator a tab; the quoted cell's comma stays text.
+    for (std::size_t k = 0; k < tabbed.size(); ++k)
+        if (tabbed[k] == ',' && !(k > 0 && tabbed[k - 1] == 'C' && k + 1 < tabbed.size() && tabbed[k + 1] == ' '))
+            tabbed[k] = '\t';
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv(tabbed, "x.tsv", &report);
+    expect_same_recording(rec, parse_bdf_csv(kCommaBdf, "x.csv"));
+    EXPECT_EQ(report.separator, '\t');
+    // An empty cell between two tabs is a cell, not trimmed whitespace: the temperature of row 3 is missing.
+    EXPECT_TRUE(std::isnan(rec.surface_c.at(2)));
+}
+
+TEST(BdfCsvDialect, TheHeaderDecidesAndACommaFileKeepsItsRules) {
+    // A comma in the header makes it a comma file: a ';' in a data cell is text there (an error for a number).
+    const std::string mixed = "Test Time / s,Voltage / V,Current / A\n0;1,4.0,0\n";
+    EXPECT_NE(error_of(mixed).find("Test Time / s"), std::string::npos) << error_of(mixed);
+    // In a semicolon file a number with two commas, or a comma and a point, is no number: an error naming the cell.
+    const std::string two_commas = "Test Time / s;Voltage / V;Current / A\n0;4,0,1;0\n";
+    EXPECT_NE(error_of(two_commas).find("4,0,1"), std::string::npos) << error_of(two_commas);
+    const std::string thousands = "Test Time / s;Voltage / V;Current / A\n1.000,5;4,0;0\n";
+    EXPECT_NE(error_of(thousands).find("1.000,5"), std::string::npos) << error_of(thousands);
+    // Text after a closing quote names the separator the file uses.
+    const std::string after_quote = "Test Time / s;Voltage / V;Current / A\n\"0\"x;4,0;0\n";
+    EXPECT_NE(error_of(after_quote).find("expected ';'"), std::string::npos) << error_of(after_quote);
 }

@@ -255,3 +255,24 @@ TEST(NewareExport, ImpossibleValuesNameTheRow) {
               std::string::npos);
     EXPECT_NE(error_of("DataPoint,Current(A),Voltage(V)\n1,0,4.1\n").find("no time column"), std::string::npos);
 }
+
+// BTSDA in a decimal-comma locale (or the export opened and saved by a spreadsheet there): ';' between cells,
+// "4,0964" and durations "00:00:01,500". Read as the comma export with the same values, and the info says so.
+TEST(NewareExportDialect, SemicolonsAndDecimalCommasReadAsTheCommaExport) {
+    const std::string comma = std::string(kRwHeader) +
+                              "1,Rest,00:00:00.000,00:00:00,0.0,4.0964,0.0,0.0,2025-05-23 09:35:38,0.0,0.0\r\n"
+                              "2,CC DChg,00:00:01.500,00:00:01,-4.5001,4.05,-0.0019,0.0,2025-05-23 09:35:39,-18.2,1.5\r\n";
+    std::string euro = comma;
+    for (char& c : euro) c = c == ',' ? ';' : c == '.' ? ',' : c;
+    cellbench::protocol::NewareExportInfo info_comma, info_euro;
+    const Recording a = parse_neware_export(comma, "rw_neware.csv", &info_comma);
+    const Recording b = parse_neware_export(euro, "rw_neware.csv", &info_euro);
+    EXPECT_EQ(b.time_s, a.time_s);
+    EXPECT_EQ(b.time_s, (std::vector<double>{0.0, 1.5}));
+    EXPECT_EQ(b.voltage_v, a.voltage_v);
+    EXPECT_EQ(b.current_a, a.current_a);
+    EXPECT_EQ(b.step_type, a.step_type);
+    EXPECT_EQ(b.unix_time_s, a.unix_time_s);
+    EXPECT_EQ(info_comma.separator, ',');
+    EXPECT_EQ(info_euro.separator, ';');
+}

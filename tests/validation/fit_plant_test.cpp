@@ -165,8 +165,11 @@ Errors compare(const est::Characterization& c, const plant::Dataset& d, const Re
     for (const double sp : pulse_start_socs(d)) {
         if (sp < soc_range.first - 0.005 || sp > soc_range.second + 0.005) continue;
         const double s = 1.0 - (s_full - sp) * t.capacity_ah / p.capacity_ah;
-        e.r0_at_levels = std::max(e.r0_at_levels, std::abs(p.rc_at(s, -1).r0_ohm /
-                                                           d.cell.r0_ohm(sp, plant::Direction::discharge) - 1.0));
+        const double level_error = p.rc_at(s, -1).r0_ohm / d.cell.r0_ohm(sp, plant::Direction::discharge) - 1.0;
+        if (verbose)
+            std::printf("   discharge pulse at soc %.3f (fit %.3f): R0 %+6.2f %% (sd %.2f %%)\n", sp, s, 100 * level_error,
+                        100 * reported_sd(c, s, 0) / p.rc_at(s, -1).r0_ohm);
+        e.r0_at_levels = std::max(e.r0_at_levels, std::abs(level_error));
     }
     e.capacity = std::abs(p.capacity_ah / measured_capacity_ah - 1.0);
     e.capacity_vs_cell = std::abs(p.capacity_ah / t.capacity_ah - 1.0);
@@ -184,6 +187,8 @@ Errors compare(const est::Characterization& c, const plant::Dataset& d, const Re
 est::Characterization characterize_plant(const plant::Dataset& d) {
     std::vector<Recording> recs = {to_recording(d.hppc, "hppc"), to_recording(d.cc_low, "cc_low"),
                                    to_recording(d.cc_high, "cc_high")};
+    // diagnostics: the characterization without the fast (heating) discharge
+    if (std::getenv("CELLBENCH_VALIDATION_NO_CC_HIGH")) recs.pop_back();
     est::CharacterizationOptions co;
     co.area_m2 = d.truth.area_m2;
     co.fallback_capacity_ah = d.truth.nominal_capacity_ah;  // what a user gives (nominal)

@@ -133,6 +133,13 @@ void check_cycler_export(const std::string& text, const Recording& rec, const st
     check(rec.current_a, protocol::csv::kCurrentRangeA, "current", "A");
 }
 
+// An export whose cells are separated by ';' or a tab (a decimal-comma locale) is read as its program meant it.
+void log_separator(const std::string& path, char separator) {
+    if (separator != ',')
+        spdlog::info("{}: {}-separated (a decimal-comma locale's export): read so, numbers with a decimal comma as well",
+                     path, separator == ';' ? "semicolon" : "tab");
+}
+
 }  // namespace
 
 int run_import(const ImportOptions& o) {
@@ -145,6 +152,7 @@ int run_import(const ImportOptions& o) {
         const std::string text = read_file(o.neware);
         rec = protocol::parse_neware_export(text, o.neware, &layout);
         spdlog::info("{}: {} (column \"{}\")", o.neware, protocol::to_string(layout.layout), layout.time_column);
+        log_separator(o.neware, layout.separator);
         check_cycler_export(text, rec, o.neware);
     }
     if (rec.repaired_timestamps > 0)
@@ -169,6 +177,7 @@ int run_import(const ImportOptions& o) {
     }
     if (!o.dewesoft.empty()) {
         const auto daq = protocol::parse_dewesoft_export(read_file(o.dewesoft), o.dewesoft);
+        log_separator(o.dewesoft, daq.separator);
         if (daq.repaired_timestamps > 0)
             spdlog::warn("{}: repaired {} repeated or slightly backward timestamps", o.dewesoft, daq.repaired_timestamps);
         if (daq.dropped_values > 0)

@@ -53,6 +53,8 @@ struct BdfReadReport {
     // X s to Y s".
     std::size_t time_jumps_placed_by_unix_time = 0;
     std::string first_time_jump;
+    // The cells are separated by ';' or a tab, not ',' (csv::RecordReader: numbers with a decimal comma read too).
+    char separator = ',';
 };
 
 // Parses a BDF CSV. Columns in any order; unknown columns are ignored (listed in the report). A column is known by
@@ -99,9 +101,16 @@ namespace csv {
 // Reads CSV records one at a time from a text held by the caller: comma separated; LF, CRLF or lone CR
 // line ends; a leading UTF-8 BOM is skipped; spaces and tabs around cells are trimmed; cells may be quoted
 // ("" is a literal quote, quoted cells may span lines); lines holding nothing but whitespace are skipped.
+// A header line with no comma outside quotes but a semicolon or a tab (what a spreadsheet or a DAQ program
+// writes in a locale whose decimal mark is the comma) makes that character the separator, and then a
+// numeric cell with one decimal comma ("3,7125", "-1,5e-3", a duration "00:00:01,500") reads as with a
+// point: the file is read as its program meant it, not refused for its locale.
 class RecordReader {
 public:
     RecordReader(std::string_view text, std::string source);
+
+    // The cell separator found in the header line: ',' (also for a one-column file), ';' or '\t'.
+    [[nodiscard]] char separator() const { return separator_; }
 
     // Reads the next record into `fields`. Returns false at the end of the text. The views point into the
     // text (or into the reader for cells with "" escapes) and stay valid until the next call.
@@ -118,7 +127,7 @@ public:
     // Throws InputError "SOURCE:LINE: column "NAME": what" for the current record.
     [[noreturn]] void fail_column(std::string_view column, std::string_view what) const;
     // Checks a data record against the header width: fewer cells is an error, extra cells must be empty
-    // (a trailing comma).
+    // (a trailing separator).
     void check_width(const std::vector<std::string_view>& fields, std::size_t header_width) const;
 
 private:
@@ -127,7 +136,13 @@ private:
     std::size_t line_ = 0;       // line of the current record
     std::size_t next_line_ = 1;  // line at pos_
     std::string source_;
-    std::deque<std::string> unescaped_;  // owned copies of cells that contained ""
+    std::deque<std::string> unescaped_;  // owned copies of cells that contained "" or a decimal comma
+    char separator_ = ',';
+
+    bool is_blank(char c) const { return c == ' ' || (c == '\t' && separator_ != '\t'); }
+    std::string_view trim(std::string_view s) const;
+    // With a separator other than ',': a numeric cell with one decimal comma, as a copy with a point.
+    std::string_view decimal_point(std::string_view cell);
 };
 
 enum class NumberStatus { ok, empty, invalid, out_of_range };

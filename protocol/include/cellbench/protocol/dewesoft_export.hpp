@@ -37,6 +37,7 @@ struct DewesoftExport {
     double gap_s = 0.0;
     std::size_t gap_line = 0;
     double typical_interval_s = 0.0;
+    char separator = ',';  // ';' or a tab: an export in a decimal-comma locale (csv::RecordReader)
 };
 
 DewesoftExport parse_dewesoft_export(std::string_view text, const std::string& source);

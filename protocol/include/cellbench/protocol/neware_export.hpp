@@ -39,6 +39,7 @@ std::string_view to_string(NewareExportLayout layout);  // for the log line of `
 struct NewareExportInfo {
     NewareExportLayout layout = NewareExportLayout::btsda_test_time;
     std::string time_column;  // as in the header
+    char separator = ',';     // ';' or a tab: a spreadsheet's export (csv::RecordReader)
 };
 
 // Every row's voltage and current must be finite and physically possible (|V| <= 10 V, |I| <= 10 kA):

@@ -293,6 +293,10 @@ TEST(NewareSim, ParallelGroupIsOneSixtyAmpChannel) {
     std::size_t during = 0;
     for (const auto& s : bench.samples()) {
         if (s.group.status != ChannelStatus::working || s.group.step_type != "dc") continue;
+        // A poll between the start command and the tester's first tick of the step (step time 0) finds the step
+        // entered but no current yet, as a real tester's first record of a step can: on a starved host (the
+        // sanitizer build beside other work, session 42) one did. The step's current is asserted once it runs.
+        if (s.group.relative_time_s <= 0.0) continue;
         ++during;
         EXPECT_NEAR(s.group.current_a, -60.0, 0.1);  // one logical 60 A channel
         ASSERT_EQ(s.members.size(), 3u);

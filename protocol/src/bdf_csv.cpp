@@ -60,6 +60,12 @@ RecordReader::RecordReader(std::string_view text, std::string source) : text_(te
     separator_ = header_separator(text_);
 }
 
+std::string separator_note(std::string_view source, char separator) {
+    if (separator == ',') return {};
+    return std::string(source) + ": " + (separator == ';' ? "semicolon" : "tab") +
+           "-separated (a decimal-comma locale's export): read so, numbers with a decimal comma as well";
+}
+
 std::string_view RecordReader::trim(std::string_view s) const {
     while (!s.empty() && is_blank(s.front())) s.remove_prefix(1);
     while (!s.empty() && is_blank(s.back())) s.remove_suffix(1);
@@ -668,9 +674,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
 
 std::vector<BdfReadMessage> describe(const BdfReadReport& report, const std::string& source) {
     std::vector<BdfReadMessage> out;
-    if (report.separator != ',')
-        out.push_back({false, source + ": " + (report.separator == ';' ? "semicolon" : "tab") +
-                                  "-separated (a decimal-comma locale's export): read so, numbers with a decimal comma as well"});
+    if (report.separator != ',') out.push_back({false, csv::separator_note(source, report.separator)});
     if (report.time_read_as_ms)
         out.push_back({true, source + ": the test time runs 1000 times as fast as the Unix time beside it: read as "
                                       "milliseconds (label it \"Test Time / ms\" to say so)"});

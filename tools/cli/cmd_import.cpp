@@ -135,9 +135,7 @@ void check_cycler_export(const std::string& text, const Recording& rec, const st
 
 // An export whose cells are separated by ';' or a tab (a decimal-comma locale) is read as its program meant it.
 void log_separator(const std::string& path, char separator) {
-    if (separator != ',')
-        spdlog::info("{}: {}-separated (a decimal-comma locale's export): read so, numbers with a decimal comma as well",
-                     path, separator == ';' ? "semicolon" : "tab");
+    if (separator != ',') spdlog::info("{}", protocol::csv::separator_note(path, separator));
 }
 
 }  // namespace

@@ -145,6 +145,10 @@ private:
     std::string_view decimal_point(std::string_view cell);
 };
 
+// The note a reader's user gets for a file read with another separator than ',' ("SOURCE: semicolon-separated
+// ..."), empty for ','.
+std::string separator_note(std::string_view source, char separator);
+
 enum class NumberStatus { ok, empty, invalid, out_of_range };
 
 // Parses a whole cell as a decimal floating-point number (std::from_chars, plus an optional leading '+').

@@ -10,6 +10,7 @@
 #include <ostream>
 #include <stdexcept>
 #include <system_error>
+#include <utility>
 
 namespace cellbench::protocol {
 namespace csv {
@@ -522,14 +523,21 @@ std::vector<double> step_count_from_index(const std::vector<double>& index) {
 // (a published HPPC keeps milliseconds under "test_time_second"): its pulses would read 1000 times too long.
 // Exactly 1000 times as fast (within 1 %) is read as milliseconds, and says so (returns 1000); any other rate
 // ahead of the wall clock is an error. A test time may pause while the wall clock runs on (returns 1).
-double check_time_against_unix_time(const Recording& rec, const std::string& source) {
-    if (rec.unix_time_s.size() != rec.time_s.size() || rec.time_s.size() < 2) return 1.0;
+// Test time against Unix time between the first and the last row with a Unix time: {test s, wall s}, or NaNs
+// when there is no Unix time column or less than 60 s of it (too short to tell a pace).
+std::pair<double, double> test_and_wall_spans_s(const Recording& rec) {
+    if (rec.unix_time_s.size() != rec.time_s.size() || rec.time_s.size() < 2) return {kNaN, kNaN};
     std::size_t first = 0, last = rec.time_s.size() - 1;
     while (first < last && !std::isfinite(rec.unix_time_s[first])) ++first;
     while (last > first && !std::isfinite(rec.unix_time_s[last])) --last;
     const double wall_s = rec.unix_time_s[last] - rec.unix_time_s[first];
-    const double test_s = rec.time_s[last] - rec.time_s[first];
-    if (!(wall_s >= 60.0) || !(test_s > 1.5 * wall_s)) return 1.0;
+    if (!(wall_s >= 60.0)) return {kNaN, kNaN};
+    return {rec.time_s[last] - rec.time_s[first], wall_s};
+}
+
+double check_time_against_unix_time(const Recording& rec, const std::string& source) {
+    const auto [test_s, wall_s] = test_and_wall_spans_s(rec);
+    if (!(test_s > 1.5 * wall_s)) return 1.0;
     const double ratio = test_s / wall_s;
     if (std::abs(ratio / 1000.0 - 1.0) <= 0.01) return 1000.0;
     throw InputError(source + ": " + std::string(kBdfTestTime) + " advances " + csv::format_number(std::round(ratio)) +
@@ -648,6 +656,18 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
         guard.rescale(time_divisor);
     }
     rec.repaired_timestamps = csv::repair_timestamps(rec.time_s, source, kBdfTestTime);
+    // Repeated stamps at the end continue at the recording's typical interval. Where that interval is no pace of
+    // the logger (a file of a few rows around a gap), the repaired test time could run ahead of the Unix time
+    // beside it: a recording this reader, given the file it writes from it, would refuse (found by the fuzzer).
+    if (rec.repaired_timestamps > 0) {
+        const auto [test_s, wall_s] = test_and_wall_spans_s(rec);
+        if (test_s > 1.5 * wall_s)
+            throw InputError(source + ": column \"" + std::string(kBdfTestTime) + "\": " +
+                             std::to_string(rec.repaired_timestamps) +
+                             " repeated or backward stamps cannot be repaired in step with the Unix time beside them "
+                             "(spread at the recording's typical interval, the test time would advance " +
+                             csv::format_number(std::round(test_s / wall_s)) + " times as fast): check the time columns");
+    }
     if (report != nullptr) {
         report->separator = reader.separator();
         report->rows = rec.size();

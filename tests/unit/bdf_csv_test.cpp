@@ -354,6 +354,24 @@ TEST(BdfCsv, ATestTimeThatStepsBackIsPlacedByTheUnixTimeBesideIt) {
               "s: no test runs so long)");
 }
 
+// Found by the fuzzer (session 42): after a test time placed by the Unix time across a 100 000 s gap, the last
+// rows repeat their stamp. Spread at the recording's only interval (the gap), they ran the test time 3 times as
+// fast as the Unix time: a recording this reader refused to read back from the file it wrote. Now an error.
+TEST(BdfCsv, RepairedStampsThatWouldRunAheadOfTheUnixTimeAreAnError) {
+    EXPECT_EQ(error_of("Test Time / s,Voltage / V,Current / A,Unix Time / s\n5,4.0,0,1747893000\n"
+                       "0.1,4.0,0,1747993000.1\n0.1,3.95,-4.5,1747993000.2\n0.035,3.94,-4.5,1747993000.3\n"),
+              "rw.csv: column \"Test Time / s\": 2 repeated or backward stamps cannot be repaired in step with the Unix "
+              "time beside them (spread at the recording's typical interval, the test time would advance 3 times as "
+              "fast): check the time columns");
+    // The same stamps at a logger's pace repair as before.
+    BdfReadReport report;
+    const Recording rec = parse_bdf_csv("Test Time / s,Voltage / V,Current / A,Unix Time / s\n0,4.0,0,1000\n"
+                                        "60,4.0,0,1060\n120,4.0,0,1120\n120,4.0,0,1180\n",
+                                        "x.csv", &report);
+    EXPECT_EQ(rec.time_s, (std::vector<double>{0, 60, 120, 180}));
+    EXPECT_EQ(report.repaired_timestamps, 1u);
+}
+
 TEST(BdfCsv, TimeThatNeverAdvancesIsAnErrorButOneRowIsFine) {
     EXPECT_EQ(error_of(bdf_with_times({"7", "7", "7"})),
               "rw.csv: column \"Test Time / s\": time never advances (all 3 rows at 7 s)");

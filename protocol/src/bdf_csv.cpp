@@ -74,7 +74,7 @@ std::string_view RecordReader::trim(std::string_view s) const {
 }
 
 std::string_view RecordReader::decimal_point(std::string_view cell) {
-    if (separator_ == ',' || cell.find(',') == std::string_view::npos || !has_decimal_comma(cell)) return cell;
+    if (separator_ == ',' || !has_decimal_comma(cell)) return cell;
     std::string& owned = unescaped_.emplace_back(cell);
     std::replace(owned.begin(), owned.end(), ',', '.');
     return owned;
@@ -519,10 +519,9 @@ std::vector<double> step_count_from_index(const std::vector<double>& index) {
     return count;
 }
 
-// A time column that advances faster than the wall clock beside it is in another unit than its label says
-// (a published HPPC keeps milliseconds under "test_time_second"): its pulses would read 1000 times too long.
-// Exactly 1000 times as fast (within 1 %) is read as milliseconds, and says so (returns 1000); any other rate
-// ahead of the wall clock is an error. A test time may pause while the wall clock runs on (returns 1).
+// The pace beyond which a test time runs ahead of the Unix time beside it (over the whole recording).
+constexpr double kAheadOfWallClock = 1.5;
+
 // Test time against Unix time between the first and the last row with a Unix time: {test s, wall s}, or NaNs
 // when there is no Unix time column or less than 60 s of it (too short to tell a pace).
 std::pair<double, double> test_and_wall_spans_s(const Recording& rec) {
@@ -535,9 +534,13 @@ std::pair<double, double> test_and_wall_spans_s(const Recording& rec) {
     return {rec.time_s[last] - rec.time_s[first], wall_s};
 }
 
+// A time column that advances faster than the wall clock beside it is in another unit than its label says
+// (a published HPPC keeps milliseconds under "test_time_second"): its pulses would read 1000 times too long.
+// Exactly 1000 times as fast (within 1 %) is read as milliseconds, and says so (returns 1000); any other rate
+// ahead of the wall clock is an error. A test time may pause while the wall clock runs on (returns 1).
 double check_time_against_unix_time(const Recording& rec, const std::string& source) {
     const auto [test_s, wall_s] = test_and_wall_spans_s(rec);
-    if (!(test_s > 1.5 * wall_s)) return 1.0;
+    if (!(test_s > kAheadOfWallClock * wall_s)) return 1.0;
     const double ratio = test_s / wall_s;
     if (std::abs(ratio / 1000.0 - 1.0) <= 0.01) return 1000.0;
     throw InputError(source + ": " + std::string(kBdfTestTime) + " advances " + csv::format_number(std::round(ratio)) +
@@ -661,7 +664,7 @@ Recording parse_bdf_csv(std::string_view text, const std::string& source, BdfRea
     // beside it: a recording this reader, given the file it writes from it, would refuse (found by the fuzzer).
     if (rec.repaired_timestamps > 0) {
         const auto [test_s, wall_s] = test_and_wall_spans_s(rec);
-        if (test_s > 1.5 * wall_s)
+        if (test_s > kAheadOfWallClock * wall_s)
             throw InputError(source + ": column \"" + std::string(kBdfTestTime) + "\": " +
                              std::to_string(rec.repaired_timestamps) +
                              " repeated or backward stamps cannot be repaired in step with the Unix time beside them "

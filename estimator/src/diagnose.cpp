@@ -845,6 +845,15 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
     Diagnosis d;
     for (const Recording* r : options.confirm) d.confirm_recordings.push_back(r->source);
     d.baseline = rms_of(params, rec_full, &d.baseline_trace);
+    // A model that does not follow the recording at all (its simulation overflows) is no baseline: every error
+    // would read as explained, and the summary as adequate.
+    for (const auto& [name, rms] : {std::pair<const char*, const std::optional<double>&>{"voltage", d.baseline.voltage_v},
+                                    {"temperature", d.baseline.temperature_c},
+                                    {"heat flux", d.baseline.heat_flux_w}})
+        if (rms && !std::isfinite(*rms))
+            throw InputError(rec_full.source + ": the model's " + name +
+                             " is not a finite number on this recording (the simulation diverges): the parameter set "
+                             "holds values no cell has, or the recording values the model cannot follow");
     d.breakdown = locate_errors(params, rec_full, d.baseline_trace);
     {
         std::vector<ConditionError> combined;

@@ -121,30 +121,53 @@ ModelExtensions ModelExtensions::from_json(const json& j, const std::string& sou
             if (!(x > 0)) fail(source, path + "." + name, "expected a positive number");
             return x;
         };
+        // The same for values no cell or bench has by orders of magnitude (ParameterSet::validate's rule).
+        auto at_most = [&](const char* name, double x, double limit, const char* expected) {
+            if (!(std::abs(x) <= limit)) fail(source, path + "." + name, expected);
+            return x;
+        };
         if (key == "entropic_heat") {
-            e.entropic_heat = EntropicHeatExt{num("ehc_v_per_k"), num("ehc_slope_v_per_k")};
+            e.entropic_heat = EntropicHeatExt{
+                at_most("ehc_v_per_k", num("ehc_v_per_k"), kMaxEntropicVPerK,
+                        "expected an entropic coefficient within +-10 mV/K (a cell's is within +-1 mV/K)"),
+                at_most("ehc_slope_v_per_k", num("ehc_slope_v_per_k"), 10 * kMaxEntropicVPerK,
+                        "expected a slope within +-100 mV/K per unit SOC")};
         } else if (key == "thermal_second_order") {
             const double f = num("core_fraction");
             if (!(f > 0 && f < 1)) fail(source, path + ".core_fraction", "expected a fraction strictly between 0 and 1");
-            e.thermal_second_order = ThermalSecondOrderExt{f, positive("r_core_surface_k_per_w")};
+            e.thermal_second_order = ThermalSecondOrderExt{
+                f, at_most("r_core_surface_k_per_w", positive("r_core_surface_k_per_w"), kMaxThermalResistanceKPerW,
+                           "expected a thermal resistance below 10 000 K/W")};
         } else if (key == "resistance_temperature") {
-            e.resistance_temperature = ResistanceTemperatureExt{num("activation_energy_j_per_mol")};
+            e.resistance_temperature = ResistanceTemperatureExt{
+                at_most("activation_energy_j_per_mol", num("activation_energy_j_per_mol"), 5e5,
+                        "expected an activation energy within +-500 kJ/mol (a cell's is 10-60 kJ/mol)")};
         } else if (key == "resistance_current") {
-            e.resistance_current = ResistanceCurrentExt{positive("exchange_current_a"), positive("reference_current_a")};
+            e.resistance_current = ResistanceCurrentExt{
+                at_most("exchange_current_a", positive("exchange_current_a"), 1e6, "expected a current below 1 MA"),
+                at_most("reference_current_a", positive("reference_current_a"), 1e6, "expected a current below 1 MA")};
         } else if (key == "ocv_hysteresis") {
-            e.ocv_hysteresis = OcvHysteresisExt{num("magnitude_v"), positive("rate_per_capacity")};
+            e.ocv_hysteresis = OcvHysteresisExt{
+                at_most("magnitude_v", num("magnitude_v"), 1.0, "expected a hysteresis within +-1 V"),
+                at_most("rate_per_capacity", positive("rate_per_capacity"), 1e6, "expected a rate below 1e6 per capacity")};
         } else if (key == "extra_rc") {
             const double r = num("r_ohm");
             if (r < 0) fail(source, path + ".r_ohm", "expected a non-negative resistance");
-            e.extra_rc = ExtraRcExt{r, positive("tau_s")};
+            e.extra_rc = ExtraRcExt{at_most("r_ohm", r, kMaxResistanceOhm, "expected a resistance below 1 kOhm"),
+                                    positive("tau_s")};
         } else if (key == "capacity_error") {
-            e.capacity_error = CapacityErrorExt{positive("capacity_scale")};
+            e.capacity_error = CapacityErrorExt{
+                at_most("capacity_scale", positive("capacity_scale"), 100.0, "expected a scale below 100")};
         } else if (key == "series_resistance_offset") {
-            e.series_resistance_offset = SeriesResistanceOffsetExt{num("r_ohm")};
+            e.series_resistance_offset = SeriesResistanceOffsetExt{
+                at_most("r_ohm", num("r_ohm"), kMaxResistanceOhm, "expected a resistance within +-1 kOhm")};
         } else if (key == "heat_flux_sensor_gain") {
-            e.heat_flux_sensor_gain = HeatFluxSensorGainExt{positive("gain")};
+            e.heat_flux_sensor_gain =
+                HeatFluxSensorGainExt{at_most("gain", positive("gain"), 100.0, "expected a gain below 100")};
         } else if (key == "ambient_drift") {
-            e.ambient_drift = AmbientDriftExt{num("offset_c"), num("rate_c_per_h")};
+            e.ambient_drift = AmbientDriftExt{
+                at_most("offset_c", num("offset_c"), 100.0, "expected an offset within +-100 K"),
+                at_most("rate_c_per_h", num("rate_c_per_h"), 1000.0, "expected a drift within +-1000 K/h")};
         } else {
             e.other[key] = v;
         }
@@ -222,6 +245,13 @@ void ParameterSet::validate(const std::string& source) const {
         for (std::size_t i = 0; i < v.size(); ++i)
             if (!(v[i] > 0)) fail(source, path + "[" + std::to_string(i) + "]", "expected a positive value");
     };
+    // Values no cell has by orders of magnitude (a typo, a unit slip) are refused, naming the member: the model
+    // would follow them into an overflow or an answer that looks like a result. What a cell can have but seldom
+    // does is for the fit's plausibility flags.
+    if (!(capacity_ah >= kMinCapacityAh && capacity_ah <= kMaxCapacityAh))
+        fail(source, "$.capacity_ah", "expected a capacity between 0.1 mAh and 100 kAh");
+    if (!(reference_temperature_c >= kMinCellTemperatureC && reference_temperature_c <= kMaxCellTemperatureC))
+        fail(source, "$.reference_temperature_c", "expected a cell temperature between -100 and 200 degC");
     check_size(ocv_v, "$.ocv_v");
     for (std::size_t i = 0; i < ocv_v.size(); ++i)
         if (!(ocv_v[i] > 0 && ocv_v[i] < 10))
@@ -238,10 +268,27 @@ void ParameterSet::validate(const std::string& source) const {
         check_positive(t->c1_f, "$." + name + ".c1_f");
         check_positive(t->r2_ohm, "$." + name + ".r2_ohm");
         check_positive(t->c2_f, "$." + name + ".c2_f");
+        for (const auto& [column, values] : {std::pair<const char*, const std::vector<double>*>{"r0_ohm", &t->r0_ohm},
+                                             {"r1_ohm", &t->r1_ohm},
+                                             {"r2_ohm", &t->r2_ohm}})
+            for (std::size_t i = 0; i < values->size(); ++i)
+                if (!((*values)[i] <= kMaxResistanceOhm))
+                    fail(source, "$." + name + "." + column + "[" + std::to_string(i) + "]",
+                         "expected a resistance below 1 kOhm (a cell's are milliohms)");
     }
     if (!(thermal.c_th_j_per_k > 0)) fail(source, "$.thermal.c_th_j_per_k", "expected a positive thermal capacity");
     if (!(thermal.r_th_k_per_w > 0)) fail(source, "$.thermal.r_th_k_per_w", "expected a positive thermal resistance");
+    if (!(thermal.r_th_k_per_w <= kMaxThermalResistanceKPerW))
+        fail(source, "$.thermal.r_th_k_per_w", "expected a thermal resistance below 10 000 K/W (a cell's is 1-20 K/W)");
     if (!(thermal.area_m2 > 0)) fail(source, "$.thermal.area_m2", "expected a positive area");
+    if (!(thermal.area_m2 <= kMaxAreaM2)) fail(source, "$.thermal.area_m2", "expected a surface area below 10 m^2");
+    for (std::size_t i = 0; i < thermal.ehc_soc.size(); ++i)
+        if (!(thermal.ehc_soc[i] >= 0 && thermal.ehc_soc[i] <= 1))
+            fail(source, "$.thermal.ehc_soc[" + std::to_string(i) + "]", "expected a fraction 0..1");
+    for (std::size_t i = 0; i < thermal.ehc_v_per_k.size(); ++i)
+        if (!(std::abs(thermal.ehc_v_per_k[i]) <= kMaxEntropicVPerK))
+            fail(source, "$.thermal.ehc_v_per_k[" + std::to_string(i) + "]",
+                 "expected an entropic coefficient within +-10 mV/K (a cell's is within +-1 mV/K)");
     if (thermal.ehc_soc.size() != thermal.ehc_v_per_k.size())
         fail(source, "$.thermal.ehc_v_per_k", "expected one value per ehc_soc entry");
     for (std::size_t i = 1; i < thermal.ehc_soc.size(); ++i)

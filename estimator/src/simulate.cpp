@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <optional>
 #include <string>
 #include <utility>
@@ -154,19 +155,30 @@ SimulationMetrics compare(const ParameterSet& params, const Recording& rec, cons
     const std::size_t n = std::min(rec.size(), tr.time_s.size());
     m.samples = 0;
     const auto w = time_weights(rec.time_s);
-    auto stats = [&](auto&& error_at, bool measured) {
+    // Rows where the recording has no value are left out; a row where it has one and the model none (a model
+    // that diverged: an overflow, a parameter no cell has) makes the error infinite, never "not measured" nor
+    // the RMS of the rows that stayed finite.
+    auto stats = [&](const std::vector<double>& simulated, const std::vector<double>& measured, double scale) {
         ErrorStats e;
-        if (!measured) return e;
+        if (measured.empty()) return e;
         double sum_w = 0, sum_e2 = 0, max_abs = 0;
+        bool diverged = false;
         for (std::size_t k = 0; k < n; ++k) {
             if (mask && !(*mask)[k]) continue;
-            const double err = error_at(k);
-            if (!std::isfinite(err)) continue;
+            const double y = measured[k] * scale;
+            if (!std::isfinite(y)) continue;
+            const double err = simulated[k] - y;
+            if (!std::isfinite(err)) {
+                diverged = true;
+                continue;
+            }
             sum_w += w[k];
             sum_e2 += w[k] * err * err;
             max_abs = std::max(max_abs, std::abs(err));
         }
-        if (sum_w > 0) {
+        if (diverged) {
+            e.rms = e.max_abs = std::numeric_limits<double>::infinity();
+        } else if (sum_w > 0) {
             e.rms = std::sqrt(sum_e2 / sum_w);
             e.max_abs = max_abs;
         }
@@ -174,11 +186,9 @@ SimulationMetrics compare(const ParameterSet& params, const Recording& rec, cons
     };
     for (std::size_t k = 0; k < n; ++k)
         if (!mask || (*mask)[k]) ++m.samples;
-    m.voltage_v = stats([&](std::size_t k) { return tr.voltage_v[k] - rec.voltage_v[k]; }, true);
-    m.temperature_c = stats([&](std::size_t k) { return tr.temperature_c[k] - rec.surface_c[k]; }, rec.has_surface());
-    m.heat_flux_w = stats(
-        [&](std::size_t k) { return tr.heat_flow_out_w[k] - rec.heat_flux_w_per_m2[k] * params.thermal.area_m2; },
-        rec.has_heat_flux());
+    m.voltage_v = stats(tr.voltage_v, rec.voltage_v, 1.0);
+    if (rec.has_surface()) m.temperature_c = stats(tr.temperature_c, rec.surface_c, 1.0);
+    if (rec.has_heat_flux()) m.heat_flux_w = stats(tr.heat_flow_out_w, rec.heat_flux_w_per_m2, params.thermal.area_m2);
     return m;
 }
 

@@ -66,6 +66,24 @@ TEST(DiagnoseEvidence, AnErrorInsideTheInstrumentsAccuracyIsNoEvidence) {
     EXPECT_TRUE(d.accepted.empty());
 }
 
+// A base whose simulation overflows (an activation energy no cell has, set in code: a parameter file with it is
+// refused on loading) has no errors to weigh: diagnose used to read the lost rows as no error at all and call the
+// model adequate, "every error within its instrument's accuracy". It is an error naming the recording.
+TEST(DiagnoseEvidence, ABaseWhoseSimulationDivergesIsAnErrorNotAnAdequateModel) {
+    const Recording rec = with_series_resistance(5e-3);
+    estimator::ParameterSet base = thesis();
+    base.extensions.resistance_temperature = estimator::ResistanceTemperatureExt{1e300};
+    estimator::DiagnoseOptions o;
+    o.threads = 1;
+    try {
+        const auto d = estimator::diagnose(base, rec, o);
+        ADD_FAILURE() << "diagnosed a diverging model: " << d.summary;
+    } catch (const InputError& e) {
+        EXPECT_NE(std::string(e.what()).find("synthetic: the model's voltage is not a finite number"), std::string::npos)
+            << e.what();
+    }
+}
+
 TEST(DiagnoseEvidence, TheSamePhysicsAboveTheAccuracyIsFound) {
     // 5 mOhm: about 20 mV RMS.
     const auto d = diagnose_series(with_series_resistance(5e-3));

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/estimator/simulate.hpp"
@@ -233,6 +234,35 @@ TEST(Simulate, UnmeasuredQuantitiesHaveNoMetric) {
     EXPECT_TRUE(met.voltage_v.rms.has_value());
     EXPECT_FALSE(met.temperature_c.rms.has_value());
     EXPECT_FALSE(met.heat_flux_w.rms.has_value());
+}
+
+// A model whose simulation overflows where the recording has values (an activation energy no cell has) is an
+// infinite error, not an unmeasured quantity nor the RMS of the rows that stayed finite: `simulate` printed
+// "voltage not measured in this recording" for it, and `diagnose` called such a model adequate.
+TEST(Simulate, ADivergedSimulationIsAnInfiniteErrorNotAnUnmeasuredOne) {
+    ParameterSet p = flat_params();
+    p.extensions.resistance_temperature = ResistanceTemperatureExt{1e300};  // set in code: from_json refuses it
+    const CellModel m(p);
+    Recording rec;
+    for (int k = 0; k < 60; ++k) {
+        rec.time_s.push_back(k);
+        rec.current_a.push_back(k < 10 ? 0.0 : -4.0);
+        rec.voltage_v.push_back(3.9 - (k < 10 ? 0.0 : 0.04));
+        rec.surface_c.push_back(20.0);  // 5 K below the reference temperature: the Arrhenius factor overflows
+    }
+    const auto tr = simulate(m, rec);
+    const auto met = compare(p, rec, tr);
+    ASSERT_TRUE(met.voltage_v.rms.has_value());
+    EXPECT_TRUE(std::isinf(*met.voltage_v.rms)) << *met.voltage_v.rms;
+    EXPECT_TRUE(std::isinf(*met.voltage_v.max_abs));
+
+    // Rows the recording lacks stay out as before (a sound model, two rows without a voltage).
+    const CellModel sound(flat_params());
+    Recording gaps = rec;
+    gaps.voltage_v[20] = gaps.voltage_v[21] = std::numeric_limits<double>::quiet_NaN();
+    const auto sound_met = compare(sound.params(), gaps, simulate(sound, gaps));
+    ASSERT_TRUE(sound_met.voltage_v.rms.has_value());
+    EXPECT_TRUE(std::isfinite(*sound_met.voltage_v.rms));
 }
 
 TEST(Simulate, RmsIsTimeWeighted) {

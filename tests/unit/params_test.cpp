@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <fstream>
+#include <functional>
 #include <sstream>
 
 #include "cellbench/core/recording.hpp"
@@ -95,6 +96,49 @@ TEST(ParameterSet, ErrorsNameTheJsonPathAndWhatWasExpected) {
     j = thesis_json();
     j["charge"]["c2_f"][0] = -1.0;
     EXPECT_NE(error_of(j).find("$.charge.c2_f[0]: expected a positive value"), std::string::npos) << error_of(j);
+}
+
+// A hand-edited set with a value no cell has (a typo, mOhm written in Ohm times 1000) used to load: 1e300 Ohm or
+// an activation energy of 1e300 J/mol made simulate overflow, and diagnose then called the model adequate; a
+// reference temperature of -1e300 degC simulated to a 4 V error without a word. Each is refused naming its member.
+TEST(ParameterSet, ValuesNoCellHasAreRefusedNamingTheMember) {
+    auto refused = [](const std::function<void(json&)>& edit, const std::string& path) {
+        json j = thesis_json();
+        edit(j);
+        const std::string e = error_of(j);
+        EXPECT_NE(e.find("p.json: " + path + ": expected"), std::string::npos) << path << " -> '" << e << "'";
+    };
+    refused([](json& j) { j["capacity_ah"] = 1e-300; }, "$.capacity_ah");
+    refused([](json& j) { j["capacity_ah"] = 1e300; }, "$.capacity_ah");
+    refused([](json& j) { j["reference_temperature_c"] = -1e300; }, "$.reference_temperature_c");
+    refused([](json& j) { j["reference_temperature_c"] = -300.0; }, "$.reference_temperature_c");  // below 0 K
+    refused([](json& j) { j["discharge"]["r0_ohm"][2] = 1e300; }, "$.discharge.r0_ohm[2]");
+    refused([](json& j) { j["charge"]["r2_ohm"][0] = 5e3; }, "$.charge.r2_ohm[0]");
+    refused([](json& j) { j["thermal"]["r_th_k_per_w"] = 1e300; }, "$.thermal.r_th_k_per_w");
+    refused([](json& j) { j["thermal"]["area_m2"] = 1e6; }, "$.thermal.area_m2");
+    refused([](json& j) { j["thermal"]["ehc_soc"] = {0.0, 0.5}, j["thermal"]["ehc_v_per_k"] = {1e-4, 0.5}; },
+            "$.thermal.ehc_v_per_k[1]");
+    refused([](json& j) { j["thermal"]["ehc_soc"] = {0.0, 1.5}, j["thermal"]["ehc_v_per_k"] = {1e-4, 2e-4}; },
+            "$.thermal.ehc_soc[1]");
+    refused([](json& j) { j["extensions"]["resistance_temperature"] = {{"activation_energy_j_per_mol", 1e300}}; },
+            "$.extensions.resistance_temperature.activation_energy_j_per_mol");
+    refused([](json& j) { j["extensions"]["entropic_heat"] = {{"ehc_v_per_k", 0.2}, {"ehc_slope_v_per_k", 0.0}}; },
+            "$.extensions.entropic_heat.ehc_v_per_k");
+    refused([](json& j) { j["extensions"]["series_resistance_offset"] = {{"r_ohm", -1e9}}; },
+            "$.extensions.series_resistance_offset.r_ohm");
+    refused([](json& j) { j["extensions"]["ocv_hysteresis"] = {{"magnitude_v", 30.0}, {"rate_per_capacity", 20.0}}; },
+            "$.extensions.ocv_hysteresis.magnitude_v");
+    refused([](json& j) { j["extensions"]["ambient_drift"] = {{"offset_c", 0.5}, {"rate_c_per_h", 1e300}}; },
+            "$.extensions.ambient_drift.rate_c_per_h");
+
+    // What a cell can have, however unusual, still loads: a 2 Ohm coin cell, -40 degC, 45 kJ/mol, +-1 mV/K.
+    json j = thesis_json();
+    for (auto& r : j["discharge"]["r0_ohm"]) r = 2.0;
+    j["reference_temperature_c"] = -40.0;
+    j["thermal"]["ehc_soc"] = {0.0, 1.0};
+    j["thermal"]["ehc_v_per_k"] = {-1e-3, 1e-3};
+    j["extensions"]["resistance_temperature"] = {{"activation_energy_j_per_mol", 45000.0}};
+    EXPECT_EQ(error_of(j), "");
 }
 
 TEST(ParameterSet, CapacityUncertaintyIsOptionalAndRoundTrips) {

@@ -251,7 +251,7 @@ void ParameterSet::validate(const std::string& source) const {
     if (!(capacity_ah >= kMinCapacityAh && capacity_ah <= kMaxCapacityAh))
         fail(source, "$.capacity_ah", "expected a capacity between 0.1 mAh and 100 kAh");
     if (!(reference_temperature_c >= kMinCellTemperatureC && reference_temperature_c <= kMaxCellTemperatureC))
-        fail(source, "$.reference_temperature_c", "expected a cell temperature between -100 and 200 degC");
+        fail(source, "$.reference_temperature_c", "expected a cell temperature between -100 and 300 degC");
     check_size(ocv_v, "$.ocv_v");
     for (std::size_t i = 0; i < ocv_v.size(); ++i)
         if (!(ocv_v[i] > 0 && ocv_v[i] < 10))

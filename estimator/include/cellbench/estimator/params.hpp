@@ -127,7 +127,7 @@ inline constexpr const char* kParamsSchema = "cellbench.params/1";
 // What a parameter set may hold at all (ParameterSet::validate): orders of magnitude beyond any cell, so that only
 // a typo or a unit slip is refused; a value a cell can have but seldom does is flagged by the fit instead.
 inline constexpr double kMinCapacityAh = 1e-4, kMaxCapacityAh = 1e5;
-inline constexpr double kMinCellTemperatureC = -100.0, kMaxCellTemperatureC = 200.0;
+inline constexpr double kMinCellTemperatureC = -100.0, kMaxCellTemperatureC = 300.0;  // a recording's own range
 inline constexpr double kMaxResistanceOhm = 1e3;
 inline constexpr double kMaxThermalResistanceKPerW = 1e4;
 inline constexpr double kMaxAreaM2 = 10.0;

@@ -74,7 +74,9 @@ TEST(DiagnoseRealData, RandomWalkFindingHoldsOnTheFourCDischarge) {
         EXPECT_EQ(f["confirmation"].size(), state ? 0u : 1u) << f.dump(2);
         for (const auto& c : f["confirmation"]) {
             std::printf("%s on the 4C: %s\n", f["effect"].get<std::string>().c_str(), c["verdict"].get<std::string>().c_str());
-            if (c["verdict"] == "contradicts") EXPECT_FALSE(f["significant"].get<bool>()) << f.dump(2);
+            if (c["verdict"] == "contradicts") {
+                EXPECT_FALSE(f["significant"].get<bool>()) << f.dump(2);
+            }
         }
     }
     bool any_significant = false;

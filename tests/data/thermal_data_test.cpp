@@ -27,7 +27,9 @@ constexpr double kThesisCth = 63.3;      // J/K (thesis 4.2.1)
 constexpr double kThesisRth = 5.26;      // K/W (thesis eq. 4.9)
 constexpr double kThesisCapacity = 3.816;  // Ah, 1C pilot discharge (data README)
 
-std::string data_path(const std::string& name) { return std::string(CELLBENCH_SHARED_DIR) + "/data/p45b/" + name; }
+std::string data_path(const std::string& name) {
+    return (std::filesystem::path(CELLBENCH_SHARED_DIR) / "data" / "p45b" / name).string();
+}
 
 bool read_text(const std::string& path, std::string& out) {
     std::ifstream f(path, std::ios::binary);

@@ -149,7 +149,8 @@ ModelExtensions ModelExtensions::from_json(const json& j, const std::string& sou
         } else if (key == "ocv_hysteresis") {
             e.ocv_hysteresis = OcvHysteresisExt{
                 at_most("magnitude_v", num("magnitude_v"), 1.0, "expected a hysteresis within +-1 V"),
-                at_most("rate_per_capacity", positive("rate_per_capacity"), 1e6, "expected a rate below 1e6 per capacity")};
+                at_most("rate_per_capacity", positive("rate_per_capacity"), 1e6,
+                        "expected a rate below 1e6 per capacity")};
         } else if (key == "extra_rc") {
             const double r = num("r_ohm");
             if (r < 0) fail(source, path + ".r_ohm", "expected a non-negative resistance");
@@ -245,6 +246,13 @@ void ParameterSet::validate(const std::string& source) const {
         for (std::size_t i = 0; i < v.size(); ++i)
             if (!(v[i] > 0)) fail(source, path + "[" + std::to_string(i) + "]", "expected a positive value");
     };
+    auto check_resistance = [&](const std::vector<double>& v, const std::string& path) {
+        check_positive(v, path);
+        for (std::size_t i = 0; i < v.size(); ++i)
+            if (!(v[i] <= kMaxResistanceOhm))
+                fail(source, path + "[" + std::to_string(i) + "]",
+                     "expected a resistance below 1 kOhm (a cell's are milliohms)");
+    };
     // Values no cell has by orders of magnitude (a typo, a unit slip) are refused, naming the member: the model
     // would follow them into an overflow or an answer that looks like a result. What a cell can have but seldom
     // does is for the fit's plausibility flags.
@@ -263,18 +271,11 @@ void ParameterSet::validate(const std::string& source) const {
                 fail(source, "$.ocv_v_sd[" + std::to_string(i) + "]", "expected a non-negative uncertainty in V");
     }
     for (const auto& [name, t] : {std::pair<std::string, const RcTable*>{"discharge", &discharge}, {"charge", &charge}}) {
-        check_positive(t->r0_ohm, "$." + name + ".r0_ohm");
-        check_positive(t->r1_ohm, "$." + name + ".r1_ohm");
+        check_resistance(t->r0_ohm, "$." + name + ".r0_ohm");
+        check_resistance(t->r1_ohm, "$." + name + ".r1_ohm");
         check_positive(t->c1_f, "$." + name + ".c1_f");
-        check_positive(t->r2_ohm, "$." + name + ".r2_ohm");
+        check_resistance(t->r2_ohm, "$." + name + ".r2_ohm");
         check_positive(t->c2_f, "$." + name + ".c2_f");
-        for (const auto& [column, values] : {std::pair<const char*, const std::vector<double>*>{"r0_ohm", &t->r0_ohm},
-                                             {"r1_ohm", &t->r1_ohm},
-                                             {"r2_ohm", &t->r2_ohm}})
-            for (std::size_t i = 0; i < values->size(); ++i)
-                if (!((*values)[i] <= kMaxResistanceOhm))
-                    fail(source, "$." + name + "." + column + "[" + std::to_string(i) + "]",
-                         "expected a resistance below 1 kOhm (a cell's are milliohms)");
     }
     if (!(thermal.c_th_j_per_k > 0)) fail(source, "$.thermal.c_th_j_per_k", "expected a positive thermal capacity");
     if (!(thermal.r_th_k_per_w > 0)) fail(source, "$.thermal.r_th_k_per_w", "expected a positive thermal resistance");

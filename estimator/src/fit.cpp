@@ -610,7 +610,10 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     }
 
     progress(0.85, "thermal parameters");
-    out.thermal = fit_thermal_parameters(recordings, segs, soc_of_row, electrical, options);
+    // The heat I*(V - OCV(SOC)) needs each row's SOC: where the global fit ran, as it ends with it (a capacity
+    // discharge whose first row is logged under load has no rested voltage to start its count from).
+    out.thermal = fit_thermal_parameters(recordings, segs, out.global ? out.global->soc_of_row : soc_of_row, electrical,
+                                         options);
     if (!std::isfinite(out.thermal.c_th_j_per_k) || !std::isfinite(out.thermal.r_th_k_per_w))
         throw InputError("characterization: no recording measures the thermal parameters (surface temperature, "
                          "with heat flux or ambient)");

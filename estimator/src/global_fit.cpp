@@ -676,7 +676,11 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         auto& into = wd.low_rate ? low_rate_currents : pulse_currents;
         into.insert(into.end(), currents.begin(), currents.end());
         for (const double i : currents) i_min = std::min(i_min, i), i_max = std::max(i_max, i);
-        charge_as += window_charge_as;
+        // A direction's resistances show where its current changes by more than a low rate's: a C/20 charge
+        // (a pseudo-OCV test) measures the charge branch of the OCV, above the discharge one by the hysteresis,
+        // not the charge resistances (20 mV at 0.145 A reads as 140 mOhm, and a drive cycle's regen pulses then
+        // miss by a volt).
+        if (!wd.low_rate) charge_as += window_charge_as;
         gw.residuals = wd.residuals;
         gw.capacity_scale_fitted = wd.capacity_scale_free();
         b.windows.push_back(std::move(wd));
@@ -975,6 +979,25 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                                         fitted_lag, lag_sd_linearized));
         assess();
     }
+    // The SOC of every row with the windows' fitted corrections.
+    out.soc_of_row = socs;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        auto& soc = out.soc_of_row[r];
+        double shift = kNaN;  // corrected minus counted, carried over the rows between windows
+        std::size_t next = 0;  // first row not yet written
+        for (std::size_t w = 0; w < b.windows.size(); ++w) {
+            const auto& gw = out.windows[w];
+            if (gw.recording != r) continue;
+            const double s0 = socs[r][gw.begin], scale = std::exp(b.offsets[w][1]), off = b.offsets[w][0];
+            if (!std::isfinite(shift)) shift = off;  // rows before the first window
+            for (std::size_t k = next; k < gw.begin; ++k) soc[k] += shift;
+            for (std::size_t k = gw.begin; k < gw.end; ++k) soc[k] = s0 + off + scale * (socs[r][k] - s0);
+            shift = soc[gw.end - 1] - socs[r][gw.end - 1];
+            next = gw.end;
+        }
+        if (std::isfinite(shift))
+            for (std::size_t k = next; k < soc.size(); ++k) soc[k] += shift;
+    }
     // Which knots have data of each direction nearby, and which OCV knots have rows near them.
     std::vector<std::array<double, 3>> support(b.grid.n, {0, 0, 0});  // discharge A*s, charge A*s, rows
     std::vector<std::size_t> ocv_rows(n_ocv, 0);
@@ -991,7 +1014,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
                 const double left = jj > 0 ? b.grid.soc(jj - 1) : b.grid.soc(0) - b.grid.ref_ds;
                 const double right = jj + 1 < b.grid.n ? b.grid.soc(jj + 1) : b.grid.soc(jj) + b.grid.ref_ds;
                 if (!reaches(s, left, b.grid.soc(jj), right)) continue;
-                support[jj][t.current_a < 0 ? 0 : 1] += std::abs(t.current_a) * t.dt_s;
+                if (!b.windows[w].low_rate) support[jj][t.current_a < 0 ? 0 : 1] += std::abs(t.current_a) * t.dt_s;
                 support[jj][2] += 1;
             }
             const int jo = b.grid.ocv_interval(s);
@@ -1069,8 +1092,9 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     p.capacity_ah = capacity_ah;
     p.reference_temperature_c = t_ref_c;
     const bool no_charge = charge_as < 1.0;
-    if (no_charge) out.notes.push_back("no charging current in the recordings: the charge direction is not identified "
-                                       "and takes the discharge values");
+    if (no_charge)
+        out.notes.push_back("no charging current above C/5 in the recordings: the charge direction is not identified "
+                            "and takes the discharge values");
     const int m = b.grid.m;
     out.discharge.resize(n_ocv);
     out.charge.resize(n_ocv);

@@ -140,6 +140,11 @@ struct GlobalFitResult {
     std::array<double, 2> start_time_constants_s = {kNaN, kNaN};
     std::vector<std::pair<double, double>> cross_validation;  // (weight, held-out RMS V)
     std::vector<GlobalWindow> windows;
+    // Per recording, the SOC of every row as the fit ends with it: the Coulomb count, or for a recording not
+    // anchored to the test's full charge the count from its first rested voltage, with each window's fitted SOC
+    // offset and charge scale applied (rows outside every window keep the shift of the window before them, or
+    // after them at the start). What the thermal identification reads the OCV at.
+    std::vector<std::vector<double>> soc_of_row;
     double rms_v = kNaN;
     double residual_autocorrelation = kNaN;
     FittedValue step_lag;  // fitted fraction of a step's sample interval the new current flowed before its row

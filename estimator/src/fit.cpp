@@ -325,6 +325,58 @@ double capacity_disagreement_ah(const GlobalFitResult& g, double capacity_ah) {
 }
 }  // namespace
 
+namespace {
+
+// The temperature a recording was made at: its ambient column's median, else its first surface reading (a test
+// starts rested at the chamber's temperature). NaN without either.
+double ambient_of(const Recording& rec) {
+    if (rec.has_ambient()) {
+        std::vector<double> a;
+        for (const double v : rec.ambient_c)
+            if (std::isfinite(v)) a.push_back(v);
+        return upper_median(std::move(a));
+    }
+    for (const double v : rec.surface_c)
+        if (std::isfinite(v)) return v;
+    return kNaN;
+}
+
+// One characterization is one ambient temperature: the model's tables hold the resistances there (with their
+// Arrhenius dependence on the cell's own heating), its OCV and capacity too. Characterization tests (pulses) more
+// than kOtherAmbientK apart are an error; another recording that far from them (a C/20 OCV test at 25 degC beside
+// a 0 degC HPPC: its capacity 20 % larger, its resistances a quarter) is left out with a warning. Before, it moved
+// the 0 degC fit's OCV and slow pair until US06 was predicted at 227 mV instead of 36.
+void leave_out_other_ambients(std::vector<Recording>& recordings, std::vector<RecordingSegments>& segs,
+                              std::vector<bool>& characterization, std::vector<std::string>& warnings) {
+    constexpr double kOtherAmbientK = 10.0;
+    std::vector<double> ambient(recordings.size());
+    double lo = kNaN, hi = kNaN;
+    std::size_t lo_r = 0, hi_r = 0;
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        ambient[r] = ambient_of(recordings[r]);
+        if (!characterization[r] || !std::isfinite(ambient[r])) continue;
+        if (!(ambient[r] >= lo)) lo = ambient[r], lo_r = r;
+        if (!(ambient[r] <= hi)) hi = ambient[r], hi_r = r;
+    }
+    if (!std::isfinite(lo)) return;
+    if (hi - lo > kOtherAmbientK)
+        throw InputError(printf_text("characterization: %s was made at %.1f degC and %s at %.1f degC: one fit is one "
+                                     "ambient temperature; fit each on its own",
+                                     recordings[lo_r].source.c_str(), lo, recordings[hi_r].source.c_str(), hi));
+    const double ref = 0.5 * (lo + hi);
+    for (std::size_t r = recordings.size(); r-- > 0;) {
+        if (characterization[r] || !std::isfinite(ambient[r]) || std::abs(ambient[r] - ref) <= kOtherAmbientK) continue;
+        warnings.push_back(printf_text("%s left out: made at %.1f degC, %.1f K from the characterization's %.1f degC "
+                                       "(its OCV, capacity and resistances belong to another temperature)",
+                                       recordings[r].source.c_str(), ambient[r], std::abs(ambient[r] - ref), ref));
+        recordings.erase(recordings.begin() + static_cast<std::ptrdiff_t>(r));
+        segs.erase(segs.begin() + static_cast<std::ptrdiff_t>(r));
+        characterization.erase(characterization.begin() + static_cast<std::ptrdiff_t>(r));
+    }
+}
+
+}  // namespace
+
 Characterization characterize(const std::vector<Recording>& given, const CharacterizationOptions& options) {
     // Progress: segmenting up to 5 %, pulse sets to 30 %, the global fit to 85 %, the thermal fits the rest.
     ProgressReporter progress(options.progress);
@@ -356,6 +408,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     }
     std::vector<bool> characterization(recordings.size());
     for (std::size_t r = 0; r < recordings.size(); ++r) characterization[r] = is_characterization(segs[r]);
+    leave_out_other_ambients(recordings, segs, characterization, out.warnings);
     if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; }))
         throw InputError("characterization: no recording holds pulses between rests (an HPPC test): nothing to "
                          "identify the resistances from");

@@ -6,7 +6,9 @@
 // 7.8 % below the cell's capacity on seed 1, its C/20 discharge 0.6 %).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <string>
 #include <vector>
 
 #include "cellbench/core/recording.hpp"
@@ -68,6 +70,38 @@ TEST(CapacityChoice, TheLowestRatePilotDischargeWinsWhateverTheOrder) {
         EXPECT_EQ(c.capacity.method, "pilot discharge");
         EXPECT_EQ(c.capacity.source, "c5") << "order: " << order.front().source << " first";
         EXPECT_NEAR(c.capacity.capacity_ah, 0.99 * kCapacityAh, 0.002 * kCapacityAh);
+    }
+}
+
+// A recording at another ambient temperature is not the same characterization: a C/5 capacity test at 0 degC
+// beside a 25 degC HPPC would win the capacity as the lowest-rate pilot, and its voltages would move the OCV and
+// resistances (the Panasonic 0 degC HPPC with the 25 degC C/20 discharge: US06 predicted at 227 mV instead of 36).
+// It is left out with a warning naming it; two pulse tests at temperatures 25 K apart are an error.
+TEST(CapacityChoice, ARecordingAtAnotherAmbientTemperatureIsLeftOutAndSaysSo) {
+    auto hppc = hppc_with_1c_pilot();
+    auto cold = capacity_test_c5();
+    cold.source = "c5_at_0degC";
+    hppc.surface_c.assign(hppc.size(), 25.0);
+    cold.surface_c.assign(cold.size(), 0.0);
+    const auto o = cellbench::test::characterization_options();
+    const auto c = est::characterize({hppc, cold}, o);
+    EXPECT_EQ(c.capacity.source, "hppc");  // its own 1C pilot, not the cold C/5 one
+    const bool said = std::any_of(c.warnings.begin(), c.warnings.end(), [](const std::string& w) {
+        return w.find("c5_at_0degC left out") != std::string::npos && w.find("25.0 K") != std::string::npos;
+    });
+    EXPECT_TRUE(said) << "no warning names the recording left out";
+    // Within 10 K it is the same test (a chamber's drift, a discharge's self-heating): used.
+    cold.surface_c.assign(cold.size(), 20.0);
+    EXPECT_EQ(est::characterize({hppc, cold}, o).capacity.source, "c5_at_0degC");
+
+    auto warm_hppc = hppc;
+    warm_hppc.source = "hppc_at_50degC";
+    warm_hppc.surface_c.assign(warm_hppc.size(), 50.0);
+    try {
+        (void)est::characterize({hppc, warm_hppc}, o);
+        ADD_FAILURE() << "two HPPCs 25 K apart were fitted as one";
+    } catch (const cellbench::InputError& e) {
+        EXPECT_NE(std::string(e.what()).find("hppc_at_50degC"), std::string::npos) << e.what();
     }
 }
 

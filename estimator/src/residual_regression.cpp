@@ -163,6 +163,14 @@ ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace&
         for (std::size_t k = 0; k < n; ++k) c[k] = (rec.time_s[k] - rec.time_s[0]) / 3600.0;
     }
     {
+        // A voltage read a fraction of a sample after (or before) the current misses R0 times that fraction of
+        // each change: the Panasonic 18650PF's drive-cycle logs, whose voltage moves 5 mOhm x dI over the sample
+        // that shows a step and 16 mOhm x dI over the next (docs/model.md).
+        auto& c = add("dI", "the current's change since the previous row (voltage and current read at different "
+                            "instants, or one of them filtered: the logger's timing, not the cell)");
+        for (std::size_t k = 1; k < n; ++k) c[k] = I[k] - I[k - 1];
+    }
+    {
         auto& c = add("I^2_lp100s", "I^2 low-passed at 100 s (heat: a thermal or heat-driven effect)");
         double y = 0;
         for (std::size_t k = 0; k < n; ++k) {
@@ -204,10 +212,14 @@ ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace&
     std::sort(out.correlations.begin(), out.correlations.end(),
               [](const auto& a, const auto& b) { return std::abs(a.second) > std::abs(b.second); });
     if (out.correlations.size() > 4) out.correlations.resize(4);
-    // Sequentially thresholded least squares (standardised; ridge 1e-6 for near-collinear columns).
+    // Forward selection on the standardised columns (ridge 1e-6 for near-collinear ones): each step adds the term
+    // that lowers the squared residual most, refitting all kept terms, up to 5 terms and while a term removes at
+    // least 1 % of the residual's variance; then a kept term must move the residual by at least 10 % of its spread
+    // per sigma. Thresholding the full least-squares fit first (before session 44) let a drive profile's
+    // collinear low-passed currents take the five places with their inflated coefficients: on the Panasonic US06
+    // log the current's row-to-row change (correlation 0.67 with the residual) was never kept.
     std::vector<char> active(p, 0);
-    for (std::size_t j = 0; j < p; ++j) active[j] = sd[j] > 0;
-    const double threshold = 0.1 * sy;  // a kept term moves the residual by at least 10 % of its spread per sigma
+    const double threshold = 0.1 * sy;
     Eigen::VectorXd beta = Eigen::VectorXd::Zero(static_cast<long>(p));
     const Eigen::MatrixXd G = X.transpose() * X / static_cast<double>(m);
     const Eigen::VectorXd b = X.transpose() * y / static_cast<double>(m);
@@ -217,24 +229,45 @@ ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace&
         g.diagonal().array() += 1e-6;
         return g.ldlt().solve(Eigen::VectorXd(b(idx)));
     };
-    for (int it = 0; it < 12; ++it) {
-        std::vector<long> idx;
-        for (std::size_t j = 0; j < p; ++j)
-            if (active[j]) idx.push_back(static_cast<long>(j));
-        if (idx.empty()) break;
-        const Eigen::VectorXd sol = solve_on(idx);
-        beta.setZero();
-        bool changed = false;
-        for (std::size_t a = 0; a < idx.size(); ++a) beta(idx[a]) = sol(static_cast<long>(a));
-        // drop below the threshold; keep at most 5 terms (the largest)
-        std::vector<long> order(idx);
-        std::sort(order.begin(), order.end(), [&](long u, long v) { return std::abs(beta(u)) > std::abs(beta(v)); });
-        for (std::size_t a = 0; a < order.size(); ++a)
-            if (std::abs(beta(order[a])) < threshold || a >= 5) {
-                active[static_cast<std::size_t>(order[a])] = 0;
-                changed = true;
-            }
-        if (!changed) break;
+    // Mean squared residual of the fit on idx, from the Gram matrix: y'y/m - 2 b'x + x'Gx.
+    const double yy = y.squaredNorm() / static_cast<double>(m);
+    auto mse_on = [&](const std::vector<long>& idx) {
+        if (idx.empty()) return yy;
+        const Eigen::VectorXd x = solve_on(idx);
+        return yy - 2.0 * b(idx).dot(x) + x.dot(G(idx, idx) * x);
+    };
+    std::vector<long> kept;
+    double mse = yy;
+    while (kept.size() < 5) {
+        long best = -1;
+        double best_mse = mse;
+        for (std::size_t j = 0; j < p; ++j) {
+            if (!(sd[j] > 0) || std::find(kept.begin(), kept.end(), static_cast<long>(j)) != kept.end()) continue;
+            auto idx = kept;
+            idx.push_back(static_cast<long>(j));
+            const double e = mse_on(idx);
+            if (e < best_mse) best_mse = e, best = static_cast<long>(j);
+        }
+        if (best < 0 || mse - best_mse < 0.01 * yy) break;
+        kept.push_back(best);
+        mse = best_mse;
+    }
+    for (bool dropped = true; dropped && !kept.empty();) {
+        dropped = false;
+        const Eigen::VectorXd sol = solve_on(kept);
+        long smallest = -1;
+        for (std::size_t a = 0; a < kept.size(); ++a)
+            if (std::abs(sol(static_cast<long>(a))) < threshold &&
+                (smallest < 0 || std::abs(sol(static_cast<long>(a))) < std::abs(sol(smallest))))
+                smallest = static_cast<long>(a);
+        if (smallest >= 0) kept.erase(kept.begin() + smallest), dropped = true;
+    }
+    if (!kept.empty()) {
+        const Eigen::VectorXd sol = solve_on(kept);
+        for (std::size_t a = 0; a < kept.size(); ++a) {
+            beta(kept[a]) = sol(static_cast<long>(a));
+            active[static_cast<std::size_t>(kept[a])] = 1;
+        }
     }
     for (std::size_t j = 0; j < p; ++j)
         if (!active[j]) beta(static_cast<long>(j)) = 0;

@@ -285,3 +285,30 @@ TEST(DiagnoseEvidence, ResistanceTablesOffInASocBandAreToldFromAnOcvBand) {
     ASSERT_FALSE(o.findings.empty());
     EXPECT_EQ(o.findings.front().effect, "ocv_band") << o.findings.front().explanation;
 }
+
+// Beyond the catalogue: a recording whose voltage is read a sample late (a logger's timing skew, as in the
+// Panasonic 18650PF's drive-cycle logs) leaves a residual that follows the current's change from row to row. The
+// sparse residual model names that term first; before it had no such term and spread the spikes over the current
+// and its low-passed copies.
+TEST(DiagnoseEvidence, AVoltageReadASampleLateIsNamedAsTheCurrentsChange) {
+    const auto truth = thesis();
+    Recording r;
+    r.source = "late voltage";
+    const double c1 = truth.capacity_ah;
+    const double pattern[] = {-1.0, -3.0, 0.5, -2.0, -4.0, 1.0, -0.5, -2.5, 2.0, -1.5, 0.0};
+    for (int k = 0; k <= 6000; ++k) {
+        r.time_s.push_back(0.1 * k);
+        r.current_a.push_back(k < 50 ? 0.0 : pattern[(k / 7) % 11] * c1);  // a new current every 0.7 s
+        r.voltage_v.push_back(0.0);
+    }
+    voltage_of(truth, r, 0.8);
+    for (std::size_t k = r.size() - 1; k > 0; --k) r.voltage_v[k] = r.voltage_v[k - 1];  // read one sample late
+    estimator::SimulationOptions so;
+    so.initial_soc = 0.8;
+    so.ambient_c = 25.0;
+    const auto tr = estimator::simulate(estimator::CellModel(truth), r, so);
+    const auto m = estimator::sparse_residual_model(r, tr, truth, false);
+    ASSERT_FALSE(m.terms.empty());
+    EXPECT_EQ(m.terms.front().term, "dI") << "first term " << m.terms.front().term;
+    EXPECT_GT(m.explained, 0.5);
+}

@@ -412,6 +412,12 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; }))
         throw InputError("characterization: no recording holds pulses between rests (an HPPC test): nothing to "
                          "identify the resistances from");
+    // Without any cell temperature the thermal part cannot be identified: say so before the long fit, not after.
+    if (std::none_of(recordings.begin(), recordings.end(), [](const Recording& r) { return r.has_surface(); }) &&
+        !(options.fallback_c_th_j_per_k > 0 && options.fallback_r_th_k_per_w > 0))
+        throw InputError("characterization: no recording has a cell (surface) temperature, so C_th and R_th cannot be "
+                         "identified: record one, or give both (cellbench fit --c-th-j-per-k and --r-th-k-per-w; an "
+                         "18650 in still air has about 15-20 J/K per Ah and 5-15 K/W)");
 
     // Capacity: a pilot discharge if any recording has one (of several, the lowest rate: the closest to the charge
     // the cell holds between its voltage limits, whatever order the files came in); else a characterization
@@ -477,6 +483,12 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         out.capacity = {options.fallback_capacity_ah, "given", options.fallback_capacity_source};
         out.warnings.push_back("capacity not measured: using " + options.fallback_capacity_source);
     }
+    if (options.fallback_capacity_ah > 0 && out.capacity.method != "given")
+        out.warnings.push_back(printf_text("%s %.4g Ah not used: %s measures %.4f Ah (%s, %+.1f %%)",
+                                           options.fallback_capacity_source.c_str(), options.fallback_capacity_ah,
+                                           out.capacity.source.c_str(), out.capacity.capacity_ah,
+                                           out.capacity.method.c_str(),
+                                           100.0 * (out.capacity.capacity_ah / options.fallback_capacity_ah - 1.0)));
     const double cap = out.capacity.capacity_ah;
     if (!(cap > 0) || !std::isfinite(cap)) throw InputError("characterization: the measured capacity is not positive");
 

@@ -105,4 +105,32 @@ TEST(CapacityChoice, ARecordingAtAnotherAmbientTemperatureIsLeftOutAndSaysSo) {
     }
 }
 
+// Without any cell temperature the thermal part cannot be identified: one clear error before the fit (it came after
+// the whole electrical fit, which was then lost), naming the options that supply it; with them the fit goes on
+// and the summary says the values were given. A capacity given while a recording measures it is not used, and the
+// warnings say so with both values.
+TEST(CapacityChoice, NoTemperatureAnywhereNeedsTheThermalValuesGivenAndAnUnusedCapacitySaysSo) {
+    const auto hppc = hppc_with_1c_pilot();
+    ASSERT_FALSE(hppc.has_surface());
+    auto o = cellbench::test::characterization_options();
+    o.fallback_c_th_j_per_k = 0.0, o.fallback_r_th_k_per_w = 0.0;
+    try {
+        (void)est::characterize({hppc}, o);
+        ADD_FAILURE() << "fitted without any temperature or given thermal values";
+    } catch (const cellbench::InputError& e) {
+        EXPECT_NE(std::string(e.what()).find("--c-th-j-per-k"), std::string::npos) << e.what();
+    }
+    o.fallback_c_th_j_per_k = 70.0, o.fallback_r_th_k_per_w = 8.0;
+    o.fallback_capacity_ah = 1.1 * kCapacityAh;
+    o.fallback_capacity_source = "--capacity-ah";
+    const auto c = est::characterize({hppc}, o);
+    EXPECT_DOUBLE_EQ(c.thermal.c_th_j_per_k, 70.0);
+    EXPECT_DOUBLE_EQ(c.thermal.r_th_k_per_w, 8.0);
+    EXPECT_EQ(c.capacity.method, "pilot discharge");
+    const bool said = std::any_of(c.warnings.begin(), c.warnings.end(), [](const std::string& w) {
+        return w.find("--capacity-ah") != std::string::npos && w.find("not used") != std::string::npos;
+    });
+    EXPECT_TRUE(said) << "the unused --capacity-ah is not mentioned";
+}
+
 }  // namespace

@@ -55,6 +55,15 @@ int run_cli(int argc, char** argv) {
                         "an 18650 has 4.18e-3)")
         ->check(CLI::Range(1e-5, 1.0))
         ->capture_default_str();
+    auto* c_th = fit_cmd->add_option("--c-th-j-per-k", fit.c_th_j_per_k,
+                                     "Heat capacity (J/K) used when no recording measures it (no heat flux sensor); "
+                                     "R_th is then fitted with it from the surface temperature")
+                     ->check(CLI::PositiveNumber);
+    fit_cmd->add_option("--r-th-k-per-w", fit.r_th_k_per_w,
+                        "Thermal resistance to ambient (K/W) used when no recording has a surface temperature "
+                        "(with --c-th-j-per-k)")
+        ->check(CLI::PositiveNumber)
+        ->needs(c_th);
     fit_cmd->add_option("--smoothness", fit.smoothness,
                         "Weight of the smoothness penalty along SOC (default: chosen by cross-validation)")
         ->check(CLI::PositiveNumber);

@@ -207,6 +207,8 @@ int run_fit(const FitOptions& o) {
     co.cell = o.cell_name;
     co.fallback_capacity_ah = o.capacity_ah;
     co.fallback_capacity_source = "--capacity-ah";
+    co.fallback_c_th_j_per_k = o.c_th_j_per_k;
+    co.fallback_r_th_k_per_w = o.r_th_k_per_w;
     co.area_m2 = o.area_m2;
     co.global.smoothness = o.smoothness;
     co.global.knot_spacing = o.knot_spacing;

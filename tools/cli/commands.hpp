@@ -32,6 +32,7 @@ struct FitOptions {
     std::string output, summary_json;
     std::string cell_name = "Molicel INR-21700-P45B";
     double capacity_ah = 0.0;        // used when no recording measures the capacity
+    double c_th_j_per_k = 0.0, r_th_k_per_w = 0.0;  // used where no recording measures them (0: not given)
     double area_m2 = estimator::CharacterizationOptions{}.area_m2;  // cell surface (heat flux density -> heat flow)
     double smoothness = std::numeric_limits<double>::quiet_NaN();   // NaN: cross-validated
     double knot_spacing = std::numeric_limits<double>::quiet_NaN(); // NaN: the test's SOC levels

@@ -1,4 +1,5 @@
 #include "cellbench/estimator/diagnose.hpp"
+#include "cellbench/estimator/logger_timing.hpp"
 #include "cellbench/estimator/voltage_spikes.hpp"
 #include "printf_text.hpp"
 
@@ -820,6 +821,8 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const Diagn
         if (confirm.back()) opts.confirm[k] = &*confirm.back();
     }
     if (auto note = start_outside_ocv_range(params, rec); !note.empty()) notes.push_back(std::move(note));
+    if (auto lag = voltage_lag_text(rec); !lag.empty())
+        notes.push_back(lag + ": at every current step part of the error is the logger's timing, not the cell's");
     Diagnosis d = diagnose_as_given(params, main ? *main : rec, notes.empty() ? options : opts);
     d.notes = std::move(notes);
     return d;

@@ -12,6 +12,7 @@
 #include <Eigen/Dense>
 
 #include "cellbench/estimator/coulomb.hpp"
+#include "cellbench/estimator/logger_timing.hpp"
 #include "cellbench/estimator/electrical.hpp"
 #include "cellbench/estimator/plausibility.hpp"
 
@@ -408,36 +409,6 @@ double voltage_noise_in_rests(const Recording& rec, const std::vector<std::pair<
     return 1.4826 * upper_median(std::move(d2)) / std::sqrt(6.0);
 }
 
-// Whether a recording's voltage lags its current by more than a sample, at its clean current steps (held for a
-// sample before and after, sampled at most kLagCheckIntervalS apart, where an RC pair's growth over one sample is
-// a small part of the ohmic jump for any time constant from a second up): the share of them at which the voltage
-// moves more across the second sample than across the first. A cycler or DAQ that samples voltage and current
-// together shows the ohmic jump at once (the P45B and Panasonic HPPCs: 0-1 % of their steps); the Panasonic's
-// drive-cycle logs show 5 mOhm in the first 0.1 s and 16 mOhm in the next (89-98 % of their steps). There the
-// one-sample jump is not R0, and a step residual would pin the tables to it.
-struct StepTiming {
-    std::size_t steps = 0, voltage_later = 0;
-    [[nodiscard]] bool voltage_lags() const { return steps >= 5 && 2 * voltage_later > steps; }
-};
-StepTiming step_timing(const Recording& rec) {
-    constexpr double kLagCheckIntervalS = 0.25;
-    StepTiming out;
-    const auto& i = rec.current_a;
-    const auto& v = rec.voltage_v;
-    for (std::size_t k = 2; k + 1 < rec.size(); ++k) {
-        if (!is_current_step(i[k - 1], i[k]) || is_current_step(i[k - 2], i[k - 1]) || is_current_step(i[k], i[k + 1]))
-            continue;
-        if (rec.time_s[k] - rec.time_s[k - 1] > kLagCheckIntervalS ||
-            rec.time_s[k + 1] - rec.time_s[k] > kLagCheckIntervalS)
-            continue;
-        if (!std::isfinite(v[k - 1]) || !std::isfinite(v[k]) || !std::isfinite(v[k + 1])) continue;
-        const double di = i[k] - i[k - 1];
-        ++out.steps;
-        out.voltage_later += (v[k + 1] - v[k]) / di > (v[k] - v[k - 1]) / di;
-    }
-    return out;
-}
-
 std::vector<double> soc_from_rest(const Recording& rec, const ParameterSet& initial, double capacity_ah) {
     std::vector<double> soc = cumulative_charge_ah(rec);
     const double ohmic = ohmic_drop_v(initial.rc_at(0.5, -1), initial.rc_at(0.5, +1), rec.current_a[0]);
@@ -634,14 +605,10 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // Recordings whose voltage lags their current by more than a sample.
     std::vector<bool> voltage_lags(recordings.size());
     for (std::size_t r = 0; r < recordings.size(); ++r) {
-        const auto timing = step_timing(*recordings[r]);
-        voltage_lags[r] = timing.voltage_lags();
+        const auto text = voltage_lag_text(*recordings[r]);
+        voltage_lags[r] = !text.empty();
         if (voltage_lags[r])
-            out.notes.push_back(printf_text(
-                "%s: its voltage lags its current by more than a sample (at %zu of its %zu current steps the voltage "
-                "moves more across the second sample than across the first): its one-sample jumps are not the ohmic "
-                "drop, so its steps are fitted as levels only",
-                recordings[r]->source.c_str(), timing.voltage_later, timing.steps));
+            out.notes.push_back(text + ": its one-sample jumps are not the ohmic drop, so its steps are fitted as levels only");
     }
     // The noise of a voltage difference across one sample interval, per recording, from its long rests.
     std::vector<double> step_sigma(recordings.size());

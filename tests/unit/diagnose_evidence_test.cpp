@@ -6,9 +6,12 @@
 // rests allow (5 sd of the parameter set's ocv_v_sd, and beyond the accuracy) is flagged as contradicting it.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <string>
 
 #include "cellbench/estimator/diagnose.hpp"
+#include "cellbench/estimator/logger_timing.hpp"
 #include "cellbench/estimator/simulate.hpp"
 #include "unit/thesis_params.hpp"
 
@@ -311,4 +314,19 @@ TEST(DiagnoseEvidence, AVoltageReadASampleLateIsNamedAsTheCurrentsChange) {
     ASSERT_FALSE(m.terms.empty());
     EXPECT_EQ(m.terms.front().term, "dI") << "first term " << m.terms.front().term;
     EXPECT_GT(m.explained, 0.5);
+    // And the diagnosis says so in its notes, before any finding: the logger, not the cell.
+    const auto timing = estimator::step_timing(r);
+    EXPECT_TRUE(timing.voltage_lags()) << timing.voltage_later << " of " << timing.steps;
+    estimator::DiagnoseOptions o;
+    o.effects = {"series_resistance_offset"};
+    o.max_accepted = 1;
+    o.threads = 1;
+    const auto d = estimator::diagnose(truth, r, o);
+    const bool said = std::any_of(d.notes.begin(), d.notes.end(), [](const std::string& n) {
+        return n.find("late voltage: its voltage lags its current") != std::string::npos;
+    });
+    EXPECT_TRUE(said) << "no note on the logger's timing";
+    // The same recording read on time: no such note.
+    voltage_of(truth, r, 0.8);
+    EXPECT_FALSE(estimator::step_timing(r).voltage_lags());
 }

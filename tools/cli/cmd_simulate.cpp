@@ -4,6 +4,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "cellbench/estimator/logger_timing.hpp"
 #include "cellbench/estimator/voltage_spikes.hpp"
 #include "cellbench/protocol/bdf_csv.hpp"
 #include "cli/commands.hpp"
@@ -31,6 +32,8 @@ int run_simulate(const SimulateOptions& o) {
     // current before it take the next row's current (the model's input), voltage spikes of one to three rows the
     // voltage between the rows either side.
     for (const auto& note : estimator::correct_logging_artifacts(rec)) spdlog::warn("{}", note);
+    if (const auto lag = estimator::voltage_lag_text(rec); !lag.empty())
+        spdlog::warn("{}: at every current step part of the error is the logger's timing, not the model's", lag);
     if (!o.initial_soc)
         if (const auto warning = estimator::start_outside_ocv_range(params, rec); !warning.empty()) spdlog::warn("{}", warning);
     const estimator::CellModel model(params);

@@ -1,0 +1,37 @@
+#include "cellbench/estimator/logger_timing.hpp"
+
+#include <cmath>
+
+#include "cellbench/estimator/coulomb.hpp"
+#include "printf_text.hpp"
+
+namespace cellbench::estimator {
+
+StepTiming step_timing(const Recording& rec) {
+    constexpr double kLagCheckIntervalS = 0.25;
+    StepTiming out;
+    const auto& i = rec.current_a;
+    const auto& v = rec.voltage_v;
+    for (std::size_t k = 2; k + 1 < rec.size(); ++k) {
+        if (!is_current_step(i[k - 1], i[k]) || is_current_step(i[k - 2], i[k - 1]) || is_current_step(i[k], i[k + 1]))
+            continue;
+        if (rec.time_s[k] - rec.time_s[k - 1] > kLagCheckIntervalS ||
+            rec.time_s[k + 1] - rec.time_s[k] > kLagCheckIntervalS)
+            continue;
+        if (!std::isfinite(v[k - 1]) || !std::isfinite(v[k]) || !std::isfinite(v[k + 1])) continue;
+        const double di = i[k] - i[k - 1];
+        ++out.steps;
+        out.voltage_later += (v[k + 1] - v[k]) / di > (v[k] - v[k - 1]) / di;
+    }
+    return out;
+}
+
+std::string voltage_lag_text(const Recording& rec) {
+    const auto t = step_timing(rec);
+    if (!t.voltage_lags()) return {};
+    return printf_text("%s: its voltage lags its current by more than a sample (at %zu of its %zu current steps the "
+                       "voltage moves more across the second sample than across the first)",
+                       rec.source.c_str(), t.voltage_later, t.steps);
+}
+
+}  // namespace cellbench::estimator

@@ -323,9 +323,6 @@ double capacity_disagreement_ah(const GlobalFitResult& g, double capacity_ah) {
     }
     return n ? capacity_ah * std::sqrt(ss / n) : kNaN;
 }
-}  // namespace
-
-namespace {
 
 // The temperature a recording was made at: its ambient column's median, else its first surface reading (a test
 // starts rested at the chamber's temperature). NaN without either.

@@ -269,8 +269,6 @@ ResidualModel sparse_residual_model(const Recording& rec, const SimulationTrace&
             active[static_cast<std::size_t>(kept[a])] = 1;
         }
     }
-    for (std::size_t j = 0; j < p; ++j)
-        if (!active[j]) beta(static_cast<long>(j)) = 0;
     const Eigen::VectorXd res = y - X * beta;
     out.explained = std::max(0.0, 1.0 - res.squaredNorm() / y.squaredNorm());
     // Share of a kept term: the variance the model explains less when it is refitted without that term (columns

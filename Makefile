@@ -43,7 +43,7 @@ run: build
 	@mkdir -p $(OUT)
 	$(BIN)/cellbench import --neware $(DATA)/hppc_1c_30degC_neware.csv --bdf $(DATA)/hppc_1c_30degC.bdf.csv -o $(OUT)/hppc.bdf.csv
 	$(BIN)/cellbench import --neware $(DATA)/rw_30degC_neware.csv --dewesoft $(DATA)/rw_30degC_dewesoft.csv -o $(OUT)/rw.bdf.csv
-	$(BIN)/cellbench fit $(OUT)/hppc.bdf.csv $(DATA)/cc_4c_30degC.bdf.csv -o $(OUT)/p45b.params.json --json $(OUT)/fit-summary.json
+	$(BIN)/cellbench fit $(OUT)/hppc.bdf.csv $(DATA)/cc_4c_30degC.bdf.csv --cell "Molicel INR-21700-P45B" -o $(OUT)/p45b.params.json --json $(OUT)/fit-summary.json
 	@echo "== Random Walk, thesis parameters (config/cells/p45b-thesis.json)"
 	$(BIN)/cellbench simulate --params config/cells/p45b-thesis.json $(OUT)/rw.bdf.csv --json $(OUT)/rw-thesis.metrics.json
 	@echo "== Random Walk, parameters fitted by cellbench"

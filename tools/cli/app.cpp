@@ -46,7 +46,7 @@ int run_cli(int argc, char** argv) {
     fit_cmd->add_option("--run", fit.run_id, "Run id in --db to replay through the online fitter");
     fit_cmd->add_option("-o,--output", fit.output, "Output parameter set (cellbench.params/1 JSON)")->required();
     fit_cmd->add_option("--json", fit.summary_json, "Also write a summary JSON of every fit and its uncertainty");
-    fit_cmd->add_option("--cell", fit.cell_name, "Cell name stored in the parameter set")->capture_default_str();
+    fit_cmd->add_option("--cell", fit.cell_name, "Cell name stored in the parameter set (a label, e.g. \"Panasonic NCR18650PF\")")->capture_default_str();
     fit_cmd->add_option("--capacity-ah", fit.capacity_ah,
                         "Capacity (Ah) used when no recording measures it (no pilot discharge, no test to the cut-off)")
         ->check(CLI::PositiveNumber);

@@ -30,7 +30,7 @@ struct FitOptions {
     std::string db;
     long long run_id = -1;
     std::string output, summary_json;
-    std::string cell_name = "Molicel INR-21700-P45B";
+    std::string cell_name = "unnamed cell";  // a label only; a default naming one real cell would mislabel every other
     double capacity_ah = 0.0;        // used when no recording measures the capacity
     double c_th_j_per_k = 0.0, r_th_k_per_w = 0.0;  // used where no recording measures them (0: not given)
     double area_m2 = estimator::CharacterizationOptions{}.area_m2;  // cell surface (heat flux density -> heat flow)

@@ -372,6 +372,47 @@ void leave_out_other_ambients(std::vector<Recording>& recordings, std::vector<Re
     }
 }
 
+// A characterization test without a charge to full before its first pulse is taken to start fully charged
+// (anchor_row): its first row is SOC 1. Where another recording of the cell starts rested more than 50 mV higher,
+// it does not (a test's later part handed in alone; parts that continue one another are joined before this), and
+// every SOC, the OCV table and the capacity counted from it would be wrong: an error, not a silent table. Where no
+// recording confirms it, the assumption is stated.
+void check_full_start(const std::vector<Recording>& recordings, const std::vector<RecordingSegments>& segs,
+                      const std::vector<bool>& characterization, std::vector<std::string>& warnings) {
+    constexpr double kHigherV = 0.05;
+    // The voltage a recording rests at before it first draws current (NaN: it does not start with a rest).
+    auto rested_start_v = [&](std::size_t r) {
+        const auto& ph = segs[r].phases;
+        if (ph.empty() || !ph.front().is_rest() || ph.front().end == 0) return kNaN;
+        return recordings[r].voltage_v[ph.front().end - 1];
+    };
+    for (std::size_t r = 0; r < recordings.size(); ++r) {
+        if (!characterization[r] || anchor_row(segs[r]) != 0) continue;
+        const double v = rested_start_v(r);
+        double highest = kNaN;
+        std::size_t by = r;
+        bool confirmed = false;
+        for (std::size_t q = 0; q < recordings.size(); ++q) {
+            const double vq = rested_start_v(q);
+            if (q == r || !std::isfinite(vq)) continue;
+            if (!(vq <= highest)) highest = vq, by = q;
+            confirmed = confirmed || std::abs(vq - v) <= kHigherV;
+        }
+        if (std::isfinite(v) && highest > v + kHigherV)
+            throw InputError("characterization: " + recordings[r].source + " does not start fully charged: it rests at " +
+                             printf_text("%.4f V", v) + " before it first draws current, " + recordings[by].source +
+                             " at " + printf_text("%.4f V", highest) +
+                             ", and it holds no charge to full before its first pulse, so its SOC is not known. Hand "
+                             "in the part of the test that starts at full charge too (parts that continue one another "
+                             "are joined)");
+        if (!confirmed)
+            warnings.push_back(recordings[r].source + ": SOC 100 % taken at its first row (" +
+                               printf_text("%.4f V", recordings[r].voltage_v.front()) +
+                               "): it holds no charge to full before its first pulse, and no other recording starts "
+                               "rested near that voltage to confirm it");
+    }
+}
+
 }  // namespace
 
 Characterization characterize(const std::vector<Recording>& given, const CharacterizationOptions& options) {
@@ -395,7 +436,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
                                    " rows without a voltage (NaN, missing), the first at t = " +
                                    printf_text("%.1f", rec.time_s[first_v]) + " s: left out of the fits");
     }
-    std::vector<Recording> recordings = merge_overlapping(given, out.warnings);
+    std::vector<Recording> recordings = join_continued_recordings(merge_overlapping(given, out.warnings), out.warnings);
     for (auto& rec : recordings)
         for (auto& note : correct_logging_artifacts(rec)) out.warnings.push_back(std::move(note));
     std::vector<RecordingSegments> segs;
@@ -406,6 +447,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     std::vector<bool> characterization(recordings.size());
     for (std::size_t r = 0; r < recordings.size(); ++r) characterization[r] = is_characterization(segs[r]);
     leave_out_other_ambients(recordings, segs, characterization, out.warnings);
+    check_full_start(recordings, segs, characterization, out.warnings);
     if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; }))
         throw InputError("characterization: no recording holds pulses between rests (an HPPC test): nothing to "
                          "identify the resistances from");

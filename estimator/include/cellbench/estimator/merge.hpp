@@ -2,6 +2,7 @@
 // Putting recordings of one test onto one clock: the cycler's own export and an already merged BDF file
 // (same instrument, different time origin and resolution) are aligned by their current steps; DAQ channels
 // are resampled onto the cycler's time base.
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -24,6 +25,19 @@ CurrentAlignment align_by_current(const Recording& a, const Recording& b, double
 // Cycler rows of a before b starts, then b's rows on a's clock (b shifted by offset_s, to the microsecond),
 // then a's rows after b ends. Channels present in either are kept; rows without a value hold NaN.
 Recording splice_recordings(const Recording& a, const Recording& b, double offset_s);
+
+// Files that continue one another (a cycler's export split into parts, a test logged day by day): b continues a
+// when b starts where a ends. With Unix time in both, b starts after a ends, within an hour, and its first voltage
+// is within 10 mV of a's last; without it, the current is the same at the junction, the voltages agree within
+// 5 mV, and a does not end on the lowest voltage any of the recordings reaches (a part that ran the cell empty
+// ends the test). Returns the offset that puts b's clock on a's (b's first row one sample interval, or the Unix
+// gap, after a's last), or nothing.
+std::optional<double> continuation_offset_s(const Recording& a, const Recording& b, double lowest_voltage_v);
+
+// Joins the recordings that continue one another into one recording each (splice_recordings of the parts in
+// order), so that a test split into files is one test: its SOC counted through from the full charge at its
+// start, its capacity from that charge to the cut-off. Each join is described in notes.
+std::vector<Recording> join_continued_recordings(std::vector<Recording> recs, std::vector<std::string>& notes);
 
 // Linear interpolation of (time_s, y) at query times; NaN outside [time_s.front(), time_s.back()].
 std::vector<double> resample_linear(const std::vector<double>& time_s, const std::vector<double>& y,

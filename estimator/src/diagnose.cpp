@@ -804,6 +804,10 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
 // The recordings as the fit reads them (correct_logging_artifacts: stale step rows, voltage spikes), else each
 // such row would pass for a miss of the model. A recording with nothing to correct is used as given.
 Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const DiagnoseOptions& options) {
+    for (const Recording* r : options.confirm)
+        if (r)
+            if (auto reversed = reversed_current_text(*r); !reversed.empty()) throw InputError(reversed);
+    if (auto reversed = reversed_current_text(rec); !reversed.empty()) throw InputError(reversed);
     std::vector<std::string> notes;
     auto corrected = [&](const Recording& r) -> std::optional<Recording> {
         Recording c = r;

@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "cellbench/estimator/coulomb.hpp"
+#include "cellbench/estimator/logger_timing.hpp"
 #include "cellbench/estimator/merge.hpp"
 #include "cellbench/estimator/thermal_characterization.hpp"
 
@@ -422,6 +423,7 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     Characterization out;
     for (const auto& rec : given) {
         if (rec.size() < 2) throw InputError(rec.source + ": recording has fewer than two rows");
+        if (auto reversed = reversed_current_text(rec); !reversed.empty()) throw InputError(reversed);
         // Missing values: a current gap breaks the Coulomb counting (an error); a voltage gap only removes
         // residuals (the fits run around it, and say so).
         std::size_t missing_v = 0, first_v = 0;

@@ -29,9 +29,33 @@ StepTiming step_timing(const Recording& rec) {
 std::string voltage_lag_text(const Recording& rec) {
     const auto t = step_timing(rec);
     if (!t.voltage_lags()) return {};
-    return printf_text("%s: its voltage lags its current by more than a sample (at %zu of its %zu current steps the "
-                       "voltage moves more across the second sample than across the first)",
-                       rec.source.c_str(), t.voltage_later, t.steps);
+    return rec.source + printf_text(": its voltage lags its current by more than a sample (at %zu of its %zu current "
+                                    "steps the voltage moves more across the second sample than across the first)",
+                                    t.voltage_later, t.steps);
+}
+
+CurrentSign current_sign(const Recording& rec) {
+    CurrentSign out;
+    const auto& i = rec.current_a;
+    const auto& v = rec.voltage_v;
+    for (std::size_t k = 2; k + 1 < rec.size(); ++k) {
+        if (!is_current_step(i[k - 1], i[k]) || is_current_step(i[k - 2], i[k - 1]) || is_current_step(i[k], i[k + 1]))
+            continue;
+        const double dv = v[k] - v[k - 1], di = i[k] - i[k - 1];
+        if (!std::isfinite(dv) || !std::isfinite(di) || dv == 0.0) continue;
+        ++out.steps;
+        out.against += (dv > 0) != (di > 0);
+    }
+    return out;
+}
+
+std::string reversed_current_text(const Recording& rec) {
+    const auto s = current_sign(rec);
+    if (!s.reversed()) return {};
+    return rec.source + printf_text(": its current counts discharging as positive (at %zu of its %zu current steps the "
+                                    "voltage moves against the current); cellbench reads current positive when it "
+                                    "charges the cell (BDF): negate the current column",
+                                    s.against, s.steps);
 }
 
 }  // namespace cellbench::estimator

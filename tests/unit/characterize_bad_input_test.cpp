@@ -8,7 +8,9 @@
 #include <vector>
 
 #include "cellbench/core/recording.hpp"
+#include "cellbench/estimator/diagnose.hpp"
 #include "cellbench/estimator/fit.hpp"
+#include "cellbench/estimator/logger_timing.hpp"
 #include "unit/hppc_synthetic.hpp"
 
 namespace {
@@ -160,3 +162,26 @@ TEST(CharacterizeBadInput, NanCurrentInTheMiddleIsOneClearError) {
 }
 
 }  // namespace
+
+// A cycler export that counts discharging current as positive (converted without negating it): the fit found "no
+// recording measures the capacity", and simulate and diagnose reported an 807 mV error and a logger lag on the
+// P45B HPPC so converted. The voltage moves against the current at every step: one error that names the cause,
+// from every command that reads a recording; the same recording the right way round passes.
+TEST(CharacterizeBadInput, ACurrentCountingDischargeAsPositiveIsOneClearError) {
+    const auto right = synth(cellbench::test::hppc_program(3, 900.0, 4.5));
+    auto reversed = right;
+    for (double& i : reversed.current_a) i = -i;
+    reversed.source = "exported";
+    EXPECT_FALSE(est::current_sign(right).reversed());
+    EXPECT_GE(est::current_sign(right).steps, 5u);
+    EXPECT_TRUE(est::reversed_current_text(right).empty());
+    const auto fit_error = error_of({reversed});
+    EXPECT_NE(fit_error.find("exported: its current counts discharging as positive"), std::string::npos) << fit_error;
+    EXPECT_NE(fit_error.find("negate the current column"), std::string::npos) << fit_error;
+    // diagnose reads it the same way, as the recording diagnosed and as a --confirm recording
+    const auto c = est::characterize({right}, options());
+    est::DiagnoseOptions o;
+    EXPECT_THROW((void)est::diagnose(c.params, reversed, o), cellbench::InputError);
+    o.confirm = {&reversed};
+    EXPECT_THROW((void)est::diagnose(c.params, right, o), cellbench::InputError);
+}

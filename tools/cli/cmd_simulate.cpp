@@ -28,6 +28,7 @@ int run_simulate(const SimulateOptions& o) {
     OutputFiles outputs({o.metrics_json, o.output});  // folders checked before the work, all written or none
     const auto params = load_params(o.params);
     auto rec = load_recording(o.recording);
+    if (auto reversed = estimator::reversed_current_text(rec); !reversed.empty()) throw InputError(reversed);
     // The recording as `fit` and `diagnose` read it: rows at current steps that read the step's voltage beside the
     // current before it take the next row's current (the model's input), voltage spikes of one to three rows the
     // voltage between the rows either side.

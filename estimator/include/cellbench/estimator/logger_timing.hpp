@@ -1,5 +1,6 @@
 #pragma once
-// Whether a recording's voltage lags its current by more than a sample (a logger's timing, not the cell).
+// What a recording's current steps say about its logger rather than the cell: whether its voltage lags its current
+// by more than a sample (timing), and whether its current counts charging as positive (the sign convention).
 #include <cstddef>
 #include <string>
 
@@ -23,5 +24,18 @@ StepTiming step_timing(const Recording& rec);
 // "SOURCE: its voltage lags its current by more than a sample (at N of its M current steps ...)", or empty when it
 // does not lag; callers add what it means for them.
 std::string voltage_lag_text(const Recording& rec);
+
+// At a recording's current steps (held for a sample before and after; any sampling interval): the voltage moves
+// with the current, by R0 and the pairs' growth, all positive, whatever the logger's timing. Where it moves against
+// the current at nearly every step, the current counts discharging as positive (some cyclers' exports), and every
+// SOC, resistance and heat computed from it has the wrong sign.
+struct CurrentSign {
+    std::size_t steps = 0, against = 0;  // steps where voltage and current moved at all; of them, in opposite senses
+    [[nodiscard]] bool reversed() const { return steps >= 5 && against * 10 >= steps * 9; }
+};
+CurrentSign current_sign(const Recording& rec);
+
+// "SOURCE: its current counts discharging as positive (...)" when current_sign says it is reversed, else empty.
+std::string reversed_current_text(const Recording& rec);
 
 }  // namespace cellbench::estimator

@@ -2,6 +2,7 @@
 #include "cellbench/estimator/logger_timing.hpp"
 #include "cellbench/estimator/voltage_spikes.hpp"
 #include "printf_text.hpp"
+#include "solve.hpp"
 
 #include <algorithm>
 #include <atomic>
@@ -473,7 +474,7 @@ Fit fit_effect(const Problem& pb, const ParameterSet& base, const EffectSpec& sp
         so.parameter_tolerance = 1e-6;
         so.logging_type = ceres::SILENT;
         ceres::Solver::Summary sum;
-        ceres::Solve(so, &problem, &sum);
+        solve_from_finite_start(so, &problem, &sum);
         if (!sum.IsSolutionUsable()) continue;
         Fit f;
         for (std::size_t j = 0; j < u.size(); ++j) f.x.push_back(from_u(spec.params[j], u[j]));

@@ -1,5 +1,6 @@
 #include "cellbench/estimator/pulse_fit.hpp"
 #include "printf_text.hpp"
+#include "solve.hpp"
 
 #include <algorithm>
 #include <array>
@@ -209,7 +210,7 @@ ExpSegmentFit fit_exp_segment(std::vector<double> x, std::vector<double> y, ExpF
     opt.logging_type = ceres::SILENT;
     opt.minimizer_progress_to_stdout = false;
     ceres::Solver::Summary sum;
-    ceres::Solve(opt, &problem, &sum);
+    solve_from_finite_start(opt, &problem, &sum);
     f.converged = sum.termination_type == ceres::CONVERGENCE;
     f.a_v = p[0];
     f.tau1_s = p[1];
@@ -752,7 +753,7 @@ Candidate varpro_refine(const Window& w, const std::vector<std::size_t>& rows, c
         problem.SetParameterUpperBound(u.data(), j, std::log(hi[static_cast<std::size_t>(j)]));
     }
     ceres::Solver::Summary sum;
-    ceres::Solve(solver_options(max_iterations, 1e-9), &problem, &sum);
+    solve_from_finite_start(solver_options(max_iterations, 1e-9), &problem, &sum);
     Candidate c;
     for (std::size_t j = 0; j < 4; ++j) c.tau[j] = std::exp(u[j]);
     if (!cost->linear(c.tau, c.theta, c.cost)) return start;
@@ -802,7 +803,7 @@ JointResult polish(const Window& w, const std::vector<std::size_t>& rows, const 
         problem.SetParameterUpperBound(p.data(), b + 4, tb.hi2);
     }
     ceres::Solver::Summary sum;
-    ceres::Solve(solver_options(o.max_iterations), &problem, &sum);
+    solve_from_finite_start(solver_options(o.max_iterations), &problem, &sum);
     res.cost = sum.final_cost;
     res.converged = sum.termination_type == ceres::CONVERGENCE;
 

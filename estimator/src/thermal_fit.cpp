@@ -2,6 +2,7 @@
 // and the cooling time constant), entropic heat coefficient (eq. 4.4-4.6), charge throughput and capacity.
 #include "cellbench/estimator/thermal_fit.hpp"
 #include "printf_text.hpp"
+#include "solve.hpp"
 
 #include <algorithm>
 #include <array>
@@ -278,7 +279,7 @@ RestCoolingFit fit_rest_cooling(const Recording& rec, RowRange range, const Ther
         so.parameter_tolerance = 1e-12;
         so.logging_type = ceres::SILENT;
         ceres::Solver::Summary sum;
-        ceres::Solve(so, &problem, &sum);
+        solve_from_finite_start(so, &problem, &sum);
         return sum.IsSolutionUsable();
     };
     std::vector<double> res(tr.size());

@@ -149,6 +149,50 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     return tr;
 }
 
+std::optional<FittedStart> fit_initial_soc_under_load(const CellModel& model, const Recording& rec,
+                                                      const SimulationOptions& options) {
+    if (options.initial_soc || rec.size() < 3) return std::nullopt;
+    const double i0 = rec.current_a[0];
+    if (!std::isfinite(i0) || !(std::abs(i0) > std::max(0.05, model.capacity_ah() / 100.0))) return std::nullopt;
+    const double t0 = rec.time_s.front(), duration_s = rec.time_s.back() - t0;
+    const double window_s = std::clamp(0.1 * duration_s, 120.0, 900.0);
+    std::size_t n = 1;
+    while (n < rec.size() && rec.time_s[n] <= t0 + window_s) ++n;
+    const Recording stretch = rec.slice(0, n);
+    FittedStart out;
+    out.window_s = rec.time_s[n - 1] - t0;
+    out.guess_soc = simulate(model, rec.slice(0, 2), options).initial_soc;
+    auto rms_at = [&](double soc) {
+        SimulationOptions o = options;
+        o.initial_soc = soc;
+        const auto m = compare(model.params(), stretch, simulate(model, stretch, o));
+        return m.voltage_v.rms && std::isfinite(*m.voltage_v.rms) ? *m.voltage_v.rms : 1e300;
+    };
+    const double lo = std::max(0.0, out.guess_soc - 0.25), hi = std::min(1.0, out.guess_soc + 0.25);
+    double best = out.guess_soc, best_rms = rms_at(best);
+    out.guess_rms_v = best_rms;
+    for (double s = lo; s <= hi + 1e-12; s += 0.01)
+        if (const double r = rms_at(s); r < best_rms) best = s, best_rms = r;
+    // Golden section within a grid step either side.
+    constexpr double kInvPhi = 0.6180339887498949;
+    double a = std::max(lo, best - 0.01), b = std::min(hi, best + 0.01);
+    double c = b - kInvPhi * (b - a), d = a + kInvPhi * (b - a), fc = rms_at(c), fd = rms_at(d);
+    while (b - a > 1e-5) {
+        if (fc < fd)
+            b = d, d = c, fd = fc, c = b - kInvPhi * (b - a), fc = rms_at(c);
+        else
+            a = c, c = d, fc = fd, d = a + kInvPhi * (b - a), fd = rms_at(d);
+    }
+    const double mid = 0.5 * (a + b), mid_rms = rms_at(mid);
+    out.soc = mid_rms < best_rms ? mid : best;
+    out.rms_v = std::min(mid_rms, best_rms);
+    // The first row's SOC stands unless the stretch contradicts it: the model at least twice as close from another,
+    // and off by more than a cycler's voltage accuracy (2 mV) from the first row's.
+    constexpr double kAccuracyV = 0.002;
+    if (!(out.rms_v <= 0.5 * out.guess_rms_v && out.guess_rms_v > kAccuracyV)) return std::nullopt;
+    return out;
+}
+
 SimulationMetrics compare(const ParameterSet& params, const Recording& rec, const SimulationTrace& tr,
                           const std::vector<bool>* mask) {
     SimulationMetrics m;

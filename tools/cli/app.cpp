@@ -78,7 +78,7 @@ int run_cli(int argc, char** argv) {
     sim_cmd->add_option("recording", sim.recording, "BDF recording")->required()->check(CLI::ExistingFile);
     sim_cmd->add_option("--json", sim.metrics_json, "Write the metrics JSON (cellbench.metrics/1)");
     sim_cmd->add_option("--out", sim.output, "Write the simulated traces beside the measured ones (BDF CSV)");
-    sim_cmd->add_option("--initial-soc", sim.initial_soc, "Initial SOC (0..1); default: from the first rested voltage");
+    sim_cmd->add_option("--initial-soc", sim.initial_soc, "Initial SOC (0..1); default: from the first voltage less R0 I, or, for a recording that starts under load and whose first stretch contradicts that, the SOC that predicts its first stretch best");
     sim_cmd->add_option("--ambient", sim.ambient_c, "Ambient temperature, degC; default: measured, else first surface reading");
 
     DiagnoseCliOptions diag;

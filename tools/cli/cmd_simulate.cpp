@@ -41,6 +41,16 @@ int run_simulate(const SimulateOptions& o) {
     estimator::SimulationOptions so;
     so.initial_soc = o.initial_soc;
     so.ambient_c = o.ambient_c;
+    std::string initial_soc_source = o.initial_soc ? "given" : "first row";
+    if (const auto start = estimator::fit_initial_soc_under_load(model, rec, so)) {
+        so.initial_soc = start->soc;
+        initial_soc_source = fmt::format("fitted to the first {:.0f} s", start->window_s);
+        spdlog::info("{}: it starts under load ({:.3g} A), so its first voltage does not give its SOC: initial SOC "
+                     "{:.3f} fitted to its first {:.0f} s ({:.1f} mV RMS there; {:.3f} from that voltage less R0 I, "
+                     "{:.1f} mV); give --initial-soc to set it",
+                     o.recording, rec.current_a[0], start->soc, start->window_s, 1e3 * start->rms_v, start->guess_soc,
+                     1e3 * start->guess_rms_v);
+    }
     const auto trace = estimator::simulate(model, rec, so);
     const auto metrics = estimator::compare(params, rec, trace);
     spdlog::info("simulated {} samples ({:.0f} s) from SOC {:.3f}, ambient {:.2f} degC{}", rec.size(),
@@ -91,6 +101,8 @@ int run_simulate(const SimulateOptions& o) {
         };
         j["voltage_by_soc_band"] = band_json(bands.by_soc);
         j["voltage_by_current_band"] = band_json(bands.by_current);
+        j["initial_soc"] = trace.initial_soc;
+        j["initial_soc_source"] = initial_soc_source;
         outputs.write_json(o.metrics_json, j);
     }
     if (!o.output.empty()) {

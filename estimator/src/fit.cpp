@@ -405,7 +405,8 @@ void check_full_start(const std::vector<Recording>& recordings, const std::vecto
                              " at " + printf_text("%.4f V", highest) +
                              ", and it holds no charge to full before its first pulse, so its SOC is not known. Hand "
                              "in the part of the test that starts at full charge too (parts that continue one another "
-                             "are joined)");
+                             "are joined), or leave out " + recordings[by].source +
+                             " if its cell was charged to another voltage");
         if (!confirmed)
             warnings.push_back(recordings[r].source + ": SOC 100 % taken at its first row (" +
                                printf_text("%.4f V", recordings[r].voltage_v.front()) +

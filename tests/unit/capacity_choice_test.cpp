@@ -94,14 +94,19 @@ TEST(CapacityChoice, ARecordingAtAnotherAmbientTemperatureIsLeftOutAndSaysSo) {
     cold.surface_c.assign(cold.size(), 20.0);
     EXPECT_EQ(est::characterize({hppc, cold}, o).capacity.source, "c5_at_0degC");
 
+    // Named by paths as long as a user's folders make them: the message whole, both names and what to do.
     auto warm_hppc = hppc;
-    warm_hppc.source = "hppc_at_50degC";
+    hppc.source = "/data/" + std::string(150, 'a') + "/hppc.bdf.csv";
+    warm_hppc.source = "/data/" + std::string(150, 'b') + "/hppc_at_50degC.bdf.csv";
     warm_hppc.surface_c.assign(warm_hppc.size(), 50.0);
     try {
         (void)est::characterize({hppc, warm_hppc}, o);
         ADD_FAILURE() << "two HPPCs 25 K apart were fitted as one";
     } catch (const cellbench::InputError& e) {
-        EXPECT_NE(std::string(e.what()).find("hppc_at_50degC"), std::string::npos) << e.what();
+        const std::string what = e.what();
+        EXPECT_NE(what.find(hppc.source), std::string::npos) << what;
+        EXPECT_NE(what.find(warm_hppc.source), std::string::npos) << what;
+        EXPECT_NE(what.find("fit each on its own"), std::string::npos) << what;
     }
 }
 

@@ -120,13 +120,6 @@ bool is_characterization(const RecordingSegments& seg) {
     return pulses >= 2 && seg.long_rests.size() >= 3;
 }
 
-double median_interval_s(const Recording& rec) {
-    std::vector<double> dt;
-    for (std::size_t k = 1; k < rec.size(); k += std::max<std::size_t>(1, rec.size() / 5000))
-        dt.push_back(rec.time_s[k] - rec.time_s[k - 1]);
-    return upper_median(std::move(dt));
-}
-
 // Overlapping recordings of one test (the cycler's export of the whole test and a finer recording of part of
 // it): the finer one is spliced into the coarser one, as `cellbench import --neware X --bdf Y` does, so the
 // finest data serve once, the coarser only where they alone hold data, and any arrangement of the same files
@@ -138,35 +131,23 @@ std::vector<Recording> merge_overlapping(const std::vector<Recording>& in, std::
         const double da = a.time_s.back() - a.time_s.front(), db = b.time_s.back() - b.time_s.front();
         return da != db ? da > db : a.size() > b.size();
     });
-    bool merged = true;
-    while (merged) {
-        merged = false;
-        for (std::size_t i = 0; i < recs.size() && !merged; ++i)
-            for (std::size_t j = 0; j < recs.size() && !merged; ++j) {
-                if (i == j) continue;
-                const Recording& coarse = recs[i];
-                const Recording& fine = recs[j];
-                const double d_coarse = coarse.time_s.back() - coarse.time_s.front();
-                const double d_fine = fine.time_s.back() - fine.time_s.front();
-                if (d_fine > d_coarse || !(median_interval_s(fine) < median_interval_s(coarse))) continue;
-                CurrentAlignment al;
-                try {
-                    al = align_by_current(coarse, fine, d_coarse);
-                } catch (const InputError&) {
-                    continue;
-                }
-                if (al.edges_b < 3 || al.matched_edges * 5 < al.edges_b * 4) continue;
-                notes.push_back(fine.source + " and " + coarse.source + " record the same test (" +
-                                std::to_string(al.matched_edges) + " of " + std::to_string(al.edges_b) +
-                                " current steps at offset " + printf_text("%.2f", al.offset_s) +
-                                " s): spliced, the finer rows serve once");
-                Recording spliced = splice_recordings(coarse, fine, al.offset_s);
-                spliced.source = coarse.source + " + " + fine.source;
-                recs[i] = std::move(spliced);
-                recs.erase(recs.begin() + static_cast<std::ptrdiff_t>(j));
-                merged = true;
-            }
-    }
+    merge_pairwise(recs, [&](const Recording& coarse, const Recording& fine) -> std::optional<Recording> {
+        const double d_coarse = coarse.time_s.back() - coarse.time_s.front();
+        const double d_fine = fine.time_s.back() - fine.time_s.front();
+        if (d_fine > d_coarse || !(median_interval_s(fine) < median_interval_s(coarse))) return std::nullopt;
+        CurrentAlignment al;
+        try {
+            al = align_by_current(coarse, fine, d_coarse);
+        } catch (const InputError&) {
+            return std::nullopt;
+        }
+        if (al.edges_b < 3 || al.matched_edges * 5 < al.edges_b * 4) return std::nullopt;
+        notes.push_back(fine.source + " and " + coarse.source + " record the same test (" +
+                        std::to_string(al.matched_edges) + " of " + std::to_string(al.edges_b) +
+                        " current steps at offset " + printf_text("%.2f", al.offset_s) +
+                        " s): spliced, the finer rows serve once");
+        return splice_recordings(coarse, fine, al.offset_s);  // named "coarse + fine"
+    });
     // The remaining order: characterization-like recordings first does not matter; keep a stable content order.
     return recs;
 }

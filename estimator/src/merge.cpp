@@ -164,11 +164,20 @@ Recording splice_recordings(const Recording& a, const Recording& b, double offse
     return out;
 }
 
+double median_interval_s(const Recording& rec) {
+    std::vector<double> dt;
+    for (std::size_t k = 1; k < rec.size(); k += std::max<std::size_t>(1, rec.size() / 5000))
+        dt.push_back(rec.time_s[k] - rec.time_s[k - 1]);
+    return upper_median(std::move(dt));
+}
+
 std::optional<double> continuation_offset_s(const Recording& a, const Recording& b, double lowest_voltage_v) {
     if (a.size() < 2 || b.size() < 2) return std::nullopt;
     const double va = a.voltage_v.back(), vb = b.voltage_v.front();
     const double ia = a.current_a.back(), ib = b.current_a.front();
     if (!std::isfinite(va) || !std::isfinite(vb) || !std::isfinite(ia) || !std::isfinite(ib)) return std::nullopt;
+    // The cheap test first: the junction's voltages (10 mV is the wider of the two tolerances below).
+    if (std::abs(vb - va) > 0.010) return std::nullopt;
     // The same current on both sides of the junction: a rest, or a step that runs on into the next file.
     double peak_a = 0;
     for (double i : a.current_a)
@@ -187,9 +196,7 @@ std::optional<double> continuation_offset_s(const Recording& a, const Recording&
     for (double v : a.voltage_v)
         if (std::isfinite(v)) lowest_a = std::min(lowest_a, v);
     if (lowest_a < lowest_voltage_v + 0.05) return std::nullopt;
-    std::vector<double> dt;
-    for (std::size_t k = 1; k < a.size(); ++k) dt.push_back(a.time_s[k] - a.time_s[k - 1]);
-    return a.time_s.back() + upper_median(std::move(dt)) - b.time_s.front();
+    return a.time_s.back() + median_interval_s(a) - b.time_s.front();
 }
 
 std::vector<Recording> join_continued_recordings(std::vector<Recording> recs, std::vector<std::string>& notes) {
@@ -197,31 +204,22 @@ std::vector<Recording> join_continued_recordings(std::vector<Recording> recs, st
     for (const auto& r : recs)
         for (double v : r.voltage_v)
             if (std::isfinite(v)) lowest = std::min(lowest, v);
-    bool joined = true;
-    while (joined) {
-        joined = false;
-        for (std::size_t i = 0; i < recs.size() && !joined; ++i)
-            for (std::size_t j = 0; j < recs.size() && !joined; ++j) {
-                if (i == j) continue;
-                const auto offset = continuation_offset_s(recs[i], recs[j], lowest);
-                if (!offset) continue;
-                notes.push_back(recs[j].source + " continues " + recs[i].source +
-                                printf_text(" (its first row, %.4f V at %.3g A, follows the other's last, %.4f V at "
-                                            "%.3g A, %.3g s later): joined as one test",
-                                            recs[j].voltage_v.front(), recs[j].current_a.front(),
-                                            recs[i].voltage_v.back(), recs[i].current_a.back(),
-                                            *offset + recs[j].time_s.front() - recs[i].time_s.back()));
-                const std::size_t junction = recs[i].size();
-                Recording whole = splice_recordings(recs[i], recs[j], *offset);
-                // The step that runs across the junction is one step (splice_recordings starts a new one there).
-                if (!whole.step_count.empty() && junction < whole.size() &&
-                    whole.step_count[junction] == whole.step_count[junction - 1] + 1)
-                    for (std::size_t k = junction; k < whole.size(); ++k) whole.step_count[k] -= 1;
-                recs[i] = std::move(whole);
-                recs.erase(recs.begin() + static_cast<std::ptrdiff_t>(j));
-                joined = true;
-            }
-    }
+    merge_pairwise(recs, [&](const Recording& a, const Recording& b) -> std::optional<Recording> {
+        const auto offset = continuation_offset_s(a, b, lowest);
+        if (!offset) return std::nullopt;
+        notes.push_back(b.source + " continues " + a.source +
+                        printf_text(" (its first row, %.4f V at %.3g A, follows the other's last, %.4f V at %.3g A, "
+                                    "%.3g s later): joined as one test",
+                                    b.voltage_v.front(), b.current_a.front(), a.voltage_v.back(), a.current_a.back(),
+                                    *offset + b.time_s.front() - a.time_s.back()));
+        Recording whole = splice_recordings(a, b, *offset);
+        // The step that runs across the junction is one step (splice_recordings starts a new one there).
+        const std::size_t junction = a.size();
+        if (!whole.step_count.empty() && junction < whole.size() &&
+            whole.step_count[junction] == whole.step_count[junction - 1] + 1)
+            for (std::size_t k = junction; k < whole.size(); ++k) whole.step_count[k] -= 1;
+        return whole;
+    });
     return recs;
 }
 

@@ -4,6 +4,7 @@
 // are resampled onto the cycler's time base.
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "cellbench/core/recording.hpp"
@@ -25,6 +26,29 @@ CurrentAlignment align_by_current(const Recording& a, const Recording& b, double
 // Cycler rows of a before b starts, then b's rows on a's clock (b shifted by offset_s, to the microsecond),
 // then a's rows after b ends. Channels present in either are kept; rows without a value hold NaN.
 Recording splice_recordings(const Recording& a, const Recording& b, double offset_s);
+
+// The median interval between a recording's rows (from at most about 5000 of them).
+double median_interval_s(const Recording& rec);
+
+// Merges recordings pairwise until no pair merges: merge(a, b) returns the one recording that stands for both, or
+// nothing; it takes a's place, b is dropped, and the search starts again from the first pair. The loop of
+// merge_overlapping (fit.cpp: a finer recording spliced into a coarser one of the same test) and of
+// join_continued_recordings.
+template <class Merge>
+void merge_pairwise(std::vector<Recording>& recs, Merge&& merge) {
+    for (bool merged = true; merged;) {
+        merged = false;
+        for (std::size_t i = 0; i < recs.size() && !merged; ++i)
+            for (std::size_t j = 0; j < recs.size() && !merged; ++j) {
+                if (i == j) continue;
+                if (std::optional<Recording> both = merge(recs[i], recs[j])) {
+                    recs[i] = std::move(*both);
+                    recs.erase(recs.begin() + static_cast<std::ptrdiff_t>(j));
+                    merged = true;
+                }
+            }
+    }
+}
 
 // Files that continue one another (a cycler's export split into parts, a test logged day by day): b continues a
 // when b starts where a ends. With Unix time in both, b starts after a ends, within an hour, and its first voltage

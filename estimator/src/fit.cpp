@@ -110,14 +110,29 @@ std::size_t anchor_row(const RecordingSegments& seg) {
     return anchor;
 }
 
-// A recording of a characterization test (SOC anchored at its full charge): pulse sets, or pulses between
-// several long rests.
-bool is_characterization(const RecordingSegments& seg) {
+// Current phases that run from one long rest straight into the next: the titration steps of a GITT or an
+// incremental-OCV test (and the SOC steps of an HPPC). A charge held at its voltage limit (CCCV) is a full charge.
+std::size_t titration_steps(const RecordingSegments& seg) {
+    std::size_t steps = 0;
+    for (std::size_t i = 1; i + 1 < seg.phases.size(); ++i)
+        steps += !seg.phases[i].is_rest() && !seg.phases[i].cv_tail && seg.phases[i - 1].kind == PhaseKind::LongRest &&
+                 seg.phases[i + 1].kind == PhaseKind::LongRest;
+    return steps;
+}
+constexpr std::size_t kMinTitrationSteps = 5;
+
+// A recording of a characterization test (SOC anchored at its full charge): pulse sets, pulses between several
+// long rests, or a GITT / incremental-OCV test (at least kMinTitrationSteps current steps between long rests:
+// each step's edges and relaxations identify R0 and the pairs as a pulse's do, at the step's one current).
+bool has_pulses(const RecordingSegments& seg) {
     if (!seg.pulse_sets.empty()) return true;
     std::size_t pulses = 0;
     for (const auto& ph : seg.phases)
         pulses += ph.is_pulse();
     return pulses >= 2 && seg.long_rests.size() >= 3;
+}
+bool is_characterization(const RecordingSegments& seg) {
+    return has_pulses(seg) || titration_steps(seg) >= kMinTitrationSteps;
 }
 
 // Overlapping recordings of one test (the cycler's export of the whole test and a finer recording of part of
@@ -433,8 +448,20 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     leave_out_other_ambients(recordings, segs, characterization, out.warnings);
     check_full_start(recordings, segs, characterization, out.warnings);
     if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; }))
-        throw InputError("characterization: no recording holds pulses between rests (an HPPC test): nothing to "
-                         "identify the resistances from");
+        throw InputError("characterization: no recording holds pulses between rests (an HPPC test) or " +
+                         std::to_string(kMinTitrationSteps) +
+                         " or more current steps between long rests (a GITT): nothing to identify the resistances from");
+    {
+        bool pulses = false;
+        std::size_t steps = 0;
+        for (std::size_t r = 0; r < recordings.size(); ++r)
+            if (characterization[r]) pulses = pulses || has_pulses(segs[r]), steps += titration_steps(segs[r]);
+        if (!pulses)
+            out.warnings.push_back(
+                "no pulses: R0 and the RC pairs come from the " + std::to_string(steps) +
+                " current steps between long rests alone (a GITT or incremental-OCV test), at their one current "
+                "each; the first pair only where rows follow a step within its time constant");
+    }
     // Without any cell temperature the thermal part cannot be identified: say so before the long fit, not after.
     if (std::none_of(recordings.begin(), recordings.end(), [](const Recording& r) { return r.has_surface(); }) &&
         !(options.fallback_c_th_j_per_k > 0 && options.fallback_r_th_k_per_w > 0))
@@ -454,7 +481,8 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     {
         double pilot_rate = 1e300;
         for (std::size_t r = 0; r < recordings.size(); ++r)
-            if (const auto& pd = segs[r].pilot_discharge; pd && std::abs(pd->mean_current_a) < pilot_rate) {
+            if (const auto& pd = segs[r].pilot_discharge;
+                pd && pd->voltage_end_v <= v_floor + 0.1 && std::abs(pd->mean_current_a) < pilot_rate) {
                 pilot_rate = std::abs(pd->mean_current_a);
                 out.capacity = {-pd->charge_ah, "pilot discharge", recordings[r].source};
                 capacity_test = {r, *pd};

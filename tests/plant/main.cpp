@@ -22,7 +22,7 @@ int main(int argc, char** argv) {
     std::string out_dir;
     bool temperature_dependence = false, current_dependence = false, no_noise = false;
     app.add_option("--seed", seed, "cell, profile and noise seed")->required();
-    app.add_option("--layout", layout, "HPPC layout")->check(CLI::IsMember({"thesis", "usabc", "multi", "random"}));
+    app.add_option("--layout", layout, "HPPC layout")->check(CLI::IsMember({"thesis", "usabc", "multi", "random", "gitt"}));
     app.add_option("--effect", effects, "hidden effect id (repeatable, INTERFACES.md ids or none)");
     app.add_option("--sample-s", sample_s, "sampling interval around pulses and in the drive (default: by seed, 0.1-1 s)")
         ->check(CLI::Range(0.01, 10.0));
@@ -88,6 +88,11 @@ int main(int argc, char** argv) {
                         100 * l.soc_step, l.step_rate_c, l.rest_after_step_s, l.discharge_pulse_s, l.discharge_rate_c,
                         l.charge_pulse_s, l.charge_rate_c, l.charge_first ? " (first)" : "", l.rest_between_s,
                         l.rest_after_pulses_s, l.currents_per_level);
+        }
+        if (o.layout == plant::Layout::gitt) {
+            const auto l = plant::draw_gitt_layout(seed);
+            std::printf("gitt layout: steps of %.0f %% at %.2gC, %.0f s rest after each, %s\n", 100 * l.soc_step, l.rate_c,
+                        l.rest_s, l.upward ? "down to the cut-off and back up" : "down to the cut-off");
         }
         std::printf("wrote %s: seed %llu, %s %s, %.4f Ah, layout %s, sampling %.3g s, effects [", (dir / "truth.json").c_str(),
                     static_cast<unsigned long long>(seed), truth.chemistry.c_str(), truth.format.c_str(), truth.capacity_ah,

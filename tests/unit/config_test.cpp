@@ -119,7 +119,7 @@ TEST(Config, ShippedCellLoadsAndParameterSetsAreNotListedAsCells) {
 TEST(Config, EveryShippedProgramLoadsForTheCellOnEveryBench) {
     const auto cell = p45b();
     const auto programs = list_programs(kConfigDir);
-    for (const char* expected : {"cc", "hppc", "rw", "hppc_short"})
+    for (const char* expected : {"cc", "hppc", "rw", "hppc_short", "gitt"})
         EXPECT_NE(std::find(programs.begin(), programs.end(), expected), programs.end()) << expected;
     for (const char* bench_file : {"bench.sim.json", "bench.hil.json", "bench.lab.json"}) {
         const auto bench = load_bench_config(kConfigDir / bench_file);
@@ -419,7 +419,7 @@ TEST(Config, ACampaignRepeatsItsSegmentsForEachValue) {
 
 TEST(Config, ExpandedProgramsRoundTripThroughJson) {
     const auto cell = p45b();
-    for (const char* name : {"cc", "hppc", "rw", "hppc_short", "cc_temperatures"}) {
+    for (const char* name : {"cc", "hppc", "rw", "hppc_short", "cc_temperatures", "gitt"}) {
         SCOPED_TRACE(name);
         const auto p = load_program(program_file(kConfigDir, name), cell);
         const auto again = parse_program(p.to_json(), "expanded.json", cell);

@@ -86,12 +86,13 @@ std::string_view layout_name(Layout l) {
         case Layout::usabc: return "usabc";
         case Layout::multi: return "multi";
         case Layout::random: return "random";
+        case Layout::gitt: return "gitt";
     }
     return "thesis";
 }
 
 std::optional<Layout> parse_layout(std::string_view name) {
-    for (Layout l : {Layout::thesis, Layout::usabc, Layout::multi, Layout::random})
+    for (Layout l : {Layout::thesis, Layout::usabc, Layout::multi, Layout::random, Layout::gitt})
         if (layout_name(l) == name) return l;
     return std::nullopt;
 }

@@ -90,6 +90,17 @@ RandomLayout draw_random_layout(std::uint64_t seed, double sample_s) {
 }
 
 
+GittLayout draw_gitt_layout(std::uint64_t seed) {
+    Rng rng(seed, 14);
+    GittLayout l;
+    static constexpr double kRates[] = {0.1, 0.2, 1.0 / 3.0};
+    l.rate_c = kRates[rng.index(3)];
+    l.soc_step = rng.index(2) == 0 ? 0.05 : 0.1;
+    l.rest_s = rng.index(2) == 0 ? 1800.0 : 3600.0;
+    l.upward = rng.index(2) == 0;
+    return l;
+}
+
 Program hppc_program(const CellSpec& c, Layout layout, const PlantOptions& options) {
     const double i1c = c.current_1c_a();
     Program p;
@@ -203,6 +214,33 @@ Program hppc_program(const CellSpec& c, Layout layout, const PlantOptions& optio
             final_step.tail = true;
             p.push_back(final_step);
             p.push_back(rest(1800.0));
+            break;
+        }
+        case Layout::gitt: {
+            const GittLayout l = draw_gitt_layout(c.seed);
+            const double rated = c.nominal_capacity_ah;
+            const auto reference = [rated](const std::vector<StepResult>&) { return rated; };
+            p.push_back(rest(10.0));
+            p.push_back(cccv_charge(c, i1c));
+            p.push_back(rest(3600.0));
+            const int levels = static_cast<int>(std::round(1.0 / l.soc_step)) + 1;  // the last one ends at the cut-off
+            for (int level = 0; level < levels; ++level) {
+                Step step = cc_discharge(c, l.rate_c * i1c, kInf, true);
+                step.ah_limit = soc_step_ah(reference, 0, l.soc_step);
+                step.end_loop_on_cutoff = true;
+                p.push_back(step);
+                p.push_back(rest(l.rest_s));
+            }
+            Step empty = rest(l.rest_s);
+            empty.tail = true;
+            p.push_back(empty);
+            if (l.upward)
+                for (int level = 0; level < levels; ++level) {
+                    Step step = cc_charge(c, l.rate_c * i1c, kInf, true);
+                    step.ah_limit = soc_step_ah(reference, 0, l.soc_step, 1.0);
+                    p.push_back(step);  // the last one ends at the upper limit
+                    p.push_back(rest(l.rest_s));
+                }
             break;
         }
         case Layout::multi: {  // discharge-only pulses at five currents per level (Panasonic 18650PF style)

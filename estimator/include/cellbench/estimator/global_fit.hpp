@@ -107,7 +107,11 @@ struct GlobalWindow {
     std::size_t recording = 0;
     std::size_t begin = 0, end = 0;  // rows [begin, end)
     bool rested_start = true;        // starts at the end of a long rest (RC voltages ~ 0, SOC known)
-    std::string kind;                // "pulses", "discharge", "charge", "mixed"
+    // "pulses" (current phases of at most a minute between rests), "step" (one current phase from a long rest into
+    // the next that moves less than a quarter of the capacity: a GITT's or incremental-OCV test's titration step),
+    // "discharge", "charge", "mixed". Pulses and steps are the windows the RC pairs are identified from.
+    std::string kind;
+    [[nodiscard]] bool identifies_rc() const { return kind == "pulses" || kind == "step"; }
     // Filled by the fit:
     double soc_min = kNaN, soc_max = kNaN;
     double soc_offset = 0.0;         // fitted initial-SOC correction (windows without a rested start)

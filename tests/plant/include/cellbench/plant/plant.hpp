@@ -31,7 +31,7 @@ inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 inline constexpr double kInf = std::numeric_limits<double>::infinity();
 
 enum class Chemistry { nmc, nca, lfp, lmo };
-enum class Layout { thesis, usabc, multi, random };
+enum class Layout { thesis, usabc, multi, random, gitt };
 enum class Direction { discharge, charge };
 
 // Hidden effects (INTERFACES.md effect ids). Physics effects apply to every recording of the cell, bench/ageing
@@ -203,6 +203,16 @@ Program hppc_program(const CellSpec& cell, Layout layout, const PlantOptions& op
 // 0.25-1x the discharge current, either first, 0-40 s rest between them and 0 or 40 s after, the SOC step at C/3-1C
 // right after, then 15 min - 1 h rest. A pulse lasts at least ten sample intervals; pulses are held for their full
 // time (clamped at the voltage limits).
+// Layout::gitt: a GITT / incremental-OCV test, no pulses: from full charge at 1C CCCV and 1 h rest, titration
+// steps of `soc_step` (5 or 10 % of the rated capacity) at `rate_c` (C/10, C/5 or C/3), each followed by a rest of
+// `rest_s` (30 min or 1 h), down to the cut-off; on half the seeds (`upward`) the same steps charging back up to
+// the upper limit after a rest at empty. Steps are logged at the sampling interval, rests every second.
+struct GittLayout {
+    double soc_step = 0.05, rate_c = 0.2, rest_s = 3600.0;
+    bool upward = false;
+};
+GittLayout draw_gitt_layout(std::uint64_t seed);
+
 struct RandomLayout {
     bool upward = false, pilot = false, charge_first = false;
     double soc_step = 0.1, step_rate_c = 1.0, rest_after_step_s = 3600.0;

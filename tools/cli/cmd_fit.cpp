@@ -17,6 +17,41 @@ namespace cellbench::cli {
 
 namespace {
 
+// The per-pulse-set fits in one line: how many, of which forms, which method won; for a GITT, its steps.
+void print_pulse_sets_line(const estimator::Characterization& c) {
+    if (c.pulse_fits.empty()) {  // a GITT, or pulses in no layout the per-pulse-set fits take
+        std::size_t steps = 0;
+        if (c.global)
+            for (const auto& w : c.global->windows) steps += w.kind == "step";
+        if (steps > 0)
+            std::printf("pulse sets: none (the tables come from %zu titration steps)\n", steps);
+        else
+            std::printf("pulse sets: none fitted on their own (the global fit uses every pulse)\n");
+        return;
+    }
+    std::printf("pulse sets: %zu fitted", c.pulse_fits.size());
+    {  // by form, when not all are of the thesis' (estimator::PulseSetForm)
+        std::map<std::string, std::size_t> forms;
+        for (const auto& f : c.pulse_fits) ++forms[estimator::to_string(f.pulse_set.form)];
+        if (!forms.empty() && !(forms.size() == 1 && forms.begin()->first == "thesis")) {
+            std::string t;
+            for (const auto& [name, k] : forms) t += (t.empty() ? "" : ", ") + std::to_string(k) + " " + name;
+            std::printf(" (%s)", t.c_str());
+        }
+    }
+    std::printf(";");
+    std::size_t joint = 0;
+    double rms_t = 0, rms_j = 0;
+    std::size_t n = 0;
+    for (const auto& f : c.pulse_fits) {
+        joint += f.chosen == estimator::PulseSetFit::Method::Joint;
+        if (std::isfinite(f.thesis_rms_v) && std::isfinite(f.joint_rms_v)) rms_t += f.thesis_rms_v, rms_j += f.joint_rms_v, ++n;
+    }
+    std::printf(" joint fit chosen for %zu, thesis per-segment for %zu", joint, c.pulse_fits.size() - joint);
+    if (n) std::printf(" (mean pulse-set RMS: thesis %.2f mV, joint %.2f mV)", rms_t / n * 1e3, rms_j / n * 1e3);
+    std::printf("\n");
+}
+
 void print_parameter_table(const estimator::Characterization& c) {
     const auto& p = c.params;
     if (std::isfinite(c.capacity.capacity_ah_sd))
@@ -81,27 +116,8 @@ void print_parameter_table(const estimator::Characterization& c) {
                     c.global->step_lag.sd, flags_of({&c.global->step_lag}).c_str());
         std::printf("%zu values flagged (? uncertain or unidentified, ! implausible)\n", c.global->flagged_count());
     }
-    std::printf("pulse sets: %zu fitted", c.pulse_fits.size());
-    {  // by form, when not all are of the thesis' (estimator::PulseSetForm)
-        std::map<std::string, std::size_t> forms;
-        for (const auto& f : c.pulse_fits) ++forms[estimator::to_string(f.pulse_set.form)];
-        if (!forms.empty() && !(forms.size() == 1 && forms.begin()->first == "thesis")) {
-            std::string t;
-            for (const auto& [name, k] : forms) t += (t.empty() ? "" : ", ") + std::to_string(k) + " " + name;
-            std::printf(" (%s)", t.c_str());
-        }
-    }
-    std::printf(";");
-    std::size_t joint = 0;
-    double rms_t = 0, rms_j = 0;
-    std::size_t n = 0;
-    for (const auto& f : c.pulse_fits) {
-        joint += f.chosen == estimator::PulseSetFit::Method::Joint;
-        if (std::isfinite(f.thesis_rms_v) && std::isfinite(f.joint_rms_v)) rms_t += f.thesis_rms_v, rms_j += f.joint_rms_v, ++n;
-    }
-    std::printf(" joint fit chosen for %zu, thesis per-segment for %zu", joint, c.pulse_fits.size() - joint);
-    if (n) std::printf(" (mean pulse-set RMS: thesis %.2f mV, joint %.2f mV)", rms_t / n * 1e3, rms_j / n * 1e3);
-    std::printf("\nthermal: C_th %.2f J/K", p.thermal.c_th_j_per_k);
+    print_pulse_sets_line(c);
+    std::printf("thermal: C_th %.2f J/K", p.thermal.c_th_j_per_k);
     if (std::isfinite(c.thermal.c_th_sigma_j_per_k)) std::printf(" +- %.2f", c.thermal.c_th_sigma_j_per_k);
     if (std::isfinite(c.thermal.c_th_r_squared)) std::printf(" (R^2 %.3f)", c.thermal.c_th_r_squared);
     auto thermal_mark = [](const std::vector<std::string>& flags) -> const char* {

@@ -447,10 +447,31 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
     for (std::size_t r = 0; r < recordings.size(); ++r) characterization[r] = is_characterization(segs[r]);
     leave_out_other_ambients(recordings, segs, characterization, out.warnings);
     check_full_start(recordings, segs, characterization, out.warnings);
-    if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; }))
+    if (std::none_of(characterization.begin(), characterization.end(), [](bool b) { return b; })) {
+        // What each recording holds instead, so that a test whose rests are too short to read the OCV says so.
+        std::string found;
+        for (std::size_t r = 0; r < recordings.size(); ++r) {
+            const auto& ph = segs[r].phases;
+            std::size_t pulses = 0, currents = 0;
+            std::vector<double> between;  // rests with a current phase on both sides
+            for (std::size_t i = 0; i < ph.size(); ++i) {
+                pulses += ph[i].is_pulse();
+                currents += !ph[i].is_rest();
+                if (ph[i].is_rest() && i > 0 && i + 1 < ph.size()) between.push_back(ph[i].duration_s);
+            }
+            found += printf_text("; %s: %zu current phases (%zu of them pulses of at most %.0f s), %zu rests of %.0f s "
+                                 "or more",
+                                 recordings[r].source.c_str(), currents, pulses, SegmentOptions{}.pulse_max_s,
+                                 segs[r].long_rests.size(), SegmentOptions{}.long_rest_s);
+            if (!between.empty())
+                found += printf_text(", the rests between its current phases %.0f s (median)", upper_median(std::move(between)));
+        }
         throw InputError("characterization: no recording holds pulses between rests (an HPPC test) or " +
-                         std::to_string(kMinTitrationSteps) +
-                         " or more current steps between long rests (a GITT): nothing to identify the resistances from");
+                         std::to_string(kMinTitrationSteps) + " or more current steps between rests of " +
+                         printf_text("%.0f", SegmentOptions{}.long_rest_s) +
+                         " s or more (a GITT; the OCV is read at the end of those rests): nothing to identify the "
+                         "resistances from" + found);
+    }
     {
         bool pulses = false;
         std::size_t steps = 0;

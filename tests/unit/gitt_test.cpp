@@ -83,6 +83,25 @@ TEST(Gitt, ATitrationTestIsFittedFromItsStepsAndSaysSo) {
     EXPECT_LT(std::abs(mid->at(0).value - truth.r0_ohm), 3.0 * mid->at(0).sd);
 }
 
+TEST(Gitt, ATitrationTestWhoseRestsAreTooShortToReadTheOcvSaysSo) {
+    std::vector<Step> p = {{600.0, 0.0, "Rest"}};
+    for (int k = 0; k < 8; ++k) {
+        p.push_back({600.0, -kStepCurrentA, "CC DChg"});
+        p.push_back({300.0, 0.0, "Rest"});
+    }
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 1.0;
+    try {
+        (void)est::characterize({cellbench::test::synthesize(p, so)}, cellbench::test::characterization_options());
+        ADD_FAILURE() << "a test with 5-minute rests has no OCV to anchor its steps";
+    } catch (const cellbench::InputError& e) {
+        const std::string m = e.what();
+        EXPECT_NE(m.find("5 or more current steps between rests of 600 s or more (a GITT"), std::string::npos) << m;
+        EXPECT_NE(m.find("synthetic: 8 current phases (0 of them pulses of at most 60 s)"), std::string::npos) << m;
+        EXPECT_NE(m.find("the rests between its current phases 300 s (median)"), std::string::npos) << m;
+    }
+}
+
 TEST(Gitt, TheR0SdIsNoSmallerThanTheOneSampleJumpsHoldIt) {
     const auto c = est::characterize({gitt(0.5)}, cellbench::test::characterization_options());
     ASSERT_TRUE(c.global.has_value());

@@ -1164,8 +1164,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // R0 apart from the pairs is what the one-sample voltage jumps across current steps hold; the rest of a
     // step (its level, its relaxation) holds R0 + R1 + R2, or R0 only through the pairs' model shape and the
     // smoothness prior, which the covariance above takes at their word. Its sd is held at least at the jumps'
-    // own precision: per knot and direction, 1 / sqrt(sum (w I / sigma_step)^2) over the steps near it (w its
-    // interpolation weight, I the current whose R0 the jump shows). Independent plant, a GITT at C/10 logged
+    // own precision: per knot and direction, 1 / sqrt(sum (w dI / sigma_step)^2) over the steps near it (w its
+    // interpolation weight, dI the change of the current whose R0 the jump shows). Independent plant, a GITT at C/10 logged
     // every 0.1 s (8.6 mV jumps, 0.2 mV noise): R0 scattered 1.2 % around the cell's over four noise draws while
     // the covariance said 0.2-0.4 %; a pulse at 1C or more is barely touched.
     std::vector<std::array<double, 2>> jump_information(b.grid.n, {0.0, 0.0});
@@ -1173,15 +1173,25 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         for (std::size_t k = 1; k < wd.ticks.size(); ++k) {
             const auto& tk = wd.ticks[k];
             if (!tk.step || !std::isfinite(tk.voltage_v) || !std::isfinite(wd.ticks[k - 1].voltage_v)) continue;
-            const double i = std::abs(tk.current_a) >= std::abs(tk.current_before_a) ? tk.current_a : tk.current_before_a;
-            const int dir = i < 0 ? 0 : 1;
             int ka = 0;
             while (ka + 1 < b.grid.n && b.grid.soc(ka + 1) <= tk.soc_end) ++ka;
             const int kb = std::min(ka + 1, b.grid.n - 1);
             const double w = kb == ka ? 0.0 : std::clamp((tk.soc_end - b.grid.soc(ka)) / (b.grid.soc(kb) - b.grid.soc(ka)), 0.0, 1.0);
-            const double x = i / wd.step_sigma_v;
-            jump_information[ka][dir] += (1 - w) * (1 - w) * x * x;
-            if (kb != ka) jump_information[kb][dir] += w * w * x * x;
+            // The jump is R0 times the change of the current within one direction (a pulse out of a rest, a CV
+            // taper's row: its change, not its level); across a reversal each direction's R0 times its current.
+            auto add = [&](double current_a) {
+                const int dir = current_a < 0 ? 0 : 1;
+                const double x = current_a / wd.step_sigma_v;
+                jump_information[ka][dir] += (1 - w) * (1 - w) * x * x;
+                if (kb != ka) jump_information[kb][dir] += w * w * x * x;
+            };
+            const double a = tk.current_before_a, c = tk.current_a;
+            if (a * c < 0) {
+                add(a), add(c);
+            } else {
+                const double change = c - a;  // in the direction of the larger of the two
+                add(std::abs(c) >= std::abs(a) ? std::copysign(std::abs(change), c) : std::copysign(std::abs(change), a));
+            }
         }
     auto jump_sd_ohm = [&](int ka, int kb, int dir, double w) {
         auto at = [&](int k) { return jump_information[k][dir] > 0 ? 1.0 / std::sqrt(jump_information[k][dir]) : 0.0; };

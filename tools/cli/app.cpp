@@ -40,7 +40,7 @@ int run_cli(int argc, char** argv) {
 
     FitOptions fit;
     auto* fit_cmd = app.add_subcommand("fit", "Fit the cell's parameter set from characterization recordings");
-    fit_cmd->add_option("recordings", fit.recordings, "BDF recordings of one cell (HPPC, CC discharge, ...)")
+    fit_cmd->add_option("recordings", fit.recordings, "BDF recordings of one cell (HPPC or GITT, CC discharges, ...)")
         ->check(CLI::ExistingFile);
     fit_cmd->add_option("--db", fit.db, "cellbenchd SQLite database (with --run)");
     fit_cmd->add_option("--run", fit.run_id, "Run id in --db to replay through the online fitter");

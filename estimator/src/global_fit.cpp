@@ -340,8 +340,7 @@ std::optional<double> uniform_step_interval_s(const std::vector<WindowData>& win
     std::vector<double> dt;
     for (const auto& w : windows)
         for (std::size_t k = 1; k < w.ticks.size(); ++k)
-            if (w.ticks[k].step && std::isfinite(w.ticks[k].voltage_v) && std::isfinite(w.ticks[k - 1].voltage_v))
-                dt.push_back(w.ticks[k].dt_s);
+            if (w.has_step_residual(k)) dt.push_back(w.ticks[k].dt_s);
     if (dt.size() < 2) return std::nullopt;
     std::sort(dt.begin(), dt.end());
     const double lo = dt[dt.size() / 10], hi = dt[dt.size() - 1 - dt.size() / 10];
@@ -668,9 +667,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         if (voltage_lags[w.r])  // its steps are levels only (no step residual, no lag within the sample)
             for (auto& t : wd.ticks) t.step = false;
         for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
-        for (std::size_t k = 1; k < wd.ticks.size(); ++k)
-            wd.step_residuals += wd.ticks[k].step && std::isfinite(wd.ticks[k].voltage_v) &&
-                                 std::isfinite(wd.ticks[k - 1].voltage_v);
+        for (std::size_t k = 1; k < wd.ticks.size(); ++k) wd.step_residuals += wd.has_step_residual(k);
         wd.step_sigma_v = step_sigma[w.r];
         if (wd.residuals < 5) continue;
         GlobalWindow gw;
@@ -1171,19 +1168,17 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     std::vector<std::array<double, 2>> jump_information(b.grid.n, {0.0, 0.0});
     for (const auto& wd : b.windows)
         for (std::size_t k = 1; k < wd.ticks.size(); ++k) {
+            if (!wd.has_step_residual(k)) continue;
             const auto& tk = wd.ticks[k];
-            if (!tk.step || !std::isfinite(tk.voltage_v) || !std::isfinite(wd.ticks[k - 1].voltage_v)) continue;
-            int ka = 0;
-            while (ka + 1 < b.grid.n && b.grid.soc(ka + 1) <= tk.soc_end) ++ka;
-            const int kb = std::min(ka + 1, b.grid.n - 1);
-            const double w = kb == ka ? 0.0 : std::clamp((tk.soc_end - b.grid.soc(ka)) / (b.grid.soc(kb) - b.grid.soc(ka)), 0.0, 1.0);
+            const int ka = b.grid.interval(tk.soc_end), kb = ka + 1;
+            const double w = std::clamp((tk.soc_end - b.grid.soc(ka)) / b.grid.width(ka), 0.0, 1.0);
             // The jump is R0 times the change of the current within one direction (a pulse out of a rest, a CV
             // taper's row: its change, not its level); across a reversal each direction's R0 times its current.
             auto add = [&](double current_a) {
                 const int dir = current_a < 0 ? 0 : 1;
                 const double x = current_a / wd.step_sigma_v;
                 jump_information[ka][dir] += (1 - w) * (1 - w) * x * x;
-                if (kb != ka) jump_information[kb][dir] += w * w * x * x;
+                jump_information[kb][dir] += w * w * x * x;
             };
             const double a = tk.current_before_a, c = tk.current_a;
             if (a * c < 0) {

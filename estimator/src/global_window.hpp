@@ -82,6 +82,11 @@ struct WindowData {
     [[nodiscard]] bool capacity_scale_free() const { return fit_offset && low_rate; }
     std::size_t residuals = 0;       // one per tick with a measured voltage: (V_model - V) / sigma_v
     std::size_t step_residuals = 0;  // one per current step between two measured voltages (see simulate_window)
+    // Whether tick k is such a step: the current steps across it and both its voltage and the one before are measured.
+    [[nodiscard]] bool has_step_residual(std::size_t k) const {
+        return k > 0 && k < ticks.size() && ticks[k].step && std::isfinite(ticks[k].voltage_v) &&
+               std::isfinite(ticks[k - 1].voltage_v);
+    }
     double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
 };
 
@@ -278,7 +283,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         // carry the model's structural error (slow diffusion, heating, hysteresis), which is smooth in time and
         // large on long discharges. Weighted by its own noise, the jump keeps R0 what the steps say (thesis
         // eq. 3.2 less the pairs' movement), instead of a compromise R0 that absorbs the slow errors of other windows.
-        if (tk.step && k > 0 && std::isfinite(tk.voltage_v) && std::isfinite(w.ticks[k - 1].voltage_v))
+        if (w.has_step_residual(k))
             residuals[rs++] = ((v - v_prev) - (tk.voltage_v - w.ticks[k - 1].voltage_v)) / w.step_sigma_v;
         v_prev = v;
     }

@@ -270,7 +270,7 @@ private:
                 for (int l = 0; l < nl; ++l) ln.column[l][r * ln.stride[l]] = dvm[l] / g.sigma_v;
                 ++r;
             }
-            if (tk.step && k > 0 && std::isfinite(tk.voltage_v) && std::isfinite(w.ticks[k - 1].voltage_v)) {
+            if (w.has_step_residual(k)) {
                 for (int l = 0; l < nl; ++l) ln.column[l][rs * ln.stride[l]] = (dvm[l] - dv_prev[l]) / w.step_sigma_v;
                 ++rs;
             }

@@ -8,6 +8,7 @@
 #include <utility>
 #include <vector>
 
+#include "golden.hpp"
 #include "printf_text.hpp"
 
 namespace cellbench::estimator {
@@ -173,17 +174,9 @@ std::optional<FittedStart> fit_initial_soc_under_load(const CellModel& model, co
     out.guess_rms_v = best_rms;
     for (double s = lo; s <= hi + 1e-12; s += 0.01)
         if (const double r = rms_at(s); r < best_rms) best = s, best_rms = r;
-    // Golden section within a grid step either side.
-    constexpr double kInvPhi = 0.6180339887498949;
-    double a = std::max(lo, best - 0.01), b = std::min(hi, best + 0.01);
-    double c = b - kInvPhi * (b - a), d = a + kInvPhi * (b - a), fc = rms_at(c), fd = rms_at(d);
-    while (b - a > 1e-5) {
-        if (fc < fd)
-            b = d, d = c, fd = fc, c = b - kInvPhi * (b - a), fc = rms_at(c);
-        else
-            a = c, c = d, fc = fd, d = a + kInvPhi * (b - a), fd = rms_at(d);
-    }
-    const double mid = 0.5 * (a + b), mid_rms = rms_at(mid);
+    // Golden section within a grid step either side, to 1e-5 of SOC.
+    const double a = std::max(lo, best - 0.01), b = std::min(hi, best + 0.01);
+    const double mid = golden_section(rms_at, a, b, golden_section_steps(b - a, 1e-5)), mid_rms = rms_at(mid);
     out.soc = mid_rms < best_rms ? mid : best;
     out.rms_v = std::min(mid_rms, best_rms);
     // The first row's SOC stands unless the stretch contradicts it: the model at least twice as close from another,

@@ -7,6 +7,7 @@
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/estimator/simulate.hpp"
 #include "cellbench/estimator/thermal_fit.hpp"
+#include "golden.hpp"
 #include "printf_text.hpp"
 
 namespace cellbench::estimator {
@@ -102,22 +103,7 @@ ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, con
 // Golden-section search of a unimodal function of log(x) on [lo, hi].
 template <typename F>
 double golden_minimum(F f, double lo, double hi, int iterations) {
-    const double g = (std::sqrt(5.0) - 1) / 2;
-    double a = std::log(lo), b = std::log(hi);
-    double c = b - g * (b - a), d = a + g * (b - a);
-    double fc = f(std::exp(c)), fd = f(std::exp(d));
-    for (int i = 0; i < iterations; ++i) {
-        if (fc < fd) {
-            b = d, d = c, fd = fc;
-            c = b - g * (b - a);
-            fc = f(std::exp(c));
-        } else {
-            a = c, c = d, fc = fd;
-            d = a + g * (b - a);
-            fd = f(std::exp(d));
-        }
-    }
-    return std::exp(0.5 * (a + b));
+    return std::exp(golden_section([&](double u) { return f(std::exp(u)); }, std::log(lo), std::log(hi), iterations));
 }
 
 // Standard deviation of a scalar x fitted by minimizing the RMS f(x) of n residuals: var = 2 f^2 / (n_eff d2(f^2)/dx2),

@@ -329,8 +329,8 @@ void CellStepper::refresh_parameters(double soc, double f_t, double f_i) {
     for (int j = 0; j < 5; ++j) rate_[j] = 1.0 / tau_[j];  // packed divisions
 }
 
-CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, double dt_s) {
-    if (!(dt_s > 0)) return model_.step(s, current_a, ambient_c, dt_s);  // evaluation only: the reference
+CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, double dt_s, double output_current_a) {
+    if (!(dt_s > 0)) return model_.step(s, output_current_a, ambient_c, dt_s);  // evaluation only: the reference
     const auto& th = p_.thermal;
     const auto& ext = p_.extensions;
     if (ext.thermal_second_order && !std::isfinite(s.core_temperature_c)) s.core_temperature_c = s.temperature_c;
@@ -425,7 +425,9 @@ CellOutputs CellStepper::step(CellState& s, double current_a, double ambient_c, 
     const std::array<const std::vector<double>*, 1> ocv_column{&p_.ocv_v};
     const double w_ocv = line_weight(ocv_lines_, p_.soc, ocv_column, s.soc, false);
     out.ocv_v = ocv_lines_.base[0] + w_ocv * ocv_lines_.slope[0];
-    out.voltage_v = out.ocv_v + ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v;
+    // R0 does not depend on the current factor (refresh_parameters), so the row's own drop reads the same tables.
+    const double row_ohmic_v = output_current_a == i ? ohmic_v : ohmic_drop_v(pd_, pc_, output_current_a);
+    out.voltage_v = out.ocv_v + row_ohmic_v + s.rc.sum() + s.extra_rc_v + s.hysteresis_v;
     out.heat_flow_out_w = (s.temperature_c - ambient_c) * inv_r_th_w_per_k_;
     out.sensor_heat_flow_w = out.heat_flow_out_w * (ext.heat_flux_sensor_gain ? ext.heat_flux_sensor_gain->gain : 1.0);
     return out;

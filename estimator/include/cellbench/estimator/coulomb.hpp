@@ -13,6 +13,10 @@
 // Each step whose intervals tell the two apart votes; a recording comes from one logger, so the steps they leave
 // ambiguous (both steps logged at the same rate) follow the recording's majority (twice the other's votes), and
 // the electrical model's ZOH convention (the new current over the interval before its row) where none is clear.
+// Where the recording has a step column, a current step is one only where that column changes as well: within one
+// of the logger's steps the current's changes are the step's own course (a CV taper logged every minute by a
+// cycler's voltage-change rule falls by more than 5 % between its rows; counted as steps, the CCCV charge of the
+// validation plant's HPPC logged that way came out 13 mAh short, 0.5 % of the cell).
 // Counting every interval at its closing row's current alone (that ZOH convention) adds the step times the interval
 // before it at every step of a cycler's recording, which does not cancel where rests are logged at another rate
 // than pulses: on the independent validation plant's HPPCs (60: three layouts, seeds 1-20) the SOC drifted by up
@@ -33,9 +37,22 @@ bool is_current_step(double a, double b);
 enum class StepLogging { at_step_start, one_interval_after, unknown };
 StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a);
 
-// Charge throughput (Ah, + = charged) at every row from the first (0 there). Rows with a non-finite time or
-// current, and intervals that do not advance, add nothing.
+// Whether a current step lies between rows k - 1 and k (element k; element 0 false): is_current_step between two
+// finite rows that advance in time, and where the recording has a step column, that column changes there too.
+// Elsewhere the current moved within one step, along a curve its rows sample (a CV taper).
+std::vector<char> current_step_rows(const Recording& rec);
+
+// The mean current (A) over the interval before every row under this convention (row 0: its own current): within a
+// step the trapezoid of its two rows, across a step the old or the new current as the step's vote says. Whatever
+// integrates over a recording's intervals reads it: the charge count below and the model simulated on the
+// recording (simulate.hpp), so that both see one current. A row with a non-finite time or current (or its
+// predecessor's) keeps its own current.
+std::vector<double> interval_current_a(const std::vector<double>& time_s, const std::vector<double>& current_a);
+std::vector<double> interval_current_a(const Recording& rec);  // with its step column, where it has one
+
+// Charge throughput (Ah, + = charged) at every row from the first (0 there): interval_current_a over each interval.
+// Rows with a non-finite time or current, and intervals that do not advance, add nothing.
 std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, const std::vector<double>& current_a);
-std::vector<double> cumulative_charge_ah(const Recording& rec);
+std::vector<double> cumulative_charge_ah(const Recording& rec);  // with its step column, where it has one
 
 }  // namespace cellbench::estimator

@@ -82,7 +82,13 @@ private:
 class CellStepper {
 public:
     explicit CellStepper(const CellModel& model);
-    CellOutputs step(CellState& state, double current_a, double ambient_c, double dt_s);
+    CellOutputs step(CellState& state, double current_a, double ambient_c, double dt_s) {
+        return step(state, current_a, ambient_c, dt_s, current_a);
+    }
+    // The state advanced over dt_s by current_a (the interval's mean current), the outputs read with the row's
+    // own current output_current_a (its R0 drop): a row that opens a step shows the new current while the old one
+    // flowed over the interval before it (coulomb.hpp).
+    CellOutputs step(CellState& state, double current_a, double ambient_c, double dt_s, double output_current_a);
 
     // exp(-x) and expm1(-x) for x = rate * dt, reusing the last exact evaluation (see above).
     struct DecayCache {

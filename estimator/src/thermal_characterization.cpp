@@ -250,12 +250,17 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
                 add_flag(out.c_th_flags, "uncertain");
             }
         }
-        out.r_th_method = "fitted with C_th from the surface temperature alone (no heat flux sensor): the first-order "
-                          "model driven by the measured heat I*(V - OCV) reproduces it";
+        // A heat flux sensor whose rests hold no energy balance (best_cth's note says why) is not "no sensor".
+        const bool flux_measured = std::any_of(recordings.begin(), recordings.end(), [](const Recording& r) { return has_thermal(r); });
+        const std::string why = flux_measured ? "heat flux measured, but no rest holds its energy balance (" + best_cth.note + ")"
+                                              : "no heat flux measured";
+        out.r_th_method = std::string("fitted with C_th from the surface temperature alone (") +
+                          (flux_measured ? "the heat flux gave no C_th" : "no heat flux sensor") +
+                          "): the first-order model driven by the measured heat I*(V - OCV) reproduces it";
         out.details["temperature_only_fit"] = {{"c_th_j_per_k", c_th}, {"r_th_k_per_w", best_r},
                                                {"temperature_rms_c", num(rms)}};
-        out.notes.push_back("no heat flux measured: C_th and R_th identified together from the surface temperature "
-                            "(temperature RMS " + printf_text("%.3f", rms) + " degC); dU/dT left out");
+        out.notes.push_back(why + ": C_th and R_th identified together from the surface temperature (temperature RMS " +
+                            printf_text("%.3f", rms) + " degC); dU/dT left out");
         flag_thermal(out, cap);
         return out;
     }

@@ -436,6 +436,55 @@ LineValue local_line_value(const std::vector<double>& t, const std::vector<doubl
     return out;
 }
 
+// Value at row c of the least-squares parabola through the rows of [lo, hi) within +-half of t[c], and its
+// variance: for rests logged sparsely (a row a minute), whose windows must span a good part of the cooling's time
+// constant to hold five rows; a line through a curve that long reads its centre high by about (half/tau)^2/6 of the
+// excess temperature (2 % at a minute's rows), a parabola centred on the row by the curve's fourth-order term only.
+LineValue local_parabola_value(const std::vector<double>& t, const std::vector<double>& y, std::size_t lo,
+                               std::size_t hi, std::size_t c, double half) {
+    LineValue out;
+    std::size_t a = c, b = c + 1;
+    while (a > lo && t[a - 1] >= t[c] - half) --a;
+    while (b < hi && t[b] <= t[c] + half) ++b;
+    Eigen::Matrix3d xtx = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d xty = Eigen::Vector3d::Zero();
+    const double y_ref = finite(y[c]) ? y[c] : 0.0;
+    double n = 0;
+    for (std::size_t k = a; k < b; ++k) {
+        if (!finite(y[k])) continue;
+        const double u = (t[k] - t[c]) / half;
+        const Eigen::Vector3d x(1.0, u, u * u);
+        xtx += x * x.transpose();
+        xty += x * (y[k] - y_ref);
+        n += 1;
+    }
+    if (n < 5) return out;
+    const Eigen::LDLT<Eigen::Matrix3d> ldlt(xtx);
+    if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > 1e-10)) return out;
+    const Eigen::Vector3d beta = ldlt.solve(xty);
+    double sse = 0;
+    for (std::size_t k = a; k < b; ++k)
+        if (finite(y[k])) {
+            const double u = (t[k] - t[c]) / half;
+            const double e = y[k] - y_ref - (beta[0] + beta[1] * u + beta[2] * u * u);
+            sse += e * e;
+        }
+    const Eigen::Matrix3d inv = ldlt.solve(Eigen::Matrix3d::Identity());
+    out.value = y_ref + beta[0];
+    out.var = sse / (n - 3.0) * inv(0, 0);
+    return out;
+}
+
+// The median interval between the rows of [lo, hi) (NaN with fewer than two).
+double median_interval_s(const std::vector<double>& t, std::size_t lo, std::size_t hi) {
+    std::vector<double> d;
+    for (std::size_t k = lo + 1; k < hi; ++k)
+        if (t[k] > t[k - 1]) d.push_back(t[k] - t[k - 1]);
+    if (d.empty()) return kNaN;
+    std::nth_element(d.begin(), d.begin() + static_cast<std::ptrdiff_t>(d.size() / 2), d.end());
+    return d[d.size() / 2];
+}
+
 }  // namespace
 
 ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, double area_m2, double skip_s,
@@ -444,8 +493,9 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
     ThermalCapacityFit out;
     out.skip_s = skip_s;
     out.window_s = window_s;
-    const double half = 0.25 * window_s;  // end values: lines over window_s / 2, centred
-    const double chunk_s = std::max(skip_s, 2.0 * window_s);
+    const double half_dense = 0.25 * window_s;  // end values: lines over window_s / 2, centred
+    const double chunk_dense_s = std::max(skip_s, 2.0 * window_s);
+    std::size_t sparse_rests = 0;
 
     // Energy balance per chunk of a rest (eq. 4.7 integrated): C_th * (T(a) - T(b)) = integral_a^b Q_out dt.
     std::vector<double> xs, ys, vx;
@@ -461,6 +511,17 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
             const RowRange range = clamp_range(rec, r0);
             double sxy = 0, sxx = 0;
             std::size_t chunks = 0;
+            // A rest logged sparsely (a cycler's "every 60 s"): end windows that hold five rows, parabolas through
+            // them, and chunks at least twice the windows apart, so that no two end values share a row.
+            const double h_rows = median_interval_s(t, range.begin, range.end);
+            const bool sparse = std::isfinite(h_rows) && 2.5 * h_rows > half_dense;
+            const double half = sparse ? 2.5 * h_rows : half_dense;
+            const double chunk_rest_s = sparse ? std::max(chunk_dense_s, 4.0 * half) : chunk_dense_s;
+            sparse_rests += sparse;
+            auto end_value = [&](std::size_t k) {
+                return sparse ? local_parabola_value(t, temp, range.begin, range.end, k, half)
+                              : local_line_value(t, temp, range.begin, range.end, k, half);
+            };
             if (range.size() >= 10) {
                 const double t0 = t[range.begin], t1 = t[range.end - 1];
                 // Chunk boundaries: from skip_s into the rest every chunk_s, the last one where its end window
@@ -473,12 +534,12 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
                 for (std::size_t k = range.begin; k <= last_ok; ++k)
                     if (t[k] >= next) {
                         bounds.push_back(k);
-                        next = t[k] + chunk_s;
+                        next = t[k] + chunk_rest_s;
                     }
-                if (!bounds.empty() && last_ok > bounds.back() && t[last_ok] - t[bounds.back()] >= 0.5 * chunk_s)
+                if (!bounds.empty() && last_ok > bounds.back() && t[last_ok] - t[bounds.back()] >= 0.5 * chunk_rest_s)
                     bounds.push_back(last_ok);
                 std::vector<LineValue> tv;
-                for (std::size_t k : bounds) tv.push_back(local_line_value(t, temp, range.begin, range.end, k, half));
+                for (std::size_t k : bounds) tv.push_back(end_value(k));
                 for (std::size_t c = 0; c + 1 < bounds.size(); ++c) {
                     if (!finite(tv[c].value) || !finite(tv[c + 1].value)) continue;
                     double e = 0, covered = 0, prev_t = kNaN, prev_q = kNaN;
@@ -509,7 +570,7 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
     out.points = total_rows;
     if (xs.size() < 3) {
         out.note = "no usable rest rows (rests shorter than skip " + printf_text("%.0f", skip_s) + " s + a chunk of " +
-                   printf_text("%.0f", chunk_s) + " s, or no thermal data in them)";
+                   printf_text("%.0f", chunk_dense_s) + " s, or no thermal data in them)";
         return out;
     }
     const auto reg = robust_origin_regression(xs, ys, cl, vx);
@@ -531,7 +592,9 @@ ThermalCapacityFit fit_thermal_capacity(const std::vector<ThermalRests>& sets, d
     }
     out.note = "C_th " + printf_text("%.2f", out.c_th_j_per_k) + " +- " + printf_text("%.2f", out.c_th_se_j_per_k) +
                " J/K from the energy balance of " + std::to_string(out.rests_used) + " rest(s) in " +
-               std::to_string(xs.size()) + " chunks of " + printf_text("%.0f", chunk_s) + " s, " + std::to_string(out.points) +
+               std::to_string(xs.size()) + " chunks of " + printf_text("%.0f", chunk_dense_s) + " s" +
+               (sparse_rests ? " (" + std::to_string(sparse_rests) + " rest(s) logged sparsely: longer chunks, end values from parabolas)" : std::string()) +
+               ", " + std::to_string(out.points) +
                " rows (skip " + printf_text("%.0f", skip_s) + " s), R^2 " + printf_text("%.4f", out.r_squared) +
                "; robust weights dropped " +
                printf_text("%.1f", 100.0 * static_cast<double>(out.points_rejected) / static_cast<double>(std::max<std::size_t>(out.points, 1))) +
@@ -742,7 +805,10 @@ EntropicFit fit_entropic_coefficient(const Recording& rec, RowRange cc_discharge
     double sum_abs_i = 0;
     if (range.size() >= 3) {
         const auto& t = rec.time_s;
-        const auto d = smooth_derivative(t, rec.surface_c, range.begin, range.end, opt.window_s);
+        // A discharge logged sparsely (a cycler's 5 mV or 60 s): the derivative's window holds at least four rows.
+        const double h_rows = median_interval_s(t, range.begin, range.end);
+        const double window_s = std::isfinite(h_rows) ? std::max(opt.window_s, 4.0 * h_rows) : opt.window_s;
+        const auto d = smooth_derivative(t, rec.surface_c, range.begin, range.end, window_s);
         const double t0 = t[range.begin];
         for (std::size_t k = range.begin; k < range.end; ++k) {
             const double i_a = rec.current_a[k], v = rec.voltage_v[k], temp = rec.surface_c[k];

@@ -143,6 +143,19 @@ TEST(ThermalCapacity, RecoversCthFromRests) {
     for (std::size_t r = 1; r < 4; ++r) EXPECT_NEAR(fit.per_rest_c_th_j_per_k[r], kC, 0.05 * kC);
 }
 
+// A cycler's "record every 60 s": the rests' end values need windows of five rows, which at a minute's rows span a
+// good part of the cooling (tau = R C here); they come from parabolas there, and the chunks lie far enough apart
+// that no two share a row. Before, such rests held "no usable rest rows" and the fit fell back on the surface
+// temperature alone, saying no heat flux had been measured.
+TEST(ThermalCapacity, RestsLoggedOnceAMinuteStillGiveTheirEnergyBalance) {
+    const Synth s = make({{600, 0}, {600, -9.0}, {3600, 0}, {900, -4.5}, {3600, 0}, {480, -9.0}, {3600, 0}}, 60.0,
+                         0.003, 1.5, 12);
+    const auto fit = fit_thermal_capacity(s.rec, s.rests, kA);
+    ASSERT_TRUE(std::isfinite(fit.c_th_j_per_k)) << fit.note;
+    EXPECT_NEAR(fit.c_th_j_per_k, kC, 0.03 * kC) << fit.note;
+    EXPECT_NE(fit.note.find("logged sparsely"), std::string::npos) << fit.note;
+}
+
 TEST(ThermalCapacity, RobustToHeatSmearedIntoRestEnds) {
     // The real HPPC file's DAQ channels anticipate the next step by ~4 min (filtering); imitate it: the last
     // 240 s of each rest warm up with heat leaving the surface, which violates eq. 4.7.
@@ -251,6 +264,21 @@ TEST(EntropicCoefficient, RecoversEhcAtOneC) {
         EXPECT_GT(fit.samples[j], 100u);
     }
     EXPECT_LT(fit.joule_share, 0.9);
+}
+
+// The same 1C discharge logged every 20 s (a cycler's time condition): the 30 s derivative window held a single row;
+// it now spans four, and every 20 % bin keeps its 36 rows.
+TEST(EntropicCoefficient, RecoversEhcFromADischargeLoggedEveryTwentySeconds) {
+    const Synth s = make({{300, 0}, {3420, -4.5}, {600, 0}}, 20.0, 0.002, 1.0, 32);
+    std::vector<double> ocv_soc, ocv_v, grid;
+    for (int k = 0; k <= 20; ++k) ocv_soc.push_back(0.05 * k), ocv_v.push_back(ocv_of(0.05 * k));
+    for (int k = 0; k <= 5; ++k) grid.push_back(0.2 * k);
+    const auto fit = fit_entropic_coefficient(s.rec, s.discharges[0], s.soc, ocv_soc, ocv_v, kC, kA, grid);
+    ASSERT_EQ(fit.ehc_v_per_k.size(), grid.size());
+    for (std::size_t j = 1; j + 1 < grid.size(); ++j) {
+        ASSERT_TRUE(fit.has_data[j]) << "SOC " << grid[j] << ": " << fit.note;
+        EXPECT_NEAR(fit.ehc_v_per_k[j], ehc_of(grid[j]), 3e-5) << "SOC " << grid[j];
+    }
 }
 
 // A C/40 discharge (a slow capacity or OCV test) with a thermocouple's noise: the cell warms by a few hundredths of

@@ -144,9 +144,8 @@ TEST(ThermalCapacity, RecoversCthFromRests) {
 }
 
 // A cycler's "record every 60 s": the rests' end values need windows of five rows, which at a minute's rows span a
-// good part of the cooling (tau = R C here); they come from parabolas there, and the chunks lie far enough apart
-// that no two share a row. Before, such rests held "no usable rest rows" and the fit fell back on the surface
-// temperature alone, saying no heat flux had been measured.
+// good part of the cooling (tau = R C here); they come from parabolas there. Before, such rests held "no usable
+// rest rows" and the fit fell back on the surface temperature alone, saying no heat flux had been measured.
 TEST(ThermalCapacity, RestsLoggedOnceAMinuteStillGiveTheirEnergyBalance) {
     const Synth s = make({{600, 0}, {600, -9.0}, {3600, 0}, {900, -4.5}, {3600, 0}, {480, -9.0}, {3600, 0}}, 60.0,
                          0.003, 1.5, 12);

@@ -66,24 +66,26 @@ StepLogging majority(const std::vector<Vote>& votes) {
     return StepLogging::unknown;
 }
 
-std::vector<double> interval_current(const std::vector<double>& time_s, const std::vector<double>& current_a,
-                                     const std::vector<double>* step_count) {
+IntervalCurrents interval_currents(const std::vector<double>& time_s, const std::vector<double>& current_a,
+                                   const std::vector<double>* step_count) {
     const std::size_t n = std::min(time_s.size(), current_a.size());
-    const auto step = current_steps(time_s, current_a, step_count);
-    const auto votes = step_votes(time_s, current_a, step);
+    IntervalCurrents out;
+    out.step = current_steps(time_s, current_a, step_count);
+    const auto votes = step_votes(time_s, current_a, out.step);
     // Steps that do not tell follow the recording's majority; where nothing tells, the electrical model's own ZOH
     // convention (the new current over the interval before its row), as on a recording sampled at one rate.
     const Vote fallback = majority(votes) == StepLogging::at_step_start ? Vote::start : Vote::after;
-    std::vector<double> i(current_a.begin(), current_a.begin() + static_cast<std::ptrdiff_t>(n));
+    auto& i = out.mean_a;
+    i.assign(current_a.begin(), current_a.begin() + static_cast<std::ptrdiff_t>(n));
     for (std::size_t k = 1; k < n; ++k) {
         if (!finite_at(time_s, current_a, k) || !finite_at(time_s, current_a, k - 1)) continue;
         const double a = current_a[k - 1], b = current_a[k];
-        if (step[k])
+        if (out.step[k])
             i[k] = (votes[k] == Vote::none ? fallback : votes[k]) == Vote::start ? a : b;
         else
             i[k] = 0.5 * (a + b);  // within a step: trapezoid
     }
-    return i;
+    return out;
 }
 
 std::vector<double> charge_from(const std::vector<double>& time_s, const std::vector<double>& current_a,
@@ -111,16 +113,14 @@ StepLogging step_logging(const std::vector<double>& time_s, const std::vector<do
 }
 
 std::vector<double> interval_current_a(const std::vector<double>& time_s, const std::vector<double>& current_a) {
-    return interval_current(time_s, current_a, nullptr);
+    return interval_currents(time_s, current_a, nullptr).mean_a;
 }
 
-std::vector<char> current_step_rows(const Recording& rec) {
-    return current_steps(rec.time_s, rec.current_a, rec.step_count.empty() ? nullptr : &rec.step_count);
+IntervalCurrents interval_currents(const Recording& rec) {
+    return interval_currents(rec.time_s, rec.current_a, rec.step_count.empty() ? nullptr : &rec.step_count);
 }
 
-std::vector<double> interval_current_a(const Recording& rec) {
-    return interval_current(rec.time_s, rec.current_a, rec.step_count.empty() ? nullptr : &rec.step_count);
-}
+std::vector<double> interval_current_a(const Recording& rec) { return interval_currents(rec).mean_a; }
 
 std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, const std::vector<double>& current_a) {
     return charge_from(time_s, current_a, interval_current_a(time_s, current_a));

@@ -144,18 +144,20 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     // tables are read along the way (rows 40 s apart at 1C: 2.4 mV off the same model at 10 ms).
     constexpr int kRampSubsteps = 8, kMaxSubsteps = 64;
     constexpr double kSubstepSoc = 0.002;
-    const double soc_per_a_s = model.capacity_ah() > 0 ? 1.0 / (3600.0 * model.capacity_ah()) : 0.0;
-    const std::vector<double> interval_current = interval_current_a(rec);
-    const std::vector<char> step_row = current_step_rows(rec);
+    const double substeps_per_a_s = model.capacity_ah() > 0 ? 1.0 / (3600.0 * model.capacity_ah() * kSubstepSoc) : 0.0;
+    const IntervalCurrents intervals = interval_currents(rec);
+    const double* interval_current = intervals.mean_a.data();
+    const char* step_row = intervals.step.data();
     for (std::size_t k = 0; k < n; ++k) {
         const double dt = k == 0 ? 0.0 : time[k] - time[k - 1];
         const double amb = ambient && std::isfinite(ambient[k]) ? ambient[k] : ambient_const;
         int substeps = 1;
         bool ramp = false;
-        if (k > 0 && dt > 0 && std::isfinite(interval_current[k])) {
+        if (k > 0 && dt > 0) {
             ramp = !step_row[k] && is_current_step(current[k - 1], current[k]);
-            const double moves = std::abs(interval_current[k]) * dt * soc_per_a_s / kSubstepSoc;
-            substeps = std::max(ramp ? kRampSubsteps : 1, static_cast<int>(std::min<double>(std::ceil(moves), kMaxSubsteps)));
+            const double moves = std::abs(interval_current[k]) * dt * substeps_per_a_s;
+            if (moves > 1.0) substeps = static_cast<int>(std::min<double>(std::ceil(moves), kMaxSubsteps));
+            if (ramp) substeps = std::max(substeps, kRampSubsteps);
         }
         CellOutputs o;
         if (substeps == 1) {

@@ -35,6 +35,11 @@ int main(int argc, char** argv) {
     bool second_drive = false;
     app.add_flag("--second-drive", second_drive,
                  "also write drive2.bdf.csv: another drive of the same cell and bench set-up (to confirm a diagnosis on)");
+    std::vector<double> record_conditions;
+    app.add_option("--log-on-change", record_conditions,
+                   "write only the rows a cycler's record conditions keep: DV_V DI_A DT_S (a row at each step's start and "
+                   "end, and when the voltage moved by DV_V, the current by DI_A or DT_S passed; e.g. 0.005 0.05 60)")
+        ->expected(3);
     app.add_option("-o,--output", out_dir, "output directory (created)")->required();
     CLI11_PARSE(app, argc, argv);
 
@@ -72,7 +77,9 @@ int main(int argc, char** argv) {
         if (second_drive) todo.push_back({"drive2.bdf.csv", plant::generate_second_drive});
         for (const auto& job : todo) {
             const auto t0 = std::chrono::steady_clock::now();
-            const auto rec = job.make(cell, o);
+            auto rec = job.make(cell, o);
+            if (!record_conditions.empty())
+                rec = plant::log_on_change(rec, {record_conditions[0], record_conditions[1], record_conditions[2]});
             const double gen_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
             plant::write_bdf_csv(rec, dir / job.file);
             std::printf("wrote %s: %zu rows, %.2f h of bench time, %zu steps (generated in %.3f s)\n",

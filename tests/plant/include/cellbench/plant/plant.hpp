@@ -284,6 +284,15 @@ Recording generate_drive(const CellSpec& cell, const PlantOptions& options);
 Recording generate_second_drive(const CellSpec& cell, const PlantOptions& options);
 Dataset generate(const PlantOptions& options);
 
+// A cycler's record conditions: a row when a step begins and ends, and between those when the voltage has moved by
+// dv_v or the current by di_a since the last row written, or dt_s has passed. Cyclers log this way by default
+// ("5 mV, 50 mA, 60 s"): a CV taper and a rest are then a row a minute, a pulse's relaxation a row per 5 mV.
+struct RecordConditions {
+    double dv_v = 0.005, di_a = 0.05, dt_s = 60.0;
+};
+// The rows of `dense` such a logger writes (every per-row column, the true values too); the steps are kept.
+Recording log_on_change(const Recording& dense, const RecordConditions& conditions);
+
 // BDF CSV (INTERFACES.md "Recordings"), shortest round-trip numbers. Throws std::runtime_error on I/O failure.
 void write_bdf_csv(const Recording& recording, const std::filesystem::path& path);
 void write_truth_json(const Truth& truth, const std::filesystem::path& path);

@@ -501,3 +501,30 @@ TEST(PlantCli, WritesTheFourRecordingsAndTheTruth) {
 }
 
 }  // namespace
+
+// The cycler's record conditions (log_on_change): a row at every step's first and last sample, and between those
+// only when the voltage or the current has moved by its threshold since the last row written, or the time has
+// passed; every column (the true values too) thinned alike.
+TEST(PlantLogger, KeepsEachStepsEndsAndTheRowsThatMovedEnough) {
+    plant::Recording r;
+    auto add = [&](double t, double v, double i, int step) {
+        r.time_s.push_back(t), r.voltage_v.push_back(v), r.current_a.push_back(i), r.step_count.push_back(step);
+        r.step_type.push_back(step == 2 ? "CC DChg" : "Rest");
+        r.true_soc.push_back(0.5 - 1e-4 * t);
+    };
+    for (int k = 0; k <= 200; ++k) add(k, 3.700, 0.0, 1);                      // rest: flat
+    for (int k = 1; k <= 100; ++k) add(200 + k, 3.650 - 0.0011 * k, -2.0, 2);   // discharge: 1.1 mV/s
+    for (int k = 1; k <= 100; ++k) add(300 + k, 3.600 + 0.00012 * k, 0.0, 3);  // relaxation: 0.12 mV/s
+    for (int k = 1; k <= 30; ++k) add(400 + k, 4.200, 2.0 - 0.011 * k, 4);     // CV taper: 11 mA/s
+    const auto out = plant::log_on_change(r, {0.005, 0.05, 60.0});
+    std::vector<double> t = out.time_s;
+    // Rest: its first row, a row a minute, its last row. Discharge: its first row, one per 5 mV (5 s), its last
+    // row. Relaxation: its first row, one per 5 mV (42 s), its last row. Taper: one per 50 mA (5 s).
+    const std::vector<double> expected = {0,   60,  120, 180, 200, 201, 206, 211, 216, 221, 226, 231, 236, 241,
+                                          246, 251, 256, 261, 266, 271, 276, 281, 286, 291, 296, 300, 301, 343,
+                                          385, 400, 401, 406, 411, 416, 421, 426, 430};
+    EXPECT_EQ(t, expected);
+    ASSERT_EQ(out.true_soc.size(), out.time_s.size());
+    ASSERT_EQ(out.step_count.size(), out.time_s.size());
+    for (std::size_t k = 0; k < out.size(); ++k) EXPECT_DOUBLE_EQ(out.true_soc[k], 0.5 - 1e-4 * out.time_s[k]);
+}

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <numbers>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "cellbench/estimator/thermal_fit.hpp"
@@ -80,6 +81,13 @@ Synth make(const std::vector<Phase>& phases, double dt, double t_noise_k, double
     s.ambient = s.rec.ambient_c;
     s.rec.ambient_c.clear();  // recordings without a chamber channel, unless a test puts it back
     return s;
+}
+
+// The cell's OCV every 5 % of SOC, as the entropic fit is given it.
+std::pair<std::vector<double>, std::vector<double>> ocv_table() {
+    std::vector<double> soc, v;
+    for (int k = 0; k <= 20; ++k) soc.push_back(0.05 * k), v.push_back(ocv_of(0.05 * k));
+    return {soc, v};
 }
 
 // Rest 10 min, discharge 2C 10 min, rest 1 h, discharge 1C 15 min, rest 1 h, discharge 2C 8 min, rest 1 h.
@@ -248,8 +256,8 @@ TEST(ThermalResistance, PropagatesCthUncertainty) {
 TEST(EntropicCoefficient, RecoversEhcAtOneC) {
     // 1C discharge from full to ~5 %: here the reversible heat is comparable to the Joule heat.
     const Synth s = make({{300, 0}, {3420, -4.5}, {600, 0}}, 0.2, 0.002, 1.0, 31);
-    std::vector<double> ocv_soc, ocv_v, grid;
-    for (int k = 0; k <= 20; ++k) ocv_soc.push_back(0.05 * k), ocv_v.push_back(ocv_of(0.05 * k));
+    const auto [ocv_soc, ocv_v] = ocv_table();
+    std::vector<double> grid;
     for (int k = 0; k <= 10; ++k) grid.push_back(0.1 * k);
     const auto fit = fit_entropic_coefficient(s.rec, s.discharges[0], s.soc, ocv_soc, ocv_v, kC, kA, grid);
     ASSERT_EQ(fit.ehc_v_per_k.size(), grid.size());
@@ -269,8 +277,8 @@ TEST(EntropicCoefficient, RecoversEhcAtOneC) {
 // it now spans four, and every 20 % bin keeps its 36 rows.
 TEST(EntropicCoefficient, RecoversEhcFromADischargeLoggedEveryTwentySeconds) {
     const Synth s = make({{300, 0}, {3420, -4.5}, {600, 0}}, 20.0, 0.002, 1.0, 32);
-    std::vector<double> ocv_soc, ocv_v, grid;
-    for (int k = 0; k <= 20; ++k) ocv_soc.push_back(0.05 * k), ocv_v.push_back(ocv_of(0.05 * k));
+    const auto [ocv_soc, ocv_v] = ocv_table();
+    std::vector<double> grid;
     for (int k = 0; k <= 5; ++k) grid.push_back(0.2 * k);
     const auto fit = fit_entropic_coefficient(s.rec, s.discharges[0], s.soc, ocv_soc, ocv_v, kC, kA, grid);
     ASSERT_EQ(fit.ehc_v_per_k.size(), grid.size());
@@ -287,8 +295,8 @@ TEST(EntropicCoefficient, RecoversEhcFromADischargeLoggedEveryTwentySeconds) {
 TEST(EntropicCoefficient, RecoversEhcFromANoisySlowDischarge) {
     const double c40_a = kCap / 40.0;
     const Synth s = make({{300, 0}, {0.9 * 40 * 3600, -c40_a}, {600, 0}}, 0.5, 0.03, 0.3, 33);
-    std::vector<double> ocv_soc, ocv_v, grid;
-    for (int k = 0; k <= 20; ++k) ocv_soc.push_back(0.05 * k), ocv_v.push_back(ocv_of(0.05 * k));
+    const auto [ocv_soc, ocv_v] = ocv_table();
+    std::vector<double> grid;
     for (int k = 2; k <= 9; ++k) grid.push_back(0.1 * k);
     const auto fit = fit_entropic_coefficient(s.rec, s.discharges[0], s.soc, ocv_soc, ocv_v, kC, kA, grid);
     for (std::size_t j = 0; j < grid.size(); ++j) {

@@ -164,8 +164,12 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
             o = stepper.step(s, interval_current[k], amb, dt, current[k]);
         } else {
             const double a = ramp ? current[k - 1] : interval_current[k], b = ramp ? current[k] : interval_current[k];
-            for (int j = 0; j < substeps; ++j)
+            double irreversible_w = 0, reversible_w = 0;  // the interval's mean heat, as one step reports it
+            for (int j = 0; j < substeps; ++j) {
                 o = stepper.step(s, a + (b - a) * (j + 0.5) / substeps, amb, dt / substeps, current[k]);
+                irreversible_w += o.heat_irreversible_w / substeps, reversible_w += o.heat_reversible_w / substeps;
+            }
+            o.heat_irreversible_w = irreversible_w, o.heat_reversible_w = reversible_w;
         }
         tr.time_s.push_back(time[k]);
         tr.voltage_v.push_back(o.voltage_v);

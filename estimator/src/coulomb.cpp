@@ -112,22 +112,16 @@ StepLogging step_logging(const std::vector<double>& time_s, const std::vector<do
     return majority(step_votes(time_s, current_a, current_steps(time_s, current_a, nullptr)));
 }
 
-std::vector<double> interval_current_a(const std::vector<double>& time_s, const std::vector<double>& current_a) {
-    return interval_currents(time_s, current_a, nullptr).mean_a;
-}
-
 IntervalCurrents interval_currents(const Recording& rec) {
     return interval_currents(rec.time_s, rec.current_a, rec.step_count.empty() ? nullptr : &rec.step_count);
 }
 
-std::vector<double> interval_current_a(const Recording& rec) { return interval_currents(rec).mean_a; }
-
 std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, const std::vector<double>& current_a) {
-    return charge_from(time_s, current_a, interval_current_a(time_s, current_a));
+    return charge_from(time_s, current_a, interval_currents(time_s, current_a, nullptr).mean_a);
 }
 
 std::vector<double> cumulative_charge_ah(const Recording& rec) {
-    return charge_from(rec.time_s, rec.current_a, interval_current_a(rec));
+    return charge_from(rec.time_s, rec.current_a, interval_currents(rec).mean_a);
 }
 
 }  // namespace cellbench::estimator

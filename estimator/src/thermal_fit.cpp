@@ -1,6 +1,7 @@
 // Thermal parameter fits (thesis chapter 4): derivative, C_th from rests (eq. 4.7-4.8), R_th two ways (eq. 4.9
 // and the cooling time constant), entropic heat coefficient (eq. 4.4-4.6), charge throughput and capacity.
 #include "cellbench/estimator/thermal_fit.hpp"
+#include "median.hpp"
 #include "printf_text.hpp"
 #include "solve.hpp"
 
@@ -406,7 +407,6 @@ namespace {
 // (from the line's own residuals).
 struct LineValue {
     double value = kNaN, var = kNaN;
-    double noise_var = kNaN;  // the rows' own scatter about the curve (parabola only)
 };
 LineValue local_line_value(const std::vector<double>& t, const std::vector<double>& y, std::size_t lo, std::size_t hi,
                            std::size_t c, double half) {
@@ -473,7 +473,6 @@ LineValue local_parabola_value(const std::vector<double>& t, const std::vector<d
     const Eigen::Matrix3d inv = ldlt.solve(Eigen::Matrix3d::Identity());
     out.value = y_ref + beta[0];
     out.var = sse / (n - 3.0) * inv(0, 0);
-    out.noise_var = sse / (n - 3.0);
     return out;
 }
 
@@ -482,9 +481,7 @@ double median_interval_s(const std::vector<double>& t, std::size_t lo, std::size
     std::vector<double> d;
     for (std::size_t k = lo + 1; k < hi; ++k)
         if (t[k] > t[k - 1]) d.push_back(t[k] - t[k - 1]);
-    if (d.empty()) return kNaN;
-    std::nth_element(d.begin(), d.begin() + static_cast<std::ptrdiff_t>(d.size() / 2), d.end());
-    return d[d.size() / 2];
+    return upper_median(std::move(d));
 }
 
 }  // namespace

@@ -77,9 +77,6 @@ Recording varied_profile(unsigned seed) {
 // The fast path against CellModel::step, row by row with the same inputs (each row's current held over the interval
 // before it; simulate() feeds the stepper the Coulomb count's interval currents, sparse_logging_test.cpp), and
 // where simulate() starts the state.
-struct FastTrace {
-    std::vector<double> soc, temperature_c;
-};
 void expect_same(const CellModel& model, const Recording& rec) {
     CellState s, f;
     s.soc = simulate(model, rec.slice(0, 1)).initial_soc;
@@ -87,7 +84,7 @@ void expect_same(const CellModel& model, const Recording& rec) {
     if (const auto& h = model.params().extensions.ocv_hysteresis) s.hysteresis_v = (s.soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v;
     f = s;
     CellStepper stepper(model);
-    FastTrace fast;
+    std::vector<double> fast_soc, fast_temperature_c;
     double worst_v = 0, worst_t = 0, worst_soc = 0, worst_heat = 0;
     for (std::size_t k = 0; k < rec.size(); ++k) {
         const double dt = k == 0 ? 0.0 : rec.time_s[k] - rec.time_s[k - 1];
@@ -100,17 +97,17 @@ void expect_same(const CellModel& model, const Recording& rec) {
         worst_heat = std::max(worst_heat, rel(q.heat_irreversible_w + q.heat_reversible_w,
                                               o.heat_irreversible_w + o.heat_reversible_w));
         ASSERT_TRUE(std::isfinite(q.voltage_v)) << "row " << k;
-        fast.soc.push_back(f.soc);
-        fast.temperature_c.push_back(f.temperature_c);
+        fast_soc.push_back(f.soc);
+        fast_temperature_c.push_back(f.temperature_c);
     }
     EXPECT_LT(worst_v, 1e-12);
     EXPECT_LT(worst_t, 1e-12);
     EXPECT_LT(worst_soc, 1e-12);
     EXPECT_LT(worst_heat, 1e-12);
     // The profile does what it is meant to: SOC crosses table breakpoints and the cell heats.
-    const auto [lo, hi] = std::minmax_element(fast.soc.begin(), fast.soc.end());
+    const auto [lo, hi] = std::minmax_element(fast_soc.begin(), fast_soc.end());
     EXPECT_GT(*hi - *lo, 0.3);
-    const auto [tlo, thi] = std::minmax_element(fast.temperature_c.begin(), fast.temperature_c.end());
+    const auto [tlo, thi] = std::minmax_element(fast_temperature_c.begin(), fast_temperature_c.end());
     EXPECT_GT(*thi - *tlo, 2.0);
 }
 

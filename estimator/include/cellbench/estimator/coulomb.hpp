@@ -37,24 +37,22 @@ bool is_current_step(double a, double b);
 enum class StepLogging { at_step_start, one_interval_after, unknown };
 StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a);
 
-// The mean current (A) over the interval before every row under this convention (row 0: its own current): within a
-// step the trapezoid of its two rows, across a step the old or the new current as the step's vote says. Whatever
-// integrates over a recording's intervals reads it: the charge count below and the model simulated on the
-// recording (simulate.hpp), so that both see one current. A row with a non-finite time or current (or its
-// predecessor's) keeps its own current.
-std::vector<double> interval_current_a(const std::vector<double>& time_s, const std::vector<double>& current_a);
-std::vector<double> interval_current_a(const Recording& rec);  // with its step column, where it has one
-
-// interval_current_a and, beside it, whether a current step lies between rows k - 1 and k (element k; element 0
-// false): is_current_step between two finite rows that advance in time and, where the recording has a step column,
-// that column changes there too. Elsewhere the current moved within one step, along a curve its rows sample.
+// How the current flowed over the interval before every row under this convention. `mean_a`: the mean current (A)
+// (row 0: its own current): within a step the trapezoid of its two rows, across a step the old or the new current as
+// the step's vote says; a row with a non-finite time or current (or its predecessor's) keeps its own current.
+// Whatever integrates over a recording's intervals reads it: the charge count below and the model simulated on the
+// recording (simulate.hpp), so that both see one current. `step`: whether a current step lies between rows k - 1
+// and k (element k; element 0 false): is_current_step between two finite rows that advance in time and, where the
+// recording has a step column, that column changes there too. Elsewhere the current moved within one step, along a
+// curve its rows sample.
 struct IntervalCurrents {
     std::vector<double> mean_a;
     std::vector<char> step;
 };
-IntervalCurrents interval_currents(const Recording& rec);
+IntervalCurrents interval_currents(const Recording& rec);  // with its step column, where it has one
 
-// Charge throughput (Ah, + = charged) at every row from the first (0 there): interval_current_a over each interval.
+// Charge throughput (Ah, + = charged) at every row from the first (0 there): interval_currents' mean over each
+// interval.
 // Rows with a non-finite time or current, and intervals that do not advance, add nothing.
 std::vector<double> cumulative_charge_ah(const std::vector<double>& time_s, const std::vector<double>& current_a);
 std::vector<double> cumulative_charge_ah(const Recording& rec);  // with its step column, where it has one

@@ -30,6 +30,9 @@ int run_sim(const SimOptions& o) {
     auto clock = std::make_shared<sim::BenchClock>(scale);
 
     boost::asio::io_context io;
+    // SIGTERM is ours before the first instrument line: a client may act on that line and stop the bench at once
+    // (the hil test did, under load: the signal came before the set existed and killed the process).
+    boost::asio::signal_set signals(io, SIGINT, SIGTERM);
     sim::NewareServerOptions no;
     no.host = cfg.cycler.endpoint.host;
     no.port = cfg.cycler.endpoint.port;
@@ -62,7 +65,6 @@ int run_sim(const SimOptions& o) {
     std::fflush(stdout);
     spdlog::info("simulated bench running at {}x bench time; SIGTERM stops it", scale);
 
-    boost::asio::signal_set signals(io, SIGINT, SIGTERM);
     signals.async_wait([&](const boost::system::error_code&, int) {
         dewe.stop();
         chamber.stop();

@@ -18,6 +18,10 @@ namespace cellbench::estimator {
 
 namespace {
 
+// A temperature error's shape (what it has beyond its mean) is evidence above this many times the recording's
+// temperature noise (diagnose_as_given: a thermocouple's accuracy class is an offset).
+constexpr double kTemperatureShapeNoise = 3.0;
+
 // ------------------------------------------------------------------------------------------------ catalogue
 
 struct ParamSpec {
@@ -269,6 +273,17 @@ double mean_square(const std::vector<double>& v) {
     for (double x : v)
         if (std::isfinite(x)) s += x * x, ++n;
     return n ? s / static_cast<double>(n) : kNaN;
+}
+
+// Variance of the finite values about their mean (NaN when there are none).
+double variance_about_mean(const std::vector<double>& v) {
+    double s = 0, s2 = 0;
+    std::size_t n = 0;
+    for (double x : v)
+        if (std::isfinite(x)) s += x, s2 += x * x, ++n;
+    if (!n) return kNaN;
+    const double m = s / static_cast<double>(n);
+    return std::max(0.0, s2 / static_cast<double>(n) - m * m);
 }
 
 Errors errors_of(const ParameterSet& p, const Recording& rec, double start_soc_offset = 0.0) {
@@ -920,6 +935,24 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                  {"rule", "block j = floor((t - t0) / block_s) is held out in fold j mod folds; each fold spans the "
                           "whole recording (its SOC, current and temperature range)"}};
     const double n_eff = std::max(duration / 10.0, 10.0);
+    // The recording's own noise (robust scatter in its rests), measured once: the temperature evidence below and
+    // the unexplained residual at the end compare with it.
+    d.noise = estimate_noise(rec_full, params.capacity_ah);
+    if (d.noise.sigma.heat_flux_w) *d.noise.sigma.heat_flux_w *= params.thermal.area_m2;
+    // A thermocouple's accuracy class (the thesis bench: +-1.8 to 2.3 degC, 1.0 degC of it the cold junction) is an
+    // offset, the same at every row of a recording; the changes it reads are known to its noise. So when no quantity
+    // is missed by more than its accuracy, a temperature error whose part beyond its mean exceeds
+    // kTemperatureShapeNoise x the noise still counts as evidence: a shape no offset of the sensor makes. While
+    // another quantity is evidence the temperature inside its accuracy stays out, so that it cannot outweigh what
+    // the base misses by far (a hysteresis' heat moving it by a tenth of a degree; session 31).
+    const double temperature_shape_floor2 =
+        d.noise.sigma.temperature_c ? std::pow(kTemperatureShapeNoise * *d.noise.sigma.temperature_c, 2) : kNaN;
+    auto evidence_of = [&](const Errors& e) {
+        Quantities q{mean_square(e.v) > pb.floor2_v, mean_square(e.t) > pb.floor2_t, mean_square(e.q) > pb.floor2_q};
+        if (!q.v && !q.t && !q.q)
+            q.t = std::isfinite(temperature_shape_floor2) && variance_about_mean(e.t) > temperature_shape_floor2;
+        return q;
+    };
 
     std::vector<std::string> candidates;
     for (const auto& id : options.effects.empty() ? effect_catalogue() : options.effects) {
@@ -945,10 +978,10 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
         // Evidence comes from the quantities the current base misses by more than the instrument's accuracy
         // (DiagnoseOptions' floors): a change that only moves an error already inside the accuracy class (a
         // 1.5 mV voltage residual against a cycler's 5 mV) is not evidence of physics, however large its share
-        // of that small error. With none left, no candidate can be significant.
+        // of that small error; the temperature also by its shape when nothing else is (evidence_of). With none
+        // left, no candidate can be significant.
         // (mean_square is NaN for a quantity the recording does not measure: never above its floor)
-        const Quantities evidence{mean_square(base_e.v) > pb.floor2_v, mean_square(base_e.t) > pb.floor2_t,
-                                  mean_square(base_e.q) > pb.floor2_q};
+        const Quantities evidence = evidence_of(base_e);
         if (round == 1) {
             auto names = nlohmann::json::array();
             if (evidence.v && rec.size()) names.push_back("voltage");
@@ -957,7 +990,10 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
             d.holdout["evidence_quantities"] = std::move(names);
             d.holdout["floors"] = {{"voltage_v", options.voltage_floor_v},
                                    {"temperature_c", options.temperature_floor_c},
-                                   {"heat_flux_w", options.heat_flux_floor_w}};
+                                   {"heat_flux_w", options.heat_flux_floor_w},
+                                   {"temperature_shape_c", std::isfinite(temperature_shape_floor2)
+                                                               ? nlohmann::json(std::sqrt(temperature_shape_floor2))
+                                                               : nlohmann::json(nullptr)}};
         }
         const double j_base_all = objective(pb, base_e, all, evidence);
         std::vector<double> j_base_test(folds);
@@ -1149,9 +1185,7 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
     progress(0.95, "simulating the improved model");
     d.improved_params = current;
     d.improved = rms_of(current, rec_full, &d.improved_trace, pb.start_soc_offset);
-    // No false reassurance: compare what remains with the recording's own noise.
-    d.noise = estimate_noise(rec_full, params.capacity_ah);
-    if (d.noise.sigma.heat_flux_w) *d.noise.sigma.heat_flux_w *= params.thermal.area_m2;
+    // No false reassurance: compare what remains with the recording's own noise (d.noise, measured above).
     {
         Unexplained u;
         u.rms = d.improved;
@@ -1208,7 +1242,8 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
         if (d.holdout.contains("evidence_quantities") && d.holdout["evidence_quantities"].empty())
             d.summary += "; every error is within its instrument's accuracy (voltage " +
                          printf_text("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
-                         printf_text("%.2f", options.temperature_floor_c) + " degC, heat flux " +
+                         printf_text("%.2f", options.temperature_floor_c) + " degC (about its mean " +
+                         printf_text("%.0f", kTemperatureShapeNoise) + "x its noise), heat flux " +
                          printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         std::string contradicted;
         int n_contradicted = 0;

@@ -260,7 +260,10 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         out.details["temperature_only_fit"] = {{"c_th_j_per_k", c_th}, {"r_th_k_per_w", best_r},
                                                {"temperature_rms_c", num(rms)}};
         out.notes.push_back(why + ": C_th and R_th identified together from the surface temperature (temperature RMS " +
-                            printf_text("%.3f", rms) + " degC); dU/dT left out");
+                            printf_text("%.3f", rms) + " degC); dU/dT left out. Their uncertainties are those of a "
+                            "one-node model: where the core heats faster than the surface shows (a fast discharge), "
+                            "C_th reads high (the P45B's 4C discharge: about twice what its heat flux sensor measures), "
+                            "and the reversible heat left out moves it by a few %");
         flag_thermal(out, cap);
         return out;
     }

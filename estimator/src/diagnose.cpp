@@ -1242,8 +1242,8 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
         if (d.holdout.contains("evidence_quantities") && d.holdout["evidence_quantities"].empty())
             d.summary += "; every error is within its instrument's accuracy (voltage " +
                          printf_text("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
-                         printf_text("%.2f", options.temperature_floor_c) + " degC (about its mean " +
-                         printf_text("%.0f", kTemperatureShapeNoise) + "x its noise), heat flux " +
+                         printf_text("%.2f", options.temperature_floor_c) + " degC or " +
+                         printf_text("%.0f", kTemperatureShapeNoise) + "x its noise about its mean, heat flux " +
                          printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         std::string contradicted;
         int n_contradicted = 0;

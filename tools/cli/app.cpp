@@ -100,7 +100,9 @@ int run_cli(int argc, char** argv) {
                          "Voltage accuracy, mV (default 5: a cycler's 0.05 % of 10 V); smaller errors are no evidence")
         ->check(CLI::PositiveNumber);
     diag_cmd->add_option("--temperature-floor-c", diag.temperature_floor_c,
-                         "Temperature accuracy, degC (default 0.3); smaller errors are no evidence")
+                         "Temperature accuracy, degC (default 0.3); smaller errors are no evidence, unless no other "
+                         "quantity is and the error about its mean exceeds 3x the recording's noise (a thermocouple's "
+                         "accuracy is an offset)")
         ->check(CLI::PositiveNumber);
     diag_cmd->add_option("--heat-flux-floor-w", diag.heat_flux_floor_w,
                          "Heat flux accuracy over the cell's surface, W (default 0.05); smaller errors are no evidence")

@@ -945,12 +945,12 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
     // kTemperatureShapeNoise x the noise still counts as evidence: a shape no offset of the sensor makes. While
     // another quantity is evidence the temperature inside its accuracy stays out, so that it cannot outweigh what
     // the base misses by far (a hysteresis' heat moving it by a tenth of a degree; session 31).
-    const double temperature_shape_floor2 =
-        d.noise.sigma.temperature_c ? std::pow(kTemperatureShapeNoise * *d.noise.sigma.temperature_c, 2) : kNaN;
+    const double temperature_shape_c =
+        d.noise.sigma.temperature_c ? kTemperatureShapeNoise * *d.noise.sigma.temperature_c : kNaN;
     auto evidence_of = [&](const Errors& e) {
         Quantities q{mean_square(e.v) > pb.floor2_v, mean_square(e.t) > pb.floor2_t, mean_square(e.q) > pb.floor2_q};
         if (!q.v && !q.t && !q.q)
-            q.t = std::isfinite(temperature_shape_floor2) && variance_about_mean(e.t) > temperature_shape_floor2;
+            q.t = variance_about_mean(e.t) > temperature_shape_c * temperature_shape_c;  // false where NaN
         return q;
     };
 
@@ -991,8 +991,8 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
             d.holdout["floors"] = {{"voltage_v", options.voltage_floor_v},
                                    {"temperature_c", options.temperature_floor_c},
                                    {"heat_flux_w", options.heat_flux_floor_w},
-                                   {"temperature_shape_c", std::isfinite(temperature_shape_floor2)
-                                                               ? nlohmann::json(std::sqrt(temperature_shape_floor2))
+                                   {"temperature_shape_c", std::isfinite(temperature_shape_c)
+                                                               ? nlohmann::json(temperature_shape_c)
                                                                : nlohmann::json(nullptr)}};
         }
         const double j_base_all = objective(pb, base_e, all, evidence);

@@ -376,7 +376,8 @@ TEST(DiagnoseEvidence, ATemperatureShapeNoSensorOffsetMakesIsEvidenceInsideTheAc
     const auto r = heated_hour([](const std::vector<double>& t, const std::vector<double>& bulk) {
         std::vector<double> s(bulk.size());
         s[0] = bulk[0];
-        for (std::size_t k = 1; k < s.size(); ++k) s[k] = s[k - 1] + (bulk[k] - s[k - 1]) * (1.0 - std::exp(-(t[k] - t[k - 1]) / 12.0));
+        for (std::size_t k = 1; k < s.size(); ++k)
+            s[k] = s[k - 1] + (bulk[k] - s[k - 1]) * (1.0 - std::exp(-(t[k] - t[k - 1]) / 12.0));
         return s;
     });
     estimator::DiagnoseOptions o;

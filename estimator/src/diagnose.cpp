@@ -20,7 +20,6 @@ namespace {
 
 // A temperature error's shape (what it has beyond its mean) is evidence above this many times the recording's
 // temperature noise (diagnose_as_given: a thermocouple's accuracy class is an offset).
-constexpr double kTemperatureShapeNoise = 3.0;
 
 // ------------------------------------------------------------------------------------------------ catalogue
 
@@ -942,11 +941,11 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
     // A thermocouple's accuracy class (the thesis bench: +-1.8 to 2.3 degC, 1.0 degC of it the cold junction) is an
     // offset, the same at every row of a recording; the changes it reads are known to its noise. So when no quantity
     // is missed by more than its accuracy, a temperature error whose part beyond its mean exceeds
-    // kTemperatureShapeNoise x the noise still counts as evidence: a shape no offset of the sensor makes. While
+    // options.temperature_shape_noise_factor x the noise still counts as evidence: a shape no offset of the sensor makes. While
     // another quantity is evidence the temperature inside its accuracy stays out, so that it cannot outweigh what
     // the base misses by far (a hysteresis' heat moving it by a tenth of a degree; session 31).
     const double temperature_shape_c =
-        d.noise.sigma.temperature_c ? kTemperatureShapeNoise * *d.noise.sigma.temperature_c : kNaN;
+        d.noise.sigma.temperature_c ? options.temperature_shape_noise_factor * *d.noise.sigma.temperature_c : kNaN;
     auto evidence_of = [&](const Errors& e) {
         Quantities q{mean_square(e.v) > pb.floor2_v, mean_square(e.t) > pb.floor2_t, mean_square(e.q) > pb.floor2_q};
         if (!q.v && !q.t && !q.q)
@@ -1243,7 +1242,7 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
             d.summary += "; every error is within its instrument's accuracy (voltage " +
                          printf_text("%.1f", options.voltage_floor_v * 1e3) + " mV, temperature " +
                          printf_text("%.2f", options.temperature_floor_c) + " degC or " +
-                         printf_text("%.0f", kTemperatureShapeNoise) + "x its noise about its mean, heat flux " +
+                         printf_text("%g", options.temperature_shape_noise_factor) + "x its noise about its mean, heat flux " +
                          printf_text("%.3f", options.heat_flux_floor_w) + " W RMS), so no change to the model can be told from it";
         std::string contradicted;
         int n_contradicted = 0;

@@ -1,12 +1,15 @@
 #include <cstdio>
 #include <exception>
+#include <string>
 
 #include <CLI/CLI.hpp>
+#include <spdlog/fmt/fmt.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include "cellbench/core/recording.hpp"
 #include "cellbench/core/version.hpp"
+#include "cellbench/estimator/diagnose.hpp"
 #include "cli/commands.hpp"
 
 namespace cellbench::cli {
@@ -101,8 +104,9 @@ int run_cli(int argc, char** argv) {
         ->check(CLI::PositiveNumber);
     diag_cmd->add_option("--temperature-floor-c", diag.temperature_floor_c,
                          "Temperature accuracy, degC (default 0.3); smaller errors are no evidence, unless no other "
-                         "quantity is and the error about its mean exceeds 3x the recording's noise (a thermocouple's "
-                         "accuracy is an offset)")
+                         "quantity is and the error about its mean exceeds " +
+                             fmt::format("{:g}", estimator::DiagnoseOptions{}.temperature_shape_noise_factor) +
+                             "x the recording's noise (a thermocouple's accuracy is an offset)")
         ->check(CLI::PositiveNumber);
     diag_cmd->add_option("--heat-flux-floor-w", diag.heat_flux_floor_w,
                          "Heat flux accuracy over the cell's surface, W (default 0.05); smaller errors are no evidence")

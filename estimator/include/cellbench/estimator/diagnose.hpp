@@ -64,6 +64,9 @@ struct DiagnoseOptions {
     double voltage_floor_v = 0.005;       // cycler voltage accuracy class (0.05 % of a 10 V range)
     double temperature_floor_c = 0.3;     // thermocouple-grade agreement
     double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface
+    // A thermocouple's accuracy is mostly an offset: when no quantity exceeds its floor, a temperature error whose
+    // part about its mean exceeds this multiple of the recording's temperature noise is evidence nonetheless.
+    double temperature_shape_noise_factor = 3.0;
     // Held-out folds: interleaved blocks of this length (0: duration / (folds * 8), at least 60 s).
     double holdout_block_s = 0.0;
     // `unexplained` is reported while a residual RMS exceeds this multiple of the quantity's measurement noise.

@@ -104,8 +104,10 @@ std::vector<double> charge_from(const std::vector<double>& time_s, const std::ve
 
 }  // namespace
 
-bool is_current_step(double a, double b) {
-    return std::abs(b - a) > std::max(0.05, 0.05 * std::max(std::abs(a), std::abs(b)));
+bool is_current_step(double a, double b) { return is_current_step(a, b, 0.05); }
+
+bool is_current_step(double a, double b, double floor_a) {
+    return std::abs(b - a) > std::max(floor_a, 0.05 * std::max(std::abs(a), std::abs(b)));
 }
 
 StepLogging step_logging(const std::vector<double>& time_s, const std::vector<double>& current_a) {

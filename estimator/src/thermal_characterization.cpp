@@ -100,6 +100,11 @@ ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, con
     return d;
 }
 
+// The search range of R_th: a coin cell in still air to a large prismatic cell on a cold plate (an 18650 in a
+// chamber has 3-15 K/W, a 60 Ah pouch about 0.4-1; a search floored at 0.5 K/W held the independent plant's
+// 60 Ah pouch, seed 5, at 0.500 against its 0.407).
+constexpr double kRThSearchMinKPerW = 0.01, kRThSearchMaxKPerW = 200.0;
+
 // Golden-section search of a unimodal function of log(x) on [lo, hi].
 template <typename F>
 double golden_minimum(F f, double lo, double hi, int iterations) {
@@ -131,15 +136,19 @@ void add_flag(std::vector<std::string>& flags, const std::string& f) {
     if (std::find(flags.begin(), flags.end(), f) == flags.end()) flags.push_back(f);
 }
 
-// Plausibility of the thermal values (any Li-ion cell from coin to large pouch): about 1 kJ/(kg K) at 150-250
-// Wh/kg and ~3.6 V gives 15-25 J/K per Ah; a value outside 4-80 J/K per Ah, or R_th outside 0.3-100 K/W, is
-// implausible; an uncertainty above the value itself is "uncertain".
+// Plausibility of the thermal values (any Li-ion cell from coin to large prismatic): about 1 kJ/(kg K) at 150-250
+// Wh/kg and ~3.6 V gives 15-25 J/K per Ah; a value outside 4-80 J/K per Ah, or R_th outside 0.02-100 K/W, is
+// implausible (a 280 Ah prismatic cell in forced air has 0.1-0.3 K/W); an R_th at its search range's end is
+// "at_bound"; an uncertainty above the value itself is "uncertain".
 void flag_thermal(ThermalCharacterization& t, double capacity_ah) {
     const double per_ah = t.c_th_j_per_k / capacity_ah;
     if (std::isfinite(t.c_th_j_per_k) && !(per_ah >= 4.0 && per_ah <= 80.0)) add_flag(t.c_th_flags, "implausible");
     if (!std::isfinite(t.c_th_sigma_j_per_k) || t.c_th_sigma_j_per_k > t.c_th_j_per_k) add_flag(t.c_th_flags, "uncertain");
-    if (std::isfinite(t.r_th_k_per_w) && !(t.r_th_k_per_w >= 0.3 && t.r_th_k_per_w <= 100.0))
+    if (std::isfinite(t.r_th_k_per_w) && !(t.r_th_k_per_w >= 0.02 && t.r_th_k_per_w <= 100.0))
         add_flag(t.r_th_flags, "implausible");
+    if (std::isfinite(t.r_th_k_per_w) && t.r_th_method.rfind("fitted", 0) == 0 &&
+        (t.r_th_k_per_w < 1.02 * kRThSearchMinKPerW || t.r_th_k_per_w > 0.98 * kRThSearchMaxKPerW))
+        add_flag(t.r_th_flags, "at_bound");
     if (!std::isfinite(t.r_th_sigma_k_per_w) || t.r_th_sigma_k_per_w > t.r_th_k_per_w) add_flag(t.r_th_flags, "uncertain");
     t.details["c_th_j_per_k_sd"] = num(t.c_th_sigma_j_per_k);
     t.details["r_th_k_per_w_sd"] = num(t.r_th_sigma_k_per_w);
@@ -214,7 +223,8 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         const auto data = measured_heat_data(recs, electrical, rec_socs, true);
         double best_r = kNaN;
         auto rms_at = [&](double c) {
-            best_r = golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 1.0, 40.0, 30);
+            best_r = golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); },
+                                   kRThSearchMinKPerW, kRThSearchMaxKPerW, 30);
             return measured_heat_temperature_rms(data, c, best_r);
         };
         // Weakly heated recordings cannot separate C_th from R_th: C_th is held within what a Li-ion cell of this
@@ -369,7 +379,7 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         p.thermal.ehc_v_per_k = out.ehc_v_per_k;
         const auto data = measured_heat_data(thermal_recs, p, thermal_socs);
         auto cost = [&](double r) { return measured_heat_temperature_rms(data, out.c_th_j_per_k, r); };
-        out.r_th_k_per_w = golden_minimum(cost, 0.5, 50.0, 40);
+        out.r_th_k_per_w = golden_minimum(cost, kRThSearchMinKPerW, kRThSearchMaxKPerW, 40);
         {
             std::vector<double> res;
             measured_heat_temperature_rms(data, out.c_th_j_per_k, out.r_th_k_per_w, &res);
@@ -378,8 +388,8 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
             if (std::isfinite(out.c_th_sigma_j_per_k) && out.c_th_sigma_j_per_k > 0) {
                 const double dc = std::min(out.c_th_sigma_j_per_k, 0.5 * out.c_th_j_per_k);
                 auto refit = [&](double c) {
-                    return golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); }, 0.5,
-                                          50.0, 40);
+                    return golden_minimum([&](double r) { return measured_heat_temperature_rms(data, c, r); },
+                                          kRThSearchMinKPerW, kRThSearchMaxKPerW, 40);
                 };
                 r_prop = 0.5 * std::abs(refit(out.c_th_j_per_k + dc) - refit(out.c_th_j_per_k - dc));
             }

@@ -35,6 +35,11 @@ int main(int argc, char** argv) {
     bool second_drive = false;
     app.add_flag("--second-drive", second_drive,
                  "also write drive2.bdf.csv: another drive of the same cell and bench set-up (to confirm a diagnosis on)");
+    double capacity_ah = 0.0;
+    app.add_option("--capacity-ah", capacity_ah,
+                   "another cell size: the seed's cell scaled to this capacity (resistances 1/f, C_th f, area and R_th "
+                   "f^(2/3); e.g. 60 for a pouch cell)")
+        ->check(CLI::Range(0.1, 2000.0));
     std::vector<double> record_conditions;
     app.add_option("--log-on-change", record_conditions,
                    "write only the rows a cycler's record conditions keep: DV_V DI_A DT_S (a row at each step's start and "
@@ -60,6 +65,7 @@ int main(int argc, char** argv) {
         o.current_dependence = current_dependence;
         o.noise = !no_noise;
         o.thesis_discharge_pulse_s = thesis_pulse_s;
+        if (capacity_ah > 0.0) o.capacity_ah = capacity_ah;
 
         const std::filesystem::path dir(out_dir);
         std::filesystem::create_directories(dir);

@@ -218,6 +218,8 @@ TEST_P(FitOnIndependentPlant, RecoversTheCellItWasNotWrittenWith) {
         plant::PlantOptions o;
         o.seed = static_cast<std::uint64_t>(seed);
         o.layout = GetParam();
+        // diagnostics: another cell size (e.g. 60 for a pouch cell), the seed's cell scaled
+        if (const char* k = std::getenv("CELLBENCH_VALIDATION_CAPACITY_AH")) o.capacity_ah = std::atof(k);
         const auto d = plant::generate(o);
         const auto c = characterize_plant(d);
         if (std::getenv("CELLBENCH_VALIDATION_VERBOSE")) {
@@ -345,6 +347,40 @@ TEST(FitOnIndependentPlantLfp, SteepOcvEndsDoNotCollapseTheRcPairs) {
     EXPECT_LT(e.r12, 0.25);
     EXPECT_LT(e.ocv_mv, 10.0);
     EXPECT_LT(e.drive_rms_mv, 8.0);
+}
+
+// Another cell than an 18650: the plant's seed 5 scaled to a 60 Ah pouch (resistances / 16, C_th x 16, R_th 0.41 K/W
+// instead of 6.5). The thermal fit searched R_th from 0.5 K/W up and held it there (22.8 % off, unflagged); the
+// tables, the capacity and the drive must come out as on the small cell.
+TEST(FitOnIndependentPlantLargeCell, APouchCellIsRecoveredAsWellAsAnEighteen650) {
+    plant::PlantOptions o;
+    o.seed = 5;
+    o.layout = plant::Layout::thesis;
+    o.capacity_ah = 60.0;
+    const auto d = plant::generate(o);
+    ASSERT_EQ(d.truth.format, "pouch");
+    ASSERT_LT(d.truth.r_th_k_per_w, 0.5);
+    const auto c = characterize_plant(d);
+    const auto e = compare(c, d, to_recording(d.drive, "drive"));
+    std::printf("seed 5 as a 60 Ah pouch: OCV %.2f mV, R0 %.2f %%, R1+R2 %.1f %%, tau1 %.1f %%, tau2 %.1f %%, capacity/cell "
+                "%.2f %%, C_th %.2f %%, R_th %.2f %% (%.3f K/W, flags %zu), drive %.2f mV\n",
+                e.ocv_mv, 100 * e.r0, 100 * e.r12, 100 * e.tau1, 100 * e.tau2, 100 * e.capacity_vs_cell, 100 * e.c_th,
+                100 * e.r_th, c.thermal.r_th_k_per_w, c.thermal.r_th_flags.size(), e.drive_rms_mv);
+    EXPECT_LT(e.c_th, 0.05);
+    EXPECT_LT(e.r_th, 0.05);
+    EXPECT_TRUE(c.thermal.r_th_flags.empty()) << "a pouch cell's R_th is plausible";
+    EXPECT_LT(e.ocv_mv, 5.0);
+    EXPECT_LT(e.r0, 0.03);
+    EXPECT_LT(e.r12, 0.10);
+    EXPECT_LT(e.capacity_vs_cell, 0.005);
+    EXPECT_LT(e.drive_rms_mv, 6.0);
+    // Its channel's current noise (0.1 A, 16x the 18650's) is no current step: the global fit merges a CC phase's
+    // rows into ticks as on the small cell (5 800 voltage residuals) instead of fitting every row (96 000, 17x the
+    // time) when a 50 mA change counted as a step.
+    ASSERT_TRUE(c.global.has_value());
+    std::size_t residuals = 0;
+    for (const auto& w : c.global->windows) residuals += w.residuals;
+    EXPECT_LT(residuals, 15000u);
 }
 
 // On uniformly sampled steps (the USABC layout logged every 1 s) when a current step happens within its sample

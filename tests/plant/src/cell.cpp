@@ -223,6 +223,21 @@ CellSpec make_cell(const PlantOptions& options) {
     c.charge_tau_offset = {rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)};  // keeps tau2/tau1 >= 5
     c.c_th_j_per_k = rng.uniform(40.0, 120.0);
     c.r_th_k_per_w = rng.uniform(3.0, 15.0);
+    double current_noise_scale = 1.0;
+    if (options.capacity_ah) {
+        if (!(*options.capacity_ah > 0.0)) throw std::invalid_argument("plant: capacity must be positive");
+        const double f = *options.capacity_ah / c.capacity_ah, f_area = std::cbrt(f * f);
+        c.capacity_ah = *options.capacity_ah;
+        c.nominal_capacity_ah = std::round(c.nominal_capacity_ah * f * 20.0) / 20.0;
+        if (c.capacity_ah > 10.0) c.format = "pouch";
+        c.area_m2 *= f_area;
+        c.r0_ref_ohm /= f;
+        c.r1_ref_ohm /= f;
+        c.r2_ref_ohm /= f;
+        c.c_th_j_per_k *= f;
+        c.r_th_k_per_w /= f_area;
+        current_noise_scale = f;
+    }
 
     // Measurement.
     Measurement& m = c.measurement;
@@ -232,7 +247,7 @@ CellSpec make_cell(const PlantOptions& options) {
     if (!(m.sample_s > 0.0)) throw std::invalid_argument("plant: sample interval must be positive");
     m.coarse_sample_s = std::max(1.0, m.sample_s);
     m.voltage_noise_v = rng.uniform(1e-4, 5e-4);
-    m.current_noise_a = rng.uniform(1e-3, 5e-3);
+    m.current_noise_a = rng.uniform(1e-3, 5e-3) * current_noise_scale;
 
     // The drive profile's heating, roughly (RMS current about 1.6C): thermal effects are scaled so that they matter
     // on a cell that heats little.

@@ -32,6 +32,8 @@ namespace cellbench::estimator {
 // Whether the current steps between two rows' currents a and b (A): they differ by more than 50 mA and 5 % of the
 // larger. The one test of a step for Coulomb counting and for the global fit's ticks.
 bool is_current_step(double a, double b);
+// The same with another floor than 50 mA (a recording whose current noise is larger: a large cell's channel).
+bool is_current_step(double a, double b, double floor_a);
 
 // How a recording's logger placed its rows at current steps (see above), from the steps that tell.
 enum class StepLogging { at_step_start, one_interval_after, unknown };

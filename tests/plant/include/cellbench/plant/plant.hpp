@@ -161,6 +161,10 @@ struct PlantOptions {
     bool temperature_dependence = false;  // exponential in T (or linear, by seed), not Arrhenius
     bool current_dependence = false;      // tanh-saturating RC1 overpotential, not asinh
     double thesis_discharge_pulse_s = 30.0;  // Table 2.12, step 8
+    // A cell of another size: the seed's cell scaled to this capacity by f = capacity / drawn capacity (resistances
+    // and current noise by 1/f and f, C_th by f, the surface area by f^(2/3) and R_th by its inverse; "pouch" above
+    // 10 Ah). The seed's draws are unchanged, so the same seed gives the same chemistry, shapes and programs.
+    std::optional<double> capacity_ah;
 };
 
 // Builds the cell for a seed: base parameters depend on the seed only; each effect's magnitude on the seed and

@@ -109,7 +109,8 @@ int run_cli(int argc, char** argv) {
                              "x the recording's noise (a thermocouple's accuracy is an offset)")
         ->check(CLI::PositiveNumber);
     diag_cmd->add_option("--heat-flux-floor-w", diag.heat_flux_floor_w,
-                         "Heat flux accuracy over the cell's surface, W (default 0.05); smaller errors are no evidence")
+                         "Heat flux accuracy over the cell's surface, W (default 0.05 for a 21700's surface, scaled with a larger "
+                         "cell's area); smaller errors are no evidence")
         ->check(CLI::PositiveNumber);
 
     ExportParamsOptions exp;

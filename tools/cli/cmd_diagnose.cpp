@@ -25,7 +25,7 @@ int run_diagnose(const DiagnoseCliOptions& o) {
     for (const auto& c : confirm) opt.confirm.push_back(&c);
     if (o.voltage_floor_mv) opt.voltage_floor_v = *o.voltage_floor_mv * 1e-3;
     if (o.temperature_floor_c) opt.temperature_floor_c = *o.temperature_floor_c;
-    if (o.heat_flux_floor_w) opt.heat_flux_floor_w = *o.heat_flux_floor_w;
+    if (o.heat_flux_floor_w) opt.heat_flux_floor_w = *o.heat_flux_floor_w, opt.scale_heat_flux_floor_with_area = false;
     ProgressLine progress("diagnose");  // on a terminal only
     opt.progress = progress.callback();
     const auto d = estimator::diagnose(params, rec, opt);

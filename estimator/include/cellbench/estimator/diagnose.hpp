@@ -48,6 +48,9 @@
 
 namespace cellbench::estimator {
 
+// The surface the default heat flux floor is given for: a 21700 cell's (m^2).
+inline constexpr double kHeatFluxFloorAreaM2 = 0.005311;
+
 struct DiagnoseOptions {
     std::size_t folds = 4;
     double min_cv_improvement = 0.25;  // fraction of the held-out error removed, averaged over the folds
@@ -64,6 +67,10 @@ struct DiagnoseOptions {
     double voltage_floor_v = 0.005;       // cycler voltage accuracy class (0.05 % of a 10 V range)
     double temperature_floor_c = 0.3;     // thermocouple-grade agreement
     double heat_flux_floor_w = 0.05;      // ~10 W/m^2 over a 21700 cell's surface
+    // The heat flux floor above is a 21700's: a larger cell (the parameter set's thermal.area_m2 above
+    // kHeatFluxFloorAreaM2) gets it scaled by its surface, the sensor's accuracy per m^2 being the same. False: the
+    // floor as given (the CLI's --heat-flux-floor-w).
+    bool scale_heat_flux_floor_with_area = true;
     // A thermocouple's accuracy is mostly an offset: when no quantity exceeds its floor, a temperature error whose
     // part about its mean exceeds this multiple of the recording's temperature noise is evidence nonetheless.
     double temperature_shape_noise_factor = 3.0;

@@ -18,9 +18,6 @@ namespace cellbench::estimator {
 
 namespace {
 
-// A temperature error's shape (what it has beyond its mean) is evidence above this many times the recording's
-// temperature noise (diagnose_as_given: a thermocouple's accuracy class is an offset).
-
 // ------------------------------------------------------------------------------------------------ catalogue
 
 struct ParamSpec {
@@ -946,9 +943,9 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
     // A thermocouple's accuracy class (the thesis bench: +-1.8 to 2.3 degC, 1.0 degC of it the cold junction) is an
     // offset, the same at every row of a recording; the changes it reads are known to its noise. So when no quantity
     // is missed by more than its accuracy, a temperature error whose part beyond its mean exceeds
-    // options.temperature_shape_noise_factor x the noise still counts as evidence: a shape no offset of the sensor makes. While
-    // another quantity is evidence the temperature inside its accuracy stays out, so that it cannot outweigh what
-    // the base misses by far (a hysteresis' heat moving it by a tenth of a degree; session 31).
+    // options.temperature_shape_noise_factor x the noise still counts as evidence: a shape no offset of the sensor
+    // makes. While another quantity is evidence the temperature inside its accuracy stays out, so that it cannot
+    // outweigh what the base misses by far (a hysteresis' heat moving it by a tenth of a degree; session 31).
     const double temperature_shape_c =
         d.noise.sigma.temperature_c ? options.temperature_shape_noise_factor * *d.noise.sigma.temperature_c : kNaN;
     auto evidence_of = [&](const Errors& e) {

@@ -105,6 +105,9 @@ ThermalFitData measured_heat_data(const std::vector<const Recording*>& recs, con
 // 60 Ah pouch, seed 5, at 0.500 against its 0.407).
 constexpr double kRThSearchMinKPerW = 0.01, kRThSearchMaxKPerW = 200.0;
 
+// Whether a golden-section search on [lo, hi] ended at one of its ends: the data did not hold the value there.
+bool at_search_bound(double x, double lo, double hi) { return x < 1.02 * lo || x > 0.98 * hi; }
+
 // Golden-section search of a unimodal function of log(x) on [lo, hi].
 template <typename F>
 double golden_minimum(F f, double lo, double hi, int iterations) {
@@ -138,17 +141,14 @@ void add_flag(std::vector<std::string>& flags, const std::string& f) {
 
 // Plausibility of the thermal values (any Li-ion cell from coin to large prismatic): about 1 kJ/(kg K) at 150-250
 // Wh/kg and ~3.6 V gives 15-25 J/K per Ah; a value outside 4-80 J/K per Ah, or R_th outside 0.02-100 K/W, is
-// implausible (a 280 Ah prismatic cell in forced air has 0.1-0.3 K/W); an R_th at its search range's end is
-// "at_bound"; an uncertainty above the value itself is "uncertain".
+// implausible (a 280 Ah prismatic cell in forced air has 0.1-0.3 K/W); an uncertainty above the value itself is
+// "uncertain". (A searched value at its search range's end is flagged "at_bound" where it is searched.)
 void flag_thermal(ThermalCharacterization& t, double capacity_ah) {
     const double per_ah = t.c_th_j_per_k / capacity_ah;
     if (std::isfinite(t.c_th_j_per_k) && !(per_ah >= 4.0 && per_ah <= 80.0)) add_flag(t.c_th_flags, "implausible");
     if (!std::isfinite(t.c_th_sigma_j_per_k) || t.c_th_sigma_j_per_k > t.c_th_j_per_k) add_flag(t.c_th_flags, "uncertain");
     if (std::isfinite(t.r_th_k_per_w) && !(t.r_th_k_per_w >= 0.02 && t.r_th_k_per_w <= 100.0))
         add_flag(t.r_th_flags, "implausible");
-    if (std::isfinite(t.r_th_k_per_w) && t.r_th_method.rfind("fitted", 0) == 0 &&
-        (t.r_th_k_per_w < 1.02 * kRThSearchMinKPerW || t.r_th_k_per_w > 0.98 * kRThSearchMaxKPerW))
-        add_flag(t.r_th_flags, "at_bound");
     if (!std::isfinite(t.r_th_sigma_k_per_w) || t.r_th_sigma_k_per_w > t.r_th_k_per_w) add_flag(t.r_th_flags, "uncertain");
     t.details["c_th_j_per_k_sd"] = num(t.c_th_sigma_j_per_k);
     t.details["r_th_k_per_w_sd"] = num(t.r_th_sigma_k_per_w);
@@ -255,10 +255,12 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
             out.r_th_k_per_w = best_r = r_at;
             out.r_th_sigma_k_per_w = std::sqrt(r_stat * r_stat + r_prop * r_prop);
             // At a bound of the C_th search: the temperature alone does not hold it.
-            if (c_th < 1.02 * c_lo || c_th > 0.98 * c_hi) {
+            if (at_search_bound(c_th, c_lo, c_hi)) {
                 add_flag(out.c_th_flags, "at_bound");
                 add_flag(out.c_th_flags, "uncertain");
             }
+            if (at_search_bound(out.r_th_k_per_w, kRThSearchMinKPerW, kRThSearchMaxKPerW))
+                add_flag(out.r_th_flags, "at_bound");
         }
         // A heat flux sensor whose rests hold no energy balance (best_cth's note says why) is not "no sensor".
         const bool flux_measured = std::any_of(recordings.begin(), recordings.end(), [](const Recording& r) { return has_thermal(r); });
@@ -380,6 +382,7 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         const auto data = measured_heat_data(thermal_recs, p, thermal_socs);
         auto cost = [&](double r) { return measured_heat_temperature_rms(data, out.c_th_j_per_k, r); };
         out.r_th_k_per_w = golden_minimum(cost, kRThSearchMinKPerW, kRThSearchMaxKPerW, 40);
+        if (at_search_bound(out.r_th_k_per_w, kRThSearchMinKPerW, kRThSearchMaxKPerW)) add_flag(out.r_th_flags, "at_bound");
         {
             std::vector<double> res;
             measured_heat_temperature_rms(data, out.c_th_j_per_k, out.r_th_k_per_w, &res);

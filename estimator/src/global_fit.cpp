@@ -410,6 +410,18 @@ std::vector<Tick> make_ticks(const Recording& rec, std::size_t begin, std::size_
     return ticks;
 }
 
+// The stride that keeps a window's voltage residuals within max_rate_hz per second of its duration on average
+// (GlobalFitOptions::max_residual_rate_hz): 1 where they are within it or no limit is set.
+std::size_t residual_stride(const std::vector<Tick>& ticks, double max_rate_hz) {
+    if (!(max_rate_hz > 0)) return 1;
+    std::size_t n = 0;
+    double duration_s = 0;
+    for (const auto& t : ticks) n += std::isfinite(t.voltage_v), duration_s += t.dt_s;
+    const double allowed = max_rate_hz * duration_s;
+    if (!(allowed >= 1) || static_cast<double>(n) <= allowed) return 1;
+    return static_cast<std::size_t>(std::ceil(static_cast<double>(n) / allowed));
+}
+
 // Standard deviation of the current's measurement noise: MAD-based, from the changes between consecutive rows that
 // both carry current (within a CC phase they differ by the noise alone; the steps between phases are few). 0 for a
 // clean current (a cycler's set value, a quantized reading that does not move).
@@ -650,6 +662,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     // noise) otherwise made every row a tick and a step: 96 000 residuals instead of 5 700, 17x the time.
     std::vector<double> current_floor(recordings.size());
     for (std::size_t r = 0; r < recordings.size(); ++r) current_floor[r] = std::max(0.05, 5.0 * current_noise_a(*recordings[r]));
+    // Per recording, the largest stride its windows' residuals were thinned by (max_residual_rate_hz; 1: none).
+    std::vector<std::size_t> thinned(recordings.size(), 1);
     double i_min = 1e300, i_max = 0;
     // The reference current of the current dependence (the tables hold the resistances at it): the median current
     // of the windows that are not low-rate, where the RC tables are identified. Low-rate windows (a C/20 OCV
@@ -684,7 +698,13 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         wd.ticks = make_ticks(rec, w.begin, w.end, socs[w.r], t_ref_c, current_floor[w.r]);
         if (voltage_lags[w.r])  // its steps are levels only (no step residual, no lag within the sample)
             for (auto& t : wd.ticks) t.step = false;
-        for (const auto& t : wd.ticks) wd.residuals += std::isfinite(t.voltage_v);
+        if (const std::size_t m = residual_stride(wd.ticks, options.max_residual_rate_hz); m > 1) {
+            std::size_t c = 0;
+            for (auto& t : wd.ticks)
+                if (std::isfinite(t.voltage_v)) t.fitted = c++ % m == 0;
+            thinned[w.r] = std::max(thinned[w.r], m);
+        }
+        for (const auto& t : wd.ticks) wd.residuals += t.has_residual();
         for (std::size_t k = 1; k < wd.ticks.size(); ++k) wd.step_residuals += wd.has_step_residual(k);
         wd.step_sigma_v = step_sigma[w.r];
         if (wd.residuals < 5) continue;
@@ -732,6 +752,12 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         out.windows.push_back(gw);
     }
     if (b.windows.empty()) throw InputError("global fit: no current in any recording between its rests");
+    for (std::size_t r = 0; r < recordings.size(); ++r)
+        if (thinned[r] > 1)
+            out.notes.push_back(printf_text("%s: logged so densely under changing current that every row is a tick: the voltage "
+                                            "of every %zu-th is fitted (at most %.3g residuals per second of a window), "
+                                            "the model stepping through all of them",
+                                            recordings[r]->source.c_str(), thinned[r], options.max_residual_rate_hz));
 
     // Knot grid over the SOC the windows visit.
     double s_lo = 1e9, s_hi = -1e9;

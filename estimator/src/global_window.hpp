@@ -69,6 +69,8 @@ struct Tick {
     double soc_start = 0, soc_end = 0;  // Coulomb-counted (before a window's fitted offset)
     double temperature_c = 0;
     double voltage_v = kNaN;            // NaN: no residual
+    bool fitted = true;                 // its voltage is a residual (false: thinned out, see make_ticks' caller)
+    [[nodiscard]] bool has_residual() const { return fitted && std::isfinite(voltage_v); }
 };
 
 struct WindowData {
@@ -82,9 +84,10 @@ struct WindowData {
     [[nodiscard]] bool capacity_scale_free() const { return fit_offset && low_rate; }
     std::size_t residuals = 0;       // one per tick with a measured voltage: (V_model - V) / sigma_v
     std::size_t step_residuals = 0;  // one per current step between two measured voltages (see simulate_window)
-    // Whether tick k is such a step: the current steps across it and both its voltage and the one before are measured.
+    // Whether tick k is such a step: the current steps across it, it is fitted, and both its voltage and the one
+    // before are measured.
     [[nodiscard]] bool has_step_residual(std::size_t k) const {
-        return k > 0 && k < ticks.size() && ticks[k].step && std::isfinite(ticks[k].voltage_v) &&
+        return k > 0 && k < ticks.size() && ticks[k].step && ticks[k].has_residual() &&
                std::isfinite(ticks[k - 1].voltage_v);
     }
     double step_sigma_v = 1e-3;      // the measurement noise of a voltage difference across one sample interval
@@ -277,7 +280,7 @@ void simulate_window(const Grid& g, const WindowData& w, const KnotValues<T>* kv
         const T ocv = oa + wo * (*ocv_knots[std::min(jo + 1, ohi) - olo] - oa);
         const T v = ocv + (i < 0 ? r0d * i : r0c * i) + v1d + v2d + v1c + v2c + v3;
         if (model_v) model_v[k] = scalar(v);
-        if (std::isfinite(tk.voltage_v)) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
+        if (tk.has_residual()) residuals[r++] = (v - tk.voltage_v) / g.sigma_v;
         // The voltage's jump across a current step, over one sample interval: R0 times the step plus the pairs'
         // movement in that interval. It is measured to the logger's noise, while the tick residuals above also
         // carry the model's structural error (slow diffusion, heating, hysteresis), which is smooth in time and

@@ -266,7 +266,7 @@ private:
             for (int l = 0; l < nl; ++l) dvm[l] = dv[0][l] + dv[1][l] + dv[2][l] + dv[3][l] + dv[4][l];
             gocv.scatter(dvm, 1.0);
             gr0.scatter(dvm, i);
-            if (std::isfinite(tk.voltage_v)) {
+            if (tk.has_residual()) {
                 for (int l = 0; l < nl; ++l) ln.column[l][r * ln.stride[l]] = dvm[l] / g.sigma_v;
                 ++r;
             }

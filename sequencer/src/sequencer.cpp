@@ -215,6 +215,7 @@ void Sequencer::finish_locked(RunState end_state, const std::string& reason, dou
                 estimator::CharacterizationOptions co;
                 co.fallback_capacity_ah = opt_.capacity_ah;
                 co.fallback_capacity_source = "the run's cell capacity";
+                co.area_m2 = opt_.area_m2;  // the cell's surface: heat flux density -> heat flow (C_th, R_th)
                 auto c = std::make_shared<estimator::Characterization>(estimator::characterize({rec}, co));
                 return [this, c] { sink_.on_parameter_set(c->params, c->summary_json()); };
             } catch (const std::exception& e) {

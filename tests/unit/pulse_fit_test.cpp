@@ -357,3 +357,45 @@ TEST(PulseFit, ChargeFirstPulseSetWithoutARestBetweenReadsOnlyTheStepsAtARest) {
     EXPECT_TRUE(std::isfinite(fit.chosen_charge().r0_ohm));
     EXPECT_TRUE(std::isnan(fit.thesis_rms_v));
 }
+
+// The joint fit's uncertainties do not depend on the cell's size: the same pulse set on a cell with a hundredth of
+// the resistances, a hundred times the capacitances (the same time constants) and a hundred times the current (the same
+// voltages, the same noise) has the same relative uncertainties. In raw units J'J then spreads its eigenvalues by
+// 1e4 more (ohms against seconds), which the covariance's rank check read as rank deficient: a 40 Ah cell on the
+// simulated bench got no uncertainty at all for the first pulse set of its run.
+TEST(PulseFit, JointUncertaintiesAreTheSameOnACellAHundredTimesLarger) {
+    constexpr double kScale = 100.0;
+    auto fit_of = [&](double scale) {
+        test::SyntheticOptions o;
+        o.flat_ocv = true;  // the same voltages at any current: the SOC the larger current moves does not show
+        o.soc0 = 0.8;
+        o.voltage_noise_v = 2e-4;
+        o.seed = 7;
+        for (auto* p : {&o.discharge, &o.charge}) p->r0_ohm /= scale, p->r1_ohm /= scale, p->r2_ohm /= scale;
+        auto program = test::pulse_set_program(700.0, 4.5 * scale);
+        program.push_back({300.0, -4.5 * scale, "CC DChg"});  // the SOC step, then the next level's rest
+        program.push_back({700.0, 0.0, "Rest"});
+        const auto rec = test::synthesize(program, o);
+        const auto seg = segment_recording(rec);
+        EXPECT_EQ(seg.pulse_sets.size(), 1u);
+        PulseFitOptions po;
+        po.docv_dah_v_per_ah = 0.0;
+        return fit_pulse_set(rec, seg.pulse_sets.at(0), po);
+    };
+    const auto small = fit_of(1.0), large = fit_of(kScale);
+    for (const auto& [name, s, l] :
+         {std::tuple{"discharge R1", small.joint_discharge_sigma.r1_ohm / small.joint_discharge.r1_ohm,
+                     large.joint_discharge_sigma.r1_ohm / large.joint_discharge.r1_ohm},
+          std::tuple{"discharge tau2", small.joint_discharge_sigma.tau2_s / small.joint_discharge.tau2_s,
+                     large.joint_discharge_sigma.tau2_s / large.joint_discharge.tau2_s},
+          std::tuple{"charge R2", small.joint_charge_sigma.r2_ohm / small.joint_charge.r2_ohm,
+                     large.joint_charge_sigma.r2_ohm / large.joint_charge.r2_ohm},
+          std::tuple{"charge tau1", small.joint_charge_sigma.tau1_s / small.joint_charge.tau1_s,
+                     large.joint_charge_sigma.tau1_s / large.joint_charge.tau1_s}}) {
+        SCOPED_TRACE(name);
+        ASSERT_TRUE(std::isfinite(s) && s > 0.0) << "no uncertainty on the small cell";
+        ASSERT_TRUE(std::isfinite(l) && l > 0.0) << "no uncertainty on the large cell";
+        EXPECT_NEAR(l, s, 0.05 * s);
+    }
+    EXPECT_NEAR(large.joint_discharge.r1_ohm * kScale, small.joint_discharge.r1_ohm, 0.01 * small.joint_discharge.r1_ohm);
+}

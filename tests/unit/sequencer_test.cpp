@@ -106,7 +106,12 @@ struct Recorder : RunSink {
         std::lock_guard<std::mutex> l(m);
         step_totals.emplace_back(capacity_ah, energy_wh);
     }
-    void on_parameter_set(const estimator::ParameterSet&, const nlohmann::json&) override { got_params = true; }
+    double params_area_m2 = 0.0;  // thermal.area_m2 of the end-of-run parameter set
+    void on_parameter_set(const estimator::ParameterSet& p, const nlohmann::json&) override {
+        std::lock_guard<std::mutex> l(m);
+        got_params = true;
+        params_area_m2 = p.thermal.area_m2;
+    }
 };
 
 // A short HPPC: full cell, 1 h rest, then 3 pulse sets (Table 2.12 shape).
@@ -223,6 +228,30 @@ TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
     }
     EXPECT_GT(rec.fits[0].soc, rec.fits[2].soc);
     EXPECT_GE(rec.steps, 1 + 3 * 6);  // the first rest, then six steps per pulse set
+}
+
+// The end-of-run fit turns the heat flux density into heat flow over the run's cell surface (SequencerOptions::
+// area_m2, the cell config's surface_area_m2), not over a 21700's: a 40 Ah pouch on the simulated bench got C_th
+// 136 J/K and R_th 0.43 K/W instead of 633 J/K and 1.13 K/W.
+TEST(Sequencer, TheEndOfRunFitUsesTheCellsSurface) {
+    ModelCell cell(cell_params());
+    Recorder rec;
+    FakeCycler cyc;
+    FakeChamber ch;
+    SequencerOptions opt;
+    opt.capacity_ah = cell.model.params().capacity_ah;
+    opt.area_m2 = 0.0247;
+    opt.fit_online = false;
+    Sequencer seq(cyc, ch, rec, opt);
+    Program p{"hppc_short",
+              {{Segment::Kind::ChamberSetpoint, {}, 30.0, 0.5, 0, 0, "30 degC"}, {Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}};
+    seq.start(p, 0.0);
+    run_bench(seq, cyc, cell, ch, 5 * 3600.0);
+    seq.wait_for_fits();
+    ASSERT_EQ(seq.state(), RunState::Completed);
+    std::lock_guard<std::mutex> l(rec.m);
+    ASSERT_TRUE(rec.got_params) << (rec.events.empty() ? "" : rec.events.back());
+    EXPECT_DOUBLE_EQ(rec.params_area_m2, 0.0247);
 }
 
 // A tester that logs a 0.3 V glitch now and then (one row, inside rests): the online fits read their window as

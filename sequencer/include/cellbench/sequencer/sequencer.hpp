@@ -80,7 +80,7 @@ struct SequencerOptions {
     SafetyLimits limits;      // the standard rules (default_safety_rules)
     SafetyRules extra_rules;  // a bench's own rules, evaluated after the standard ones
     double capacity_ah = 4.5;  // SOC = anchor + tester charge since the anchor / capacity_ah
-    double area_m2 = 5.311e-3;
+    double area_m2 = 5.311e-3;  // the cell's surface (m^2) the end-of-run fit turns heat flux density into heat flow with
     bool fit_online = true;
     bool fit_at_end = true;
     // SOC of a rested cell from its voltage (the cell's OCV table); empty: the run starts at SOC 1.

@@ -42,6 +42,9 @@ std::vector<std::pair<std::string, std::vector<std::string>>> rc_flags(const RcV
         std::vector<std::string> f;
         if (!x.plausible) f.emplace_back("implausible");
         if (std::isfinite(x.sigma) && std::isfinite(x.value) && x.sigma > std::abs(x.value)) f.emplace_back("uncertain");
+        // A value without an uncertainty (the thesis' per-segment fits give none; a joint fit whose covariance
+        // is rank deficient) is not shown as fine either.
+        if (std::isfinite(x.value) && !std::isfinite(x.sigma)) f.emplace_back("no_uncertainty");
         if (tau_at_bound && x.pair) f.emplace_back("at_bound");
         if (!f.empty()) out.emplace_back(x.name, std::move(f));
     }

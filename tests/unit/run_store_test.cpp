@@ -930,3 +930,30 @@ TEST_F(RunStoreTest, PulseFitValuesCarryTheirSigmaAndFlagsThroughTheStore) {
     EXPECT_EQ(c.at("flags").at("c2_f"), json::array({"uncertain"}));
     EXPECT_FALSE(c.at("flags").contains("r0_ohm"));
 }
+
+// A value the fit gives no uncertainty for (the thesis' per-segment fits have no covariance) carries the flag
+// "no_uncertainty" with its null sigma: never a made-up sigma, and never shown as fine.
+TEST_F(RunStoreTest, PulseFitValuesWithoutASigmaAreFlagged) {
+    estimator::PulseSetFit fit;
+    fit.soc = 0.8;
+    fit.ocv_v = 3.9;
+    fit.thesis_discharge = {0.0075, 0.0015, 1.8, 0.009, 250.0};
+    fit.thesis_charge = {0.0074, 0.0014, 1.6, 0.010, 240.0};
+    fit.chosen = estimator::PulseSetFit::Method::Thesis;
+    RunId id = 0;
+    {
+        auto store = RunStore::open(db_);
+        id = store->create_run(new_run("hppc"));
+        store->record_pulse_fit(pulse_fit_record(id, 1, 100.0, 1.7e9, fit));
+        ASSERT_TRUE(store->flush());
+    }
+    const auto fits = RunStore::open(db_)->pulse_fits(id);
+    ASSERT_EQ(fits.size(), 1u);
+    const auto j = to_json(fits[0]);
+    for (const char* dir : {"discharge", "charge"})
+        for (const char* k : {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"}) {
+            const auto& d = j.at(dir);
+            EXPECT_TRUE(d.at(std::string(k) + "_sd").is_null()) << dir << " " << k;
+            EXPECT_EQ(d.at("flags").value(k, json()), json::array({"no_uncertainty"})) << dir << " " << k << ": " << d.dump();
+        }
+}

@@ -20,9 +20,10 @@
 //     least-squares solve; (b) from the best grid point(s), Ceres on the four log time constants alone with the
 //     linear parameters projected out (Kaufman's Jacobian); (c) Ceres on all 11 parameters of the exact model
 //     (analytic Jacobian from the forward sensitivities of the ZOH recursion) under bounds (R >= 0, tau1 in
-//     [0.05, 20] s, tau2 in [5, 500] s, tau1 < tau2); 1-sigma uncertainties from ceres::Covariance, scaled by
-//     the residual variance, when J'J is not rank deficient (they ignore the correlation of neighbouring
-//     residuals, so they are optimistic).
+//     [0.05, 20] s, tau2 in [5, 500] s, tau1 < tau2); 1-sigma uncertainties from (J'J)^-1 at the optimum (Ceres'
+//     Jacobian; the inverse taken by Eigen with J'J's columns scaled to unit norm, so that the rank check does not
+//     depend on the cell's size or the units), scaled by the residual variance, when the scaled J'J is not rank
+//     deficient (they ignore the correlation of neighbouring residuals, so they are optimistic).
 //
 // Both results are simulated with simulate_overpotential over the same rows, with OCV(t) = ocv_v +
 // docv_dah * Ah (no offset: that is how a parameter set is used), and `chosen` is the one with the smaller

@@ -755,7 +755,7 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     for (std::size_t r = 0; r < recordings.size(); ++r)
         if (thinned[r] > 1)
             out.notes.push_back(printf_text("%s: logged so densely under changing current that every row is a tick: the voltage "
-                                            "of every %zu-th is fitted (at most %.3g residuals per second of a window), "
+                                            "of one tick in %zu is fitted (at most %.3g residuals per second of a window), "
                                             "the model stepping through all of them",
                                             recordings[r]->source.c_str(), thinned[r], options.max_residual_rate_hz));
 

@@ -24,6 +24,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <sstream>
 #include <string>
 #include <utility>
 #include <thread>
@@ -356,6 +357,87 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
     // R0 is the joint fit's (fitted with the pairs over every row; eq. 3.2's steps are in the fit's detail):
     // eq. 3.2 reads the first row 0.1 s after the step, so it carries that much of the RC relaxation (about +1 to
     // +2.6 % on this cell), and its two-row differences carry the tester's voltage noise.
+}
+
+// A cell of another size on the bench (session 50): the thesis parameter set as a 40 Ah pouch (resistances /10,
+// capacitances and C_th x10, R_th /10^(2/3), surface x10^(2/3)), its own cell config, hppc_short. Every online
+// value has its uncertainty and no flag (the joint fit's covariance read J'J in raw units and gave the first pulse
+// set none), the discharge pairs are the cell's within 15 %, and the end-of-run parameter set turns the heat flux
+// into heat over the pouch's surface (it took a 21700's: C_th 136 J/K for 633).
+TEST(DaemonHil, AFortyAmpHourPouchIsFittedWithItsUncertaintiesAndItsOwnSurface) {
+    TempDir dir("daemon-pouch");
+    std::stringstream program;
+    program << std::ifstream(kSource / "config/programs/hppc_short.json").rdbuf();
+    test::write_bench_folder(dir.path, "hppc_short", program.str());
+    constexpr double f = 10.0;  // the thesis set's 4 Ah -> 40 Ah
+    json p = json::parse(std::ifstream(kSource / "config/cells/p45b-thesis.json"));
+    p["cell"] = "40 Ah pouch (the thesis set scaled)";
+    p["capacity_ah"] = p["capacity_ah"].get<double>() * f;
+    for (const char* dir_name : {"discharge", "charge"})
+        for (const auto& [key, by] : {std::pair{"r0_ohm", 1 / f}, std::pair{"r1_ohm", 1 / f}, std::pair{"r2_ohm", 1 / f},
+                                      std::pair{"c1_f", f}, std::pair{"c2_f", f}})
+            for (auto& v : p[dir_name][key]) v = v.get<double>() * by;
+    auto& th = p["thermal"];
+    th["c_th_j_per_k"] = th["c_th_j_per_k"].get<double>() * f;
+    th["r_th_k_per_w"] = th["r_th_k_per_w"].get<double>() / std::cbrt(f * f);
+    th["area_m2"] = th["area_m2"].get<double>() * std::cbrt(f * f);
+    const double area_m2 = th["area_m2"].get<double>();
+    std::ofstream(dir.path / "cells/pouch40-params.json") << p.dump(1);
+    json cell = json::parse(std::ifstream(kSource / "config/cells/p45b.json"));
+    cell["name"] = "40 Ah pouch";
+    cell["nominal_capacity_ah"] = 40.0;
+    cell["max_charge_current_a"] = 40.0;
+    cell["max_discharge_current_a"] = 60.0;
+    cell["surface_area_m2"] = area_m2;
+    cell["params"] = "pouch40-params.json";
+    std::ofstream(dir.path / "cells/pouch40.json") << cell.dump(1);
+    json bench = json::parse(std::ifstream(dir.path / "bench.sim.json"));
+    bench["simulation"]["params"] = "cells/pouch40-params.json";
+    std::ofstream(dir.path / "bench.sim.json") << bench.dump(1);
+    const auto truth = estimator::ParameterSet::from_json(p, "pouch40-params.json");
+
+    auto cfg = test::sim_bench_config(dir.path / "bench.sim.json");
+    daemon::BenchDaemon d(cfg, test::daemon_options_in(dir, 200.0));
+    d.start();
+    ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
+    const auto id = d.start_run({"hppc_short", "pouch40", {}})["id"].get<daemon::RunId>();
+    std::string state;
+    ASSERT_TRUE(eventually([&] {
+        state = d.get_run(id)["state"].get<std::string>();
+        return terminal(state);
+    }, 600s, 100ms));
+    eventually([&] { return d.fits(id)["fits"].size() >= 3 && d.store().latest_parameter_set(id).has_value(); }, 120s);
+    ASSERT_EQ(state, "completed") << d.events(id).dump(1);
+
+    const auto fits = d.fits(id)["fits"];
+    ASSERT_EQ(fits.size(), 3u);
+    for (const auto& fit : fits) {
+        const double soc = fit["soc"].get<double>();
+        for (const char* dir_name : {"discharge", "charge"}) {
+            const json& got = fit[dir_name];
+            ASSERT_TRUE(got.is_object()) << dir_name << ", pulse set " << fit["pulse_set"];
+            EXPECT_TRUE(got["flags"].empty()) << dir_name << " flags " << got["flags"].dump() << ", pulse set " << fit["pulse_set"];
+            for (const char* name : {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"}) {
+                const json& sd = got[std::string(name) + "_sd"];
+                EXPECT_TRUE(sd.is_number() && sd.get<double>() > 0) << dir_name << " " << name << "_sd " << sd.dump()
+                                                                    << ", pulse set " << fit["pulse_set"];
+            }
+        }
+        const auto want = estimator::to_rc_values(truth.rc_at(soc, -1));
+        for (const auto& [name, value] : {std::pair{"r1_ohm", want.r1_ohm}, std::pair{"c1_f", want.c1_f},
+                                          std::pair{"r2_ohm", want.r2_ohm}, std::pair{"c2_f", want.c2_f}}) {
+            const double v = fit["discharge"][name].get<double>();
+            std::printf("pulse set %d SOC %.3f discharge %s %.6g (cell %.6g)\n", fit["pulse_set"].get<int>(), soc, name, v, value);
+            EXPECT_NEAR(v, value, 0.15 * value) << "discharge " << name << ", pulse set " << fit["pulse_set"];
+        }
+    }
+    const auto params = d.store().latest_parameter_set(id);
+    ASSERT_TRUE(params.has_value()) << "no end-of-run parameter set";
+    const auto& pt = params->params["thermal"];
+    std::printf("end of run: C_th %.1f J/K (cell %.1f), area %.5f m^2 (cell %.5f)\n", pt["c_th_j_per_k"].get<double>(),
+                truth.thermal.c_th_j_per_k, pt["area_m2"].get<double>(), area_m2);
+    EXPECT_NEAR(pt["area_m2"].get<double>(), area_m2, 1e-9);
+    EXPECT_NEAR(pt["c_th_j_per_k"].get<double>(), truth.thermal.c_th_j_per_k, 0.05 * truth.thermal.c_th_j_per_k);
 }
 
 TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {

@@ -407,6 +407,15 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         out.r_th_method = "fallback";
     }
     flag_thermal(out, electrical.capacity_ah);
+    // A C_th from the heat flux that no cell of this capacity holds is most often the surface: the flux density is
+    // turned into heat over options.area_m2 (fit --area-m2, by default a 21700's), and a larger cell (a 40 Ah pouch
+    // on the simulated bench: C_th 136 J/K for 633) reads low by the ratio of the surfaces.
+    if (std::isfinite(best_cth.c_th_j_per_k) && !cth_source.empty() &&
+        std::find(out.c_th_flags.begin(), out.c_th_flags.end(), "implausible") != out.c_th_flags.end())
+        out.notes.push_back(printf_text("C_th %.4g J/K is %.3g J/K per Ah of the capacity, outside the 4-80 cells hold: the heat "
+                                        "flux density was turned into heat over %.4g m^2 of surface (--area-m2; the default is "
+                                        "a 21700's): if the cell's surface differs, give it",
+                                        out.c_th_j_per_k, out.c_th_j_per_k / electrical.capacity_ah, area));
     return out;
 }
 

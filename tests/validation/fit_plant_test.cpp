@@ -22,6 +22,7 @@
 #include "cellbench/estimator/model.hpp"
 #include "cellbench/estimator/segment.hpp"
 #include "cellbench/estimator/simulate.hpp"
+#include "cellbench/estimator/thermal_characterization.hpp"
 #include "cellbench/plant/plant.hpp"
 #include "validation/plant_recording.hpp"
 
@@ -387,6 +388,18 @@ TEST(FitOnIndependentPlantLargeCell, APouchCellIsRecoveredAsWellAsAnEighteen650)
     // came out significant (seed 3 scaled, by hand); the floor now scales with the surface.
     const auto diag = est::diagnose(c.params, to_recording(d.drive, "drive"), est::DiagnoseOptions{});
     for (const auto& f : diag.findings) EXPECT_FALSE(f.significant) << f.effect << " significant on a clean pouch cell";
+    // The thermal fit over a 21700's surface, as `cellbench fit` without --area-m2: C_th reads low by the ratio of the
+    // surfaces, is flagged implausible, and a note says which surface was used and how to give the cell's.
+    std::vector<Recording> recs = {to_recording(d.hppc, "hppc"), to_recording(d.cc_low, "cc_low"),
+                                   to_recording(d.cc_high, "cc_high")};
+    std::vector<est::RecordingSegments> segs;
+    for (const auto& r : recs) segs.push_back(est::segment_recording(r));
+    const auto small_surface = est::fit_thermal_parameters(recs, segs, {}, c.params, est::CharacterizationOptions{});
+    std::printf("over a 21700's surface: C_th %.1f J/K (cell %.1f)\n", small_surface.c_th_j_per_k, d.truth.c_th_j_per_k);
+    const auto& flags = small_surface.c_th_flags;
+    EXPECT_NE(std::find(flags.begin(), flags.end(), "implausible"), flags.end());
+    EXPECT_TRUE(std::any_of(small_surface.notes.begin(), small_surface.notes.end(),
+                            [](const std::string& n) { return n.find("--area-m2") != std::string::npos; }));
 }
 
 // On uniformly sampled steps (the USABC layout logged every 1 s) when a current step happens within its sample

@@ -279,7 +279,8 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
         flag_thermal(out, cap);
         return out;
     }
-    if (!std::isfinite(best_cth.c_th_j_per_k)) {
+    const bool c_th_from_heat_flux = std::isfinite(best_cth.c_th_j_per_k);
+    if (!c_th_from_heat_flux) {
         best_cth.c_th_j_per_k = options.fallback_c_th_j_per_k;
         out.notes.push_back("thermal capacity not measured (no rests with temperature and heat flux): fallback used");
     }
@@ -410,8 +411,7 @@ ThermalCharacterization fit_thermal_parameters(const std::vector<Recording>& rec
     // A C_th from the heat flux that no cell of this capacity holds is most often the surface: the flux density is
     // turned into heat over options.area_m2 (fit --area-m2, by default a 21700's), and a larger cell (a 40 Ah pouch
     // on the simulated bench: C_th 136 J/K for 633) reads low by the ratio of the surfaces.
-    if (std::isfinite(best_cth.c_th_j_per_k) && !cth_source.empty() &&
-        std::find(out.c_th_flags.begin(), out.c_th_flags.end(), "implausible") != out.c_th_flags.end())
+    if (c_th_from_heat_flux && std::find(out.c_th_flags.begin(), out.c_th_flags.end(), "implausible") != out.c_th_flags.end())
         out.notes.push_back(printf_text("C_th %.4g J/K is %.3g J/K per Ah of the capacity, outside the 4-80 cells hold: the heat "
                                         "flux density was turned into heat over %.4g m^2 of surface (--area-m2; the default is "
                                         "a 21700's): if the cell's surface differs, give it",

@@ -151,7 +151,7 @@ json BenchDaemon::Impl::start_run(const StartRequest& req) {
             spdlog::warn("cell {}: {}; SOC uses the nominal capacity", cell.id, e.what());
         }
     }
-    so.area_m2 = cell.surface_area_m2 > 0 ? cell.surface_area_m2 : cfg.daq.cell_area_m2;
+    so.area_m2 = cell.surface_or(cfg.daq.cell_area_m2);
 
     NewRun nr;
     nr.program = req.program;

@@ -144,14 +144,14 @@ ReplayedRun replay_run_fits(const RunStore& store, RunId run) {
     so.limits.chamber_deviation_c = kNoLimit;
     so.limits.instrument_loss_grace_s = kNoLimit;
     so.capacity_ah = capacity_ah;
-    // The surface the daemon gave its sequencer: the cell's, else the bench's DAQ setting the run recorded.
-    if (cell.surface_area_m2 > 0) {
-        so.area_m2 = cell.surface_area_m2;
-    } else if (const auto bench = config.value("bench", nlohmann::json::object()); bench.is_object()) {
+    // The surface the daemon gave its sequencer: the cell's, else the bench DAQ's cell_area_m2 the run recorded.
+    double bench_cell_area_m2 = DaqConfig{}.cell_area_m2;
+    if (const auto bench = config.value("bench", nlohmann::json::object()); bench.is_object()) {
         const auto area = nlohmann::json::json_pointer("/instruments/daq/cell_area_m2");
         if (bench.contains(area) && bench[area].is_number() && bench[area].get<double>() > 0)
-            so.area_m2 = bench[area].get<double>();
+            bench_cell_area_m2 = bench[area].get<double>();
     }
+    so.area_m2 = cell.surface_or(bench_cell_area_m2);
     NullCycler null_cycler;
     NullChamber null_chamber;
     ReplaySink sink(run);

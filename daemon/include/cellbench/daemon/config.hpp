@@ -214,6 +214,11 @@ struct CellConfig {
     nlohmann::json document;                  // the file as loaded
 
     [[nodiscard]] double one_c_a() const { return nominal_capacity_ah; }  // 1C in A (1 h)
+    // The surface that turns the heat flux density into heat for this cell's runs: its own, else the bench DAQ's
+    // cell_area_m2 (the run's end-of-run fit, and `cellbench fit --db --run` replaying it).
+    [[nodiscard]] double surface_or(double bench_cell_area_m2) const {
+        return surface_area_m2 > 0 ? surface_area_m2 : bench_cell_area_m2;
+    }
     [[nodiscard]] nlohmann::json to_json() const;
     // Names and values usable in program expressions (see evaluate_expression).
     [[nodiscard]] std::map<std::string, double> constants() const;

@@ -48,6 +48,20 @@ protected:
         r.config = {{"program", {{"name", program}}}, {"parameters", {{"c_rate", 1.0}}}};
         return r;
     }
+    // One pulse-set fit through the store (recorded, flushed, read back from a reopened file) as GET
+    // /runs/{id}/fits shows it.
+    json stored_fit_json(const estimator::PulseSetFit& fit) {
+        RunId id = 0;
+        {
+            auto store = RunStore::open(db_);
+            id = store->create_run(new_run("hppc"));
+            store->record_pulse_fit(pulse_fit_record(id, 1, 100.0, 1.7e9, fit));
+            EXPECT_TRUE(store->flush());
+        }
+        const auto fits = RunStore::open(db_)->pulse_fits(id);
+        EXPECT_EQ(fits.size(), 1u);
+        return fits.empty() ? json() : to_json(fits[0]);
+    }
     static CyclerSample cycler(double t, double v = 3.7, double i = -4.5) {
         CyclerSample s;
         s.t_s = t;
@@ -908,16 +922,8 @@ TEST_F(RunStoreTest, PulseFitValuesCarryTheirSigmaAndFlagsThroughTheStore) {
     fit.joint_charge = {0.0074, 0.0015, 1.8, 0.010, 280.0};
     fit.joint_charge_sigma = {0.0001, 0.0001, 0.1, 0.020, 400.0};
     fit.chosen = estimator::PulseSetFit::Method::Joint;
-    RunId id = 0;
-    {
-        auto store = RunStore::open(db_);
-        id = store->create_run(new_run("hppc"));
-        store->record_pulse_fit(pulse_fit_record(id, 1, 100.0, 1.7e9, fit));
-        ASSERT_TRUE(store->flush());
-    }
-    const auto fits = RunStore::open(db_)->pulse_fits(id);
-    ASSERT_EQ(fits.size(), 1u);
-    const auto j = to_json(fits[0]);
+    const auto j = stored_fit_json(fit);
+    ASSERT_FALSE(j.is_null());
     const auto& d = j.at("discharge");
     EXPECT_EQ(d.at("flags").at("r1_ohm"), json::array({"implausible"}));
     EXPECT_FALSE(d.at("flags").contains("r2_ohm")) << d.dump();
@@ -940,16 +946,8 @@ TEST_F(RunStoreTest, PulseFitValuesWithoutASigmaAreFlagged) {
     fit.thesis_discharge = {0.0075, 0.0015, 1.8, 0.009, 250.0};
     fit.thesis_charge = {0.0074, 0.0014, 1.6, 0.010, 240.0};
     fit.chosen = estimator::PulseSetFit::Method::Thesis;
-    RunId id = 0;
-    {
-        auto store = RunStore::open(db_);
-        id = store->create_run(new_run("hppc"));
-        store->record_pulse_fit(pulse_fit_record(id, 1, 100.0, 1.7e9, fit));
-        ASSERT_TRUE(store->flush());
-    }
-    const auto fits = RunStore::open(db_)->pulse_fits(id);
-    ASSERT_EQ(fits.size(), 1u);
-    const auto j = to_json(fits[0]);
+    const auto j = stored_fit_json(fit);
+    ASSERT_FALSE(j.is_null());
     for (const char* dir : {"discharge", "charge"})
         for (const char* k : {"r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"}) {
             const auto& d = j.at(dir);

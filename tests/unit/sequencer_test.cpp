@@ -195,13 +195,16 @@ void expect_rc_recovered(const estimator::PulseSetFit& f, const estimator::Param
 }
 
 // The short HPPC on the simulated cell through a sequencer with online fits, each cycler sample changed by
-// alter_sample when given; returns when the run has completed and its fits are in `rec`.
-void run_short_hppc(ModelCell& cell, Recorder& rec, const std::function<void(CyclerSample&)>& alter_sample = {}) {
+// alter_sample when given, the options (online fits, no end-of-run fit) changed by adjust when given; returns when
+// the run has completed and its fits are in `rec`.
+void run_short_hppc(ModelCell& cell, Recorder& rec, const std::function<void(CyclerSample&)>& alter_sample = {},
+                    const std::function<void(SequencerOptions&)>& adjust = {}) {
     FakeCycler cyc;
     FakeChamber ch;
     SequencerOptions opt;
     opt.capacity_ah = cell.model.params().capacity_ah;
     opt.fit_at_end = false;
+    if (adjust) adjust(opt);
     Sequencer seq(cyc, ch, rec, opt);
     Program p{"hppc_short",
               {{Segment::Kind::ChamberSetpoint, {}, 30.0, 0.5, 0, 0, "30 degC"}, {Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}};
@@ -236,19 +239,12 @@ TEST(Sequencer, RunsAShortHppcAndFitsEveryPulseSetOnline) {
 TEST(Sequencer, TheEndOfRunFitUsesTheCellsSurface) {
     ModelCell cell(cell_params());
     Recorder rec;
-    FakeCycler cyc;
-    FakeChamber ch;
-    SequencerOptions opt;
-    opt.capacity_ah = cell.model.params().capacity_ah;
-    opt.area_m2 = 0.0247;
-    opt.fit_online = false;
-    Sequencer seq(cyc, ch, rec, opt);
-    Program p{"hppc_short",
-              {{Segment::Kind::ChamberSetpoint, {}, 30.0, 0.5, 0, 0, "30 degC"}, {Segment::Kind::Cycler, short_hppc(), 0, 0, 0, 0, "hppc"}}};
-    seq.start(p, 0.0);
-    run_bench(seq, cyc, cell, ch, 5 * 3600.0);
-    seq.wait_for_fits();
-    ASSERT_EQ(seq.state(), RunState::Completed);
+    run_short_hppc(cell, rec, {}, [](SequencerOptions& o) {
+        o.area_m2 = 0.0247;
+        o.fit_online = false;
+        o.fit_at_end = true;
+    });
+    ASSERT_FALSE(::testing::Test::HasFailure()) << "the run did not complete";
     std::lock_guard<std::mutex> l(rec.m);
     ASSERT_TRUE(rec.got_params) << (rec.events.empty() ? "" : rec.events.back());
     EXPECT_DOUBLE_EQ(rec.params_area_m2, 0.0247);

@@ -531,12 +531,16 @@ Characterization characterize(const std::vector<Recording>& given, const Charact
         }
     }
     if (!std::isfinite(out.capacity.capacity_ah)) {
-        // A full CC discharge on its own: starts rested near the top, ends at the cut-off. Lowest rate wins.
+        // A full CC discharge on its own: starts rested near the top, ends at the cut-off. Lowest rate wins. The
+        // lowest voltage of the recordings is the cut-off only where the cell runs empty there (ends_on_knee): an
+        // HPPC stopped at 40 % SOC beside a 1C discharge stopped at 45 % had the discharge's 2.1 Ah taken for the
+        // capacity of a 3.8 Ah cell.
         double best_rate = 1e300;
         for (std::size_t r = 0; r < recordings.size(); ++r) {
             if (characterization[r]) continue;
             for (const auto& ph : segs[r].cc_discharges) {
                 if (ph.voltage_end_v > v_floor + 0.1 || ph.duration_s < 1800) continue;
+                if (!ends_on_knee(recordings[r], segs[r].charge_ah, ph, segs[r].long_rests)) continue;
                 const bool rested_start = ph.begin == 0 || segs[r].phases[ph.index - 1].is_rest();
                 if (!rested_start || std::abs(ph.mean_current_a) >= best_rate) continue;
                 best_rate = std::abs(ph.mean_current_a);

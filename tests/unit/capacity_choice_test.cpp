@@ -138,4 +138,27 @@ TEST(CapacityChoice, NoTemperatureAnywhereNeedsTheThermalValuesGivenAndAnUnusedC
     EXPECT_TRUE(said) << "the unused --capacity-ah is not mentioned";
 }
 
+// A discharge that stops part-way is no capacity test, however low the voltage it ends at: an HPPC stopped at 50 %
+// SOC (a partial test, no cut-off reached) handed in with a 1C discharge from full to 45 % SOC, whose end under load
+// was the lowest voltage of both, had that discharge's 2.1 Ah taken for the capacity of a 3.8 Ah cell, every SOC
+// of the fit scaled by it. The discharge's end must be the cell running empty (the voltage falling off its OCV's
+// slope), else the capacity comes from where the user gave it.
+TEST(CapacityChoice, ADischargeStoppedAtMidSocIsNotACapacityTest) {
+    cellbench::test::SyntheticOptions so;
+    so.dt_s = 1.0;
+    so.voltage_noise_v = 2e-4;
+    auto hppc = cellbench::test::synthesize(cellbench::test::hppc_program(5), so);
+    hppc.source = "hppc";
+    auto part = cellbench::test::synthesize(
+        {{600.0, 0.0, "Rest"}, {0.55 * 3600.0, -kCapacityAh, "CC DChg"}, {1800.0, 0.0, "Rest"}}, so);
+    part.source = "discharge_to_45pct";
+    auto o = cellbench::test::characterization_options();
+    o.fallback_capacity_source = "--capacity-ah";
+    for (const auto& order : {std::vector{hppc, part}, std::vector{part, hppc}}) {
+        const auto c = est::characterize(order, o);
+        EXPECT_EQ(c.capacity.method, "given") << c.capacity.method << " from " << c.capacity.source;
+        EXPECT_DOUBLE_EQ(c.capacity.capacity_ah, kCapacityAh);
+    }
+}
+
 }  // namespace

@@ -65,7 +65,11 @@ double two_node_thermal_step(const ThermalSecondOrderExt& so, const ThermalParam
 
 }  // namespace
 
-CellModel::CellModel(ParameterSet params) : params_(std::move(params)) { params_.validate(); }
+CellModel::CellModel(ParameterSet params) : params_(std::move(params)) {
+    params_.validate();
+    if (const auto& ext = params_.extensions.resistance_current)
+        reference_current_ratio_ = asinh_ratio(ext->reference_current_a / (2 * ext->exchange_current_a));
+}
 
 double CellModel::resistance_factor(double temperature_c) const {
     const auto& ext = params_.extensions.resistance_temperature;
@@ -78,8 +82,7 @@ double CellModel::resistance_factor(double temperature_c) const {
 double CellModel::current_factor(double current_a) const {
     const auto& ext = params_.extensions.resistance_current;
     if (!ext) return 1.0;
-    const double i0 = ext->exchange_current_a;
-    return asinh_ratio(std::abs(current_a) / (2 * i0)) / asinh_ratio(ext->reference_current_a / (2 * i0));
+    return asinh_ratio(std::abs(current_a) / (2 * ext->exchange_current_a)) / reference_current_ratio_;
 }
 
 double CellModel::capacity_ah() const {

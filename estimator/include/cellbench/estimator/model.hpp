@@ -67,6 +67,9 @@ public:
 
 private:
     ParameterSet params_;
+    // asinh(x)/x at the reference current of resistance_current (1 without it): the denominator of every
+    // current_factor, computed once (a drive cycle changes its current at every row).
+    double reference_current_ratio_ = 1.0;
 };
 
 // The fast path of CellModel::step for long runs (simulate(), diagnose, the fits' simulations): the same exact

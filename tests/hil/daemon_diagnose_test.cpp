@@ -182,11 +182,8 @@ TEST(DaemonDiagnoseHil, DiagnosesARunAndAnUploadedRecording) {
     // Not while it records.
     EXPECT_TRUE(json_error(api.post(run_path, body), 409));
 
-    std::string state;
-    ASSERT_TRUE(eventually([&] {
-        state = d.get_run(id)["state"].get<std::string>();
-        return terminal(state);
-    }, 300s, 250ms));
+    const std::string state = test::wait_for_run_end(d, id, 300s, 250ms);
+    ASSERT_TRUE(terminal(state)) << state;
     ASSERT_EQ(state, "completed");
     d.store().flush();
     const double run_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
@@ -249,7 +246,7 @@ TEST(DaemonDiagnoseHil, DiagnosesARunAndAnUploadedRecording) {
     };
     EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id2) + "]")), 409))
         << "not on a run still recording";
-    ASSERT_TRUE(eventually([&] { return terminal(d.get_run(id2)["state"].get<std::string>()); }, 300s, 250ms));
+    ASSERT_TRUE(terminal(test::wait_for_run_end(d, id2, 300s, 250ms)));
     d.store().flush();
     EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id) + "]")), 400)) << "the run itself";
     EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id2 + 100) + "]")), 400)) << "no such run";

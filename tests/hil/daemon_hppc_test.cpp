@@ -401,11 +401,8 @@ TEST(DaemonHil, AFortyAmpHourPouchIsFittedWithItsUncertaintiesAndItsOwnSurface) 
     d.start();
     ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
     const auto id = d.start_run({"hppc_short", "pouch40", {}})["id"].get<daemon::RunId>();
-    std::string state;
-    ASSERT_TRUE(eventually([&] {
-        state = d.get_run(id)["state"].get<std::string>();
-        return terminal(state);
-    }, 600s, 100ms));
+    const std::string state = test::wait_for_run_end(d, id, 600s, 100ms);
+    ASSERT_TRUE(terminal(state)) << state;
     eventually([&] { return d.fits(id)["fits"].size() >= 3 && d.store().latest_parameter_set(id).has_value(); }, 120s);
     ASSERT_EQ(state, "completed") << d.events(id).dump(1);
 
@@ -462,11 +459,8 @@ TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
     ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
 
     const auto id = d.start_run({"heat", "p45b", {}})["id"].get<daemon::RunId>();
-    std::string state;
-    ASSERT_TRUE(eventually([&] {
-        state = d.get_run(id)["state"].get<std::string>();
-        return terminal(state);
-    }, 300s));
+    const std::string state = test::wait_for_run_end(d, id, 300s);
+    ASSERT_TRUE(terminal(state)) << state;
     eventually([&] {
         const auto ev = d.events(id);
         for (const auto& e : ev["events"])

@@ -90,6 +90,17 @@ inline bool ended_run_state(const std::string& s) {
     return s == "completed" || s == "stopped" || s == "aborted" || s == "interrupted";
 }
 
+// Polls run id until it has ended (ended_run_state) or limit passes; returns the last state read.
+inline std::string wait_for_run_end(daemon::BenchDaemon& d, daemon::RunId id, std::chrono::milliseconds limit,
+                                    std::chrono::milliseconds poll = std::chrono::milliseconds(50)) {
+    std::string state;
+    eventually([&] {
+        state = d.get_run(id)["state"].get<std::string>();
+        return ended_run_state(state);
+    }, limit, poll);
+    return state;
+}
+
 inline bool instruments_connected(daemon::BenchDaemon& d) {
     const nlohmann::json s = d.status();  // kept alive while its members are iterated
     for (const auto& i : s["instruments"])

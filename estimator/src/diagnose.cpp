@@ -1119,6 +1119,31 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                                               "e.g. a hysteresis, or its SOC differs)";
                         }
                     }
+                    // The recording itself, on what its evidence leaves out: the objective weighs only the
+                    // quantities the base misses by more than the instrument's accuracy, so a candidate may trade
+                    // one the base has right for them. Pushing it beyond the accuracy is no explanation.
+                    {
+                        Confirmation self;
+                        self.before = current_rms;
+                        self.after = fd.improved;
+                        confirmation_verdict(self, options.voltage_floor_v, options.temperature_floor_c,
+                                             options.heat_flux_floor_w);
+                        const bool in_evidence[3] = {evidence.v, evidence.t, evidence.q};
+                        const char* names[3] = {"voltage", "temperature", "heat_flux"};
+                        for (int q = 0; q < 3; ++q)
+                            if (!in_evidence[q] &&
+                                std::find(self.worse.begin(), self.worse.end(), names[q]) != self.worse.end())
+                                fd.worsens.emplace_back(names[q]);
+                        if (!fd.worsens.empty()) {
+                            self.worse = fd.worsens;
+                            fd.explanation += std::string(fd.significant ? "; it passes the significance test, but"
+                                                                         : "; and") +
+                                              " it makes what the model had within the instrument's accuracy worse "
+                                              "beyond it on this recording (" + changes_in_words(self, true) +
+                                              "): not an explanation";
+                            fd.significant = false;
+                        }
+                    }
                     // Another recording of the cell that the correction makes worse contradicts it.
                     if (!spec.recording_state && !options.confirm.empty()) {
                         const ParameterSet carried = carried_over(p);
@@ -1290,7 +1315,8 @@ nlohmann::json diagnosis_to_json(const Diagnosis& d) {
                                  {"delta_bic", f.delta_bic},
                                  {"explanation", f.explanation},
                                  {"parameters", f.parameters},
-                                 {"improved", rms_json(f.improved)}});
+                                 {"improved", rms_json(f.improved)},
+                                 {"worsens", f.worsens}});
     if (!d.confirm_recordings.empty()) {
         auto& fj = j["findings"];
         for (std::size_t k = 0; k < d.findings.size() && k < fj.size(); ++k) {

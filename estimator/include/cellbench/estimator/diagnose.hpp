@@ -26,7 +26,10 @@
 //    within twice the parameter set's capacity_ah_sd (the characterization's own uncertainty) is not significant.
 //    With other recordings of the cell (DiagnoseOptions::confirm), a candidate is fitted to them together with the
 //    diagnosed one (each recording's error relative to the parameter set's), and one that still makes one of them
-//    worse is contradicted and never significant (confirmation_verdict).
+//    worse is contradicted and never significant (confirmation_verdict). The diagnosed recording itself is held
+//    to the same rule for the quantities its evidence leaves out: a candidate that pushes a quantity the base gets
+//    within the instrument's accuracy beyond it (a second RC pair that mends the voltage and spoils a heat flux the
+//    base had right) is never significant either (Finding::worsens).
 // 6. No false reassurance: the measurement noise is estimated from the recording itself (sample-to-sample
 //    scatter in rests); when a quantity's residual after the accepted findings stays above noise_factor times
 //    its noise, `unexplained` says where, how large, what it correlates with and which terms a sparse
@@ -142,6 +145,9 @@ struct Finding {
     std::vector<Confirmation> confirmation;
     bool contradicted = false;    // a confirm recording contradicts it: never significant
     bool withdrawn = false;       // it passed the significance test here, and a confirm recording contradicts it
+    // Quantities of the diagnosed recording that the base gets within the instrument's accuracy (so not part of
+    // the evidence) and this candidate makes worse beyond it, as confirmation_verdict judges: never significant.
+    std::vector<std::string> worsens;
 };
 
 // Measurement noise (1 sigma) estimated from the recording: robust sample-to-sample scatter in rests.

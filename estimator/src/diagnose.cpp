@@ -1128,12 +1128,11 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                         self.after = fd.improved;
                         confirmation_verdict(self, options.voltage_floor_v, options.temperature_floor_c,
                                              options.heat_flux_floor_w);
-                        const bool in_evidence[3] = {evidence.v, evidence.t, evidence.q};
-                        const char* names[3] = {"voltage", "temperature", "heat_flux"};
-                        for (int q = 0; q < 3; ++q)
-                            if (!in_evidence[q] &&
-                                std::find(self.worse.begin(), self.worse.end(), names[q]) != self.worse.end())
-                                fd.worsens.emplace_back(names[q]);
+                        auto in_evidence = [&](const std::string& q) {
+                            return q == "voltage" ? evidence.v : q == "temperature" ? evidence.t : evidence.q;
+                        };
+                        for (const auto& q : self.worse)
+                            if (!in_evidence(q)) fd.worsens.push_back(q);
                         if (!fd.worsens.empty()) {
                             self.worse = fd.worsens;
                             fd.explanation += std::string(fd.significant ? "; it passes the significance test, but"

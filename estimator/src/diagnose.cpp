@@ -837,6 +837,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const Diagn
         if (confirm.back()) opts.confirm[k] = &*confirm.back();
     }
     if (auto note = start_outside_ocv_range(params, rec); !note.empty()) notes.push_back(std::move(note));
+    if (auto note = temperature_outside_characterization(params, rec); !note.empty()) notes.push_back(std::move(note));
     if (auto lag = voltage_lag_text(rec); !lag.empty())
         notes.push_back(lag + ": at every current step part of the error is the logger's timing, not the cell's");
     // The same heat flux accuracy per m^2 is more W over a larger cell: on a 60 Ah pouch (0.039 m^2) a clean drive's

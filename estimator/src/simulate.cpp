@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iterator>
 #include <limits>
 #include <optional>
 #include <string>
@@ -10,6 +11,7 @@
 
 #include "cellbench/estimator/coulomb.hpp"
 #include "golden.hpp"
+#include "median.hpp"
 #include "printf_text.hpp"
 
 namespace cellbench::estimator {
@@ -79,6 +81,30 @@ std::string start_outside_ocv_range(const ParameterSet& params, const Recording&
            ", outside the parameter set's OCV range " + printf_text("%.3f-%.3f V", *lo, *hi) +
            ": no SOC of that cell explains it, so the simulation starts at SOC " + (v0 < *lo ? "0" : "1") +
            ". Is the parameter set this cell's?";
+}
+
+std::string temperature_outside_characterization(const ParameterSet& params, const Recording& rec) {
+    if (params.extensions.resistance_temperature) return {};
+    auto median_of = [](const std::vector<double>& v) {
+        std::vector<double> finite;
+        finite.reserve(v.size());
+        std::copy_if(v.begin(), v.end(), std::back_inserter(finite), [](double x) { return std::isfinite(x); });
+        return upper_median(std::move(finite));
+    };
+    const bool surface = rec.has_surface();
+    const double cell_c = surface ? median_of(rec.surface_c) : rec.has_ambient() ? median_of(rec.ambient_c) : kNaN;
+    if (!std::isfinite(cell_c) ||
+        std::abs(cell_c - params.reference_temperature_c) <= kTemperatureOutsideCharacterizationK)
+        return {};
+    return rec.source + ": its cell is at " + printf_text("%.1f", cell_c) + " degC (median " +
+           (surface ? "surface" : "ambient") + " temperature), " +
+           printf_text("%.1f", std::abs(cell_c - params.reference_temperature_c)) + " K " +
+           (cell_c < params.reference_temperature_c ? "below" : "above") +
+           " the parameter set's characterization (" + printf_text("%.1f", params.reference_temperature_c) +
+           " degC), and the set holds no temperature dependence of its resistances (resistance_temperature): the "
+           "model runs on the resistances of " + printf_text("%.1f", params.reference_temperature_c) +
+           " degC. Fit a characterization made at this temperature, or let `cellbench diagnose` identify the "
+           "dependence";
 }
 
 SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options) {

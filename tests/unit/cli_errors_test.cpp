@@ -126,6 +126,37 @@ TEST_F(CliErrors, SimulateSaysWhenTheRecordingStartsOutsideTheParameterSetsOcvRa
     EXPECT_EQ(same.output.find("outside the parameter set's OCV range"), std::string::npos) << same.output;
 }
 
+// A drive at 0 degC simulated with a parameter set characterized at 30 degC that holds no temperature dependence
+// (the thesis set): its resistances are 30 degC's, and the user is told why the error is large and what to do. At
+// the characterization's temperature, and with the dependence in the set, there is no such warning.
+TEST_F(CliErrors, SimulateSaysWhenTheCellRunsFarFromTheCharacterizationTemperature) {
+    auto recording = [&](const char* name, double surface_c) {
+        std::string text = "Test Time / s,Voltage / V,Current / A,Surface Temperature / degC\n";
+        for (int k = 0; k < 120; ++k)
+            text += std::to_string(k) + "," + (k < 60 ? "3.700" : "3.650") + "," + (k < 60 ? "0" : "-2.0") + "," +
+                    std::to_string(surface_c + 0.01 * k) + "\n";
+        return write(name, text);
+    };
+    const char* warning = "K below the parameter set's characterization (30.0 degC), and the set holds no temperature "
+                          "dependence of its resistances";
+    const auto cold = run("simulate --params " + kThesis.string() + " " + recording("cold.bdf.csv", 0.0).string());
+    ASSERT_EQ(cold.status, 0) << cold.output;
+    EXPECT_NE(cold.output.find("its cell is at 0.6 degC (median surface temperature), 29.4 " + std::string(warning)),
+              std::string::npos)
+        << cold.output;
+    const auto warm = run("simulate --params " + kThesis.string() + " " + recording("warm.bdf.csv", 28.0).string());
+    ASSERT_EQ(warm.status, 0) << warm.output;
+    EXPECT_EQ(warm.output.find("parameter set's characterization"), std::string::npos) << warm.output;
+    // The same set with an activation energy: the model follows the temperature, nothing to warn about.
+    auto with_ea = nlohmann::json::parse(std::ifstream(kThesis));
+    with_ea["extensions"]["resistance_temperature"] = {{"activation_energy_j_per_mol", 30000.0}};
+    const auto p = dir_ / "with-ea.json";
+    std::ofstream(p) << with_ea.dump();
+    const auto followed = run("simulate --params " + p.string() + " " + (dir_ / "cold.bdf.csv").string());
+    ASSERT_EQ(followed.status, 0) << followed.output;
+    EXPECT_EQ(followed.output.find("parameter set's characterization"), std::string::npos) << followed.output;
+}
+
 TEST_F(CliErrors, ReferenceFormBdfWithMachineNamesAndOnlyT1IsSimulated) {
     std::string text = "test_time_second,voltage_volt,current_ampere,unix_time_second,step_id,temperature_t1_celsius\n";
     for (int k = 0; k < 300; ++k)

@@ -37,6 +37,8 @@ int run_simulate(const SimulateOptions& o) {
         spdlog::warn("{}: at every current step part of the error is the logger's timing, not the model's", lag);
     if (!o.initial_soc)
         if (const auto warning = estimator::start_outside_ocv_range(params, rec); !warning.empty()) spdlog::warn("{}", warning);
+    if (const auto warning = estimator::temperature_outside_characterization(params, rec); !warning.empty())
+        spdlog::warn("{}", warning);
     const estimator::CellModel model(params);
     estimator::SimulationOptions so;
     so.initial_soc = o.initial_soc;

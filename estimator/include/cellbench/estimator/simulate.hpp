@@ -34,6 +34,14 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
 // when the start is plausible.
 std::string start_outside_ocv_range(const ParameterSet& params, const Recording& rec);
 
+// A recording whose cell runs more than kTemperatureOutsideCharacterizationK from the temperature the parameter
+// set was characterized at (its median surface temperature, else its median ambient), while the set holds no
+// temperature dependence of its resistances (no `resistance_temperature`): the model then runs on the
+// characterization temperature's resistances (the Panasonic NCR18650PF's at 25 degC are about half its 0 degC
+// ones). The words to say so; empty otherwise or when the recording measures no temperature.
+inline constexpr double kTemperatureOutsideCharacterizationK = 5.0;
+std::string temperature_outside_characterization(const ParameterSet& params, const Recording& rec);
+
 // A recording that starts under load (a drive cycle cut from a longer one, a discharge logged from its first
 // current row): its first voltage less R0 I is not the OCV, for the RC pairs hold the history before it, and the
 // SOC simulate() takes from it can be off by several % (the Panasonic LA92 cut at 4 701 s: 0.642 against the 0.708

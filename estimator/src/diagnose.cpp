@@ -565,7 +565,7 @@ std::string explain(const std::string& id, const std::vector<double>& x, const Q
                pct(std::asinh(x4) / x4 / (std::asinh(x1) / x1)) + " of their 1C value (I0 = " + printf_text("%.1f", x[0]) + " A)";
     } else if (id == "ocv_hysteresis") {
         what = "the OCV depends on the direction of the last current: +-" + printf_text("%.1f", x[0] * 1e3) +
-               " mV, settling over " + pct(1.0 / x[1]) + " of the capacity";
+               " mV, settling over " + printf_text("%.2g %%", 100.0 / x[1]) + " of the capacity";
         if (std::abs(x[2]) > 0.25 * x[0])
             what += "; the parameter set's OCV lies " + printf_text("%.1f", std::abs(x[2]) * 1e3) + " mV " +
                     (x[2] > 0 ? "below" : "above") + " the centre between the branches (measured on the " +
@@ -1061,6 +1061,7 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                     const bool within_capacity_sd = spec.id == "capacity_error" && std::isfinite(params.capacity_ah_sd) &&
                                                     std::abs(full.x[0] - 1.0) * params.capacity_ah < 2.0 * params.capacity_ah_sd;
                     if (within_capacity_sd) fd.significant = false;
+                    std::string at_limit;  // the parameters on their plausible limit, named in the explanation
                     for (std::size_t j = 0; j < spec.params.size(); ++j) {
                         const auto& ps = spec.params[j];
                         fd.parameters[ps.name] = full.x[j];
@@ -1071,6 +1072,7 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                             if (ps.bound_is_limit) {
                                 flags.push_back("implausible");
                                 fd.implausible = true;
+                                at_limit += (at_limit.empty() ? "" : " and ") + std::string(ps.name);
                             }
                             fd.parameters[std::string(ps.name) + "_flags"] = std::move(flags);
                         }
@@ -1086,6 +1088,10 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
                     spec.apply(p, full.x);
                     fd.improved = rms_of(p, rec_full, nullptr, start_offset(pb, spec, full.x));
                     fd.explanation = explain(id, full.x, current_rms, fd.improved, fd.score, params);
+                    if (!at_limit.empty())
+                        fd.explanation += "; implausible: " + at_limit + " on the limit of what this correction "
+                                          "plausibly is (the search's bound), so it compensates something else rather "
+                                          "than measuring this effect";
                     if (within_capacity_sd)
                         fd.explanation += "; within twice the characterization's capacity uncertainty (+-" +
                                           printf_text("%.2f", 100.0 * params.capacity_ah_sd / params.capacity_ah) +
@@ -1284,8 +1290,8 @@ Diagnosis diagnose_as_given(const ParameterSet& params, const Recording& rec_ful
         d.summary = "In order of evidence:";
         for (const auto& f : d.findings)
             if (f.significant)
-                d.summary += " " + f.effect + (f.kind == "parameters_wrong" ? " [parameters wrong]" : " [physics missing]") +
-                             " (" + pct(f.score) + " of the held-out error);";
+                d.summary += " " + f.effect + (f.kind == "parameters_wrong" ? " [parameters wrong" : " [physics missing") +
+                             (f.implausible ? ", implausible]" : "]") + " (" + pct(f.score) + " of the held-out error);";
         if (d.unexplained) d.summary += " Still unexplained: " + d.unexplained->summary + ".";
     }
     progress(1.0, "done");

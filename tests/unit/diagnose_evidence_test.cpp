@@ -412,3 +412,32 @@ TEST(DiagnoseEvidence, ATemperatureOffsetInsideTheAccuracyIsNoEvidence) {
     ASSERT_GT(*d.baseline.temperature_c, 0.15) << "the offset must show";
     for (const auto& f : d.findings) EXPECT_FALSE(f.significant) << f.effect << ": " << f.explanation;
 }
+
+// A correction on the limit of what it plausibly is compensates something else: the finding says so in its
+// explanation and in the summary's list, not only in its JSON flags (a user reading the text would otherwise take
+// it for a measurement). Here a hysteresis twice the largest the catalogue allows (150 mV against 80 mV).
+TEST(DiagnoseEvidence, AFindingOnItsPlausibleLimitSaysSoInItsText) {
+    estimator::ParameterSet truth = thesis();
+    truth.extensions.ocv_hysteresis = estimator::OcvHysteresisExt{0.15, 30.0};
+    Recording r;
+    r.source = "synthetic";
+    const double c1 = truth.capacity_ah;
+    const double pattern[] = {-1.0, 0.0, 1.0, 0.0, -2.0, 0.0, 2.0, 0.0};
+    for (int k = 0; k <= 2400; ++k) {
+        r.time_s.push_back(k);
+        r.current_a.push_back(k < 60 ? 0.0 : pattern[(k / 150) % 8] * c1);
+        r.voltage_v.push_back(0.0);
+    }
+    voltage_of(truth, r, 0.6);
+    estimator::DiagnoseOptions o;
+    o.effects = {"ocv_hysteresis"};
+    o.max_accepted = 1;
+    o.threads = 1;
+    const auto d = estimator::diagnose(thesis(), r, o);
+    ASSERT_EQ(d.findings.size(), 1u);
+    const auto& f = d.findings.front();
+    ASSERT_TRUE(f.implausible) << f.explanation << "\n" << f.parameters.dump();
+    EXPECT_NE(f.explanation.find("; implausible: magnitude_v"), std::string::npos) << f.explanation;
+    ASSERT_TRUE(f.significant) << f.explanation;
+    EXPECT_NE(d.summary.find("ocv_hysteresis [physics missing, implausible]"), std::string::npos) << d.summary;
+}

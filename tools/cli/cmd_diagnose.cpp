@@ -46,8 +46,9 @@ int run_diagnose(const DiagnoseCliOptions& o) {
                     w.voltage_bias_v * 1e3);
     std::printf("findings (score = share of the held-out error removed):\n");
     for (const auto& f : d.findings)
-        std::printf("  %-26s %s score %6.3f  folds %zu  dBIC %8.1f\n", f.effect.c_str(),
-                    f.significant ? "SIGNIFICANT" : "           ", f.score, f.folds_improved, f.delta_bic);
+        std::printf("  %-26s %s score %6.3f  folds %zu  dBIC %8.1f%s\n", f.effect.c_str(),
+                    f.significant ? "SIGNIFICANT" : "           ", f.score, f.folds_improved, f.delta_bic,
+                    f.implausible ? "  implausible" : "");
     if (!confirm.empty()) {
         // What the other recordings say, for every candidate that helped here.
         std::printf("on the other recordings (--confirm; RMS with the current base -> with the finding):\n");

@@ -47,8 +47,6 @@ constexpr double kTimeScale = 300.0;
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 const std::string kToken = "hil-token";
 
-bool terminal(const std::string& state) { return cellbench::test::ended_run_state(state); }
-
 // The run is diagnosed against the whole catalogue (as the dashboard asks); the upload, the same recording
 // again, against two candidates only, to keep the test short on a loaded two-core machine.
 const json kUploadEffects = {"series_resistance_offset", "ocv_hysteresis"};
@@ -183,7 +181,7 @@ TEST(DaemonDiagnoseHil, DiagnosesARunAndAnUploadedRecording) {
     EXPECT_TRUE(json_error(api.post(run_path, body), 409));
 
     const std::string state = test::wait_for_run_end(d, id, 300s, 250ms);
-    ASSERT_TRUE(terminal(state)) << state;
+    ASSERT_TRUE(cellbench::test::ended_run_state(state)) << state;
     ASSERT_EQ(state, "completed");
     d.store().flush();
     const double run_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
@@ -246,7 +244,7 @@ TEST(DaemonDiagnoseHil, DiagnosesARunAndAnUploadedRecording) {
     };
     EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id2) + "]")), 409))
         << "not on a run still recording";
-    ASSERT_TRUE(terminal(test::wait_for_run_end(d, id2, 300s, 250ms)));
+    ASSERT_TRUE(cellbench::test::ended_run_state(test::wait_for_run_end(d, id2, 300s, 250ms)));
     d.store().flush();
     EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id) + "]")), 400)) << "the run itself";
     EXPECT_TRUE(json_error(api.post(run_path, with_confirm("[" + std::to_string(id2 + 100) + "]")), 400)) << "no such run";

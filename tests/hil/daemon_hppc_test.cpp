@@ -58,8 +58,6 @@ constexpr double kHppcTimeScale = 800.0;
 
 const fs::path kSource = CELLBENCH_SOURCE_DIR;
 
-bool terminal(const std::string& state) { return cellbench::test::ended_run_state(state); }
-
 estimator::ParameterSet thesis_cell() {
     std::ifstream in(kSource / "config/cells/p45b-thesis.json");
     return estimator::ParameterSet::from_json(json::parse(in), "p45b-thesis.json");
@@ -106,7 +104,7 @@ TEST(DaemonHil, FullHppcStoresEveryStepAndFitsR0AtEverySocWithinThreePercent) {
             const json& t = status["live"]["test_time_s"];
             while (fit_seen_t_s.size() < n) fit_seen_t_s.push_back(t.is_number() ? t.get<double>() : NAN);
         }
-        return terminal(state);
+        return cellbench::test::ended_run_state(state);
     }, 1800s, 100ms));
     const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
     // The online fit of the last pulse set may still be running when the program ends.
@@ -402,7 +400,7 @@ TEST(DaemonHil, AFortyAmpHourPouchIsFittedWithItsUncertaintiesAndItsOwnSurface) 
     ASSERT_TRUE(eventually([&] { return instruments_connected(d); }, 20s)) << d.status().dump(2);
     const auto id = d.start_run({"hppc_short", "pouch40", {}})["id"].get<daemon::RunId>();
     const std::string state = test::wait_for_run_end(d, id, 600s, 100ms);
-    ASSERT_TRUE(terminal(state)) << state;
+    ASSERT_TRUE(cellbench::test::ended_run_state(state)) << state;
     eventually([&] { return d.fits(id)["fits"].size() >= 3 && d.store().latest_parameter_set(id).has_value(); }, 120s);
     ASSERT_EQ(state, "completed") << d.events(id).dump(1);
 
@@ -460,7 +458,7 @@ TEST(DaemonHil, OverTemperatureStopsTheCurrentWithinOneSampleAndAbortsTheRun) {
 
     const auto id = d.start_run({"heat", "p45b", {}})["id"].get<daemon::RunId>();
     const std::string state = test::wait_for_run_end(d, id, 300s);
-    ASSERT_TRUE(terminal(state)) << state;
+    ASSERT_TRUE(cellbench::test::ended_run_state(state)) << state;
     eventually([&] {
         const auto ev = d.events(id);
         for (const auto& e : ev["events"])

@@ -846,6 +846,7 @@ Diagnosis diagnose(const ParameterSet& params, const Recording& rec, const Diagn
     if (opts.scale_heat_flux_floor_with_area && params.thermal.area_m2 > kHeatFluxFloorAreaM2)
         opts.heat_flux_floor_w *= params.thermal.area_m2 / kHeatFluxFloorAreaM2;
     Diagnosis d = diagnose_as_given(params, main ? *main : rec, opts);
+    if (auto note = soc_outside_range(params, d.baseline_trace, rec.source); !note.empty()) notes.push_back(std::move(note));
     d.notes = std::move(notes);
     return d;
 }

@@ -107,6 +107,22 @@ std::string temperature_outside_characterization(const ParameterSet& params, con
            "dependence";
 }
 
+std::string soc_outside_range(const ParameterSet& params, const SimulationTrace& trace, const std::string& source) {
+    if (trace.soc.empty()) return {};
+    const auto [lo, hi] = std::minmax_element(trace.soc.begin(), trace.soc.end());
+    const bool below = *lo < -kSocOutsideRangeMargin;
+    if (!below && !(*hi > 1.0 + kSocOutsideRangeMargin)) return {};
+    const auto at = below ? lo : hi;
+    const auto k = static_cast<std::size_t>(at - trace.soc.begin());
+    const double t_s = k < trace.time_s.size() ? trace.time_s[k] : kNaN;
+    return source + ": the simulated SOC leaves 0-100 % (it reaches " + printf_text("%.1f", 100.0 * *at) +
+           " % at t = " + printf_text("%.1f", t_s) + " s): from its start at SOC " +
+           printf_text("%.1f", 100.0 * trace.initial_soc) + " % the recording " + (below ? "draws" : "charges") +
+           " more than the parameter set's capacity (" + printf_text("%.3f", params.capacity_ah) +
+           " Ah) holds. Beyond its tables the model extrapolates, so the error there says little about the model. "
+           "Is the parameter set this cell's, its capacity right, and the start SOC (--initial-soc)?";
+}
+
 SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options) {
     const auto& p = model.params();
     const std::size_t n = rec.size();

@@ -79,6 +79,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     const estimator::CellModel model(p);
     const auto trace = estimator::simulate(model, rec);
     check(trace.voltage_v.size() == rec.size());
+    (void)estimator::soc_outside_range(p, trace, rec.source);
     const auto metrics = estimator::compare(p, rec, trace);
     check(metrics.voltage_v.rms.has_value());
     check_stats(metrics.voltage_v);

@@ -157,6 +157,28 @@ TEST_F(CliErrors, SimulateSaysWhenTheCellRunsFarFromTheCharacterizationTemperatu
     EXPECT_EQ(followed.output.find("parameter set's characterization"), std::string::npos) << followed.output;
 }
 
+// A recording that draws twice the parameter set's capacity (another cell's set, or a capacity far off): the
+// simulated SOC runs far below 0, where the model extrapolates its tables, and the user is told so rather than left
+// with a "model error" of volts. A discharge within the capacity gets no such warning.
+TEST_F(CliErrors, SimulateSaysWhenTheSimulatedSocLeavesItsRange) {
+    auto recording = [&](const char* name, double discharge_s) {
+        std::string text = "Test Time / s,Voltage / V,Current / A\n";
+        for (int k = 0; k <= 600; ++k) {
+            const double t = k * 20.0;
+            text += std::to_string(t) + "," + (k == 0 ? "4.05" : "3.60") + "," + (k > 0 && t <= discharge_s ? "-9.0" : "0") + "\n";
+        }
+        return write(name, text);
+    };
+    const auto beyond = run("simulate --params " + kThesis.string() + " " + recording("beyond.bdf.csv", 3600).string());
+    ASSERT_EQ(beyond.status, 0) << beyond.output;
+    EXPECT_NE(beyond.output.find("the simulated SOC leaves 0-100 % (it reaches -"), std::string::npos) << beyond.output;
+    EXPECT_NE(beyond.output.find("the recording draws more than the parameter set's capacity"), std::string::npos)
+        << beyond.output;
+    const auto within = run("simulate --params " + kThesis.string() + " " + recording("within.bdf.csv", 900).string());
+    ASSERT_EQ(within.status, 0) << within.output;
+    EXPECT_EQ(within.output.find("the simulated SOC leaves"), std::string::npos) << within.output;
+}
+
 TEST_F(CliErrors, ReferenceFormBdfWithMachineNamesAndOnlyT1IsSimulated) {
     std::string text = "test_time_second,voltage_volt,current_ampere,unix_time_second,step_id,temperature_t1_celsius\n";
     for (int k = 0; k < 300; ++k)

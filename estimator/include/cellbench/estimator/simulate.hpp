@@ -42,6 +42,14 @@ std::string start_outside_ocv_range(const ParameterSet& params, const Recording&
 inline constexpr double kTemperatureOutsideCharacterizationK = 5.0;
 std::string temperature_outside_characterization(const ParameterSet& params, const Recording& rec);
 
+// A simulation whose SOC leaves 0-100 % by more than kSocOutsideRangeMargin: from its start the recording moved
+// more charge than the parameter set's capacity holds (another cell's parameter set, a capacity far off, or a start
+// SOC its first voltage gave wrong), and beyond its tables the model extrapolates, so its error there says little
+// about the model (the P45B's Random Walk with the Panasonic NCR18650PF's set: SOC down to -39 %, "voltage"
+// -8.7 V, 4.6 V RMS). The words to say so; empty when the SOC stays within the range.
+inline constexpr double kSocOutsideRangeMargin = 0.05;
+std::string soc_outside_range(const ParameterSet& params, const SimulationTrace& trace, const std::string& source);
+
 // A recording that starts under load (a drive cycle cut from a longer one, a discharge logged from its first
 // current row): its first voltage less R0 I is not the OCV, for the RC pairs hold the history before it, and the
 // SOC simulate() takes from it can be off by several % (the Panasonic LA92 cut at 4 701 s: 0.642 against the 0.708

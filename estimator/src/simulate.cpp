@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "cellbench/estimator/coulomb.hpp"
+#include "cellbench/estimator/segment.hpp"
 #include "golden.hpp"
 #include "median.hpp"
 #include "printf_text.hpp"
@@ -121,6 +122,27 @@ std::string soc_outside_range(const ParameterSet& params, const SimulationTrace&
            " more than the parameter set's capacity (" + printf_text("%.3f", params.capacity_ah) +
            " Ah) holds. Beyond its tables the model extrapolates, so the error there says little about the model. "
            "Is the parameter set this cell's, its capacity right, and the start SOC (--initial-soc)?";
+}
+
+std::optional<FullChargeStart> initial_soc_from_full_charge(const ParameterSet& params, const Recording& rec) {
+    if (rec.size() < 2 || !(params.capacity_ah > 0)) return std::nullopt;
+    const RecordingSegments seg = segment_recording(rec);
+    std::size_t first_activity = rec.size();  // the first pulse or discharge
+    for (const auto& ph : seg.phases)
+        if (ph.is_pulse() || ph.direction < 0) {
+            first_activity = ph.begin;
+            break;
+        }
+    for (const auto& ph : seg.phases) {
+        if (ph.begin >= first_activity) break;
+        if (ph.direction <= 0 || !ph.cv_tail || ph.kind != PhaseKind::Charge || ph.end > first_activity) continue;
+        const std::size_t last = ph.end - 1;
+        if (!(rec.voltage_v[last] >= params.ocv_at(1.0)) || last >= seg.charge_ah.size()) continue;
+        const double soc = 1.0 - (seg.charge_ah[last] - seg.charge_ah[0]) / params.capacity_ah;
+        if (soc < -0.02 || soc > 1.0) return std::nullopt;
+        return FullChargeStart{std::max(soc, 0.0), rec.time_s[last]};
+    }
+    return std::nullopt;
 }
 
 SimulationTrace simulate(const CellModel& model, const Recording& rec, const SimulationOptions& options) {

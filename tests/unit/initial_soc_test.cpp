@@ -79,3 +79,39 @@ TEST(InitialSoc, ARecordingThatStartsAtItsStepKeepsTheSocOfItsFirstVoltage) {
 }
 
 }  // namespace
+
+// A recording that charges the cell to full before it discharges (the P45B HPPC: a rest at 3.303 V, which the OCV
+// table reads as SOC 10.8 %, then a CCCV charge of 3.63 Ah): the end of that charge is SOC 1, so the start is the
+// counted charge below it, whatever the first voltage says (a cell on another hysteresis branch, or not rested).
+// Here the thesis cell from SOC 0.30: 60 s rest, 1C for 0.6 of its capacity, a taper from 1C with a 400 s time
+// constant to 0.1C (another 0.1), a rest and a 1C discharge. Its first voltage is then moved 60 mV up.
+TEST(InitialSoc, ARecordingThatChargesToFullFirstStartsFromTheCountedCharge) {
+    const auto p = cellbench::test::thesis_parameter_set();
+    const est::CellModel model(p);
+    const double c_a = p.capacity_ah;  // 1C
+    std::vector<double> i(60, 0.0);
+    i.insert(i.end(), 2160, c_a);  // 0.6 of the capacity
+    for (int t = 0; t < 921; ++t) i.push_back(c_a * std::exp(-(t + 0.5) / 400.0));  // 0.1 of it
+    i.insert(i.end(), 600, 0.0);
+    i.insert(i.end(), 1800, -c_a);
+    auto [rec, soc] = drive(model, i, 0.30);
+    ASSERT_GT(soc[60 + 2160 + 920], 0.99) << "the case: the taper ends full";
+    for (std::size_t k = 0; k < 60; ++k) rec.voltage_v[k] += 0.060;
+
+    const auto start = est::initial_soc_from_full_charge(p, rec);
+    ASSERT_TRUE(start.has_value());
+    EXPECT_NEAR(start->soc, 0.30, 0.01);
+    EXPECT_NEAR(start->full_time_s, rec.time_s[60 + 2160 + 920], 2.0);
+    // What the first voltage would give: far off (the case this is for).
+    EXPECT_GT(std::abs(p.soc_from_ocv(rec.voltage_v[0]) - 0.30), 0.05);
+
+    // Without the taper (a CC charge that stops at 0.9, no voltage limit reached) nothing is counted back.
+    std::vector<double> cc_only(i.begin(), i.begin() + 60 + 2160);
+    cc_only.insert(cc_only.end(), 600, 0.0);
+    cc_only.insert(cc_only.end(), 1800, -c_a);
+    EXPECT_FALSE(est::initial_soc_from_full_charge(p, drive(model, cc_only, 0.30).first).has_value());
+    // A discharge before the charge: the first voltage decides, as before.
+    std::vector<double> discharge_first(300, -c_a);
+    discharge_first.insert(discharge_first.end(), i.begin(), i.end());
+    EXPECT_FALSE(est::initial_soc_from_full_charge(p, drive(model, discharge_first, 0.40).first).has_value());
+}

@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <sstream>
 #include <string>
 
@@ -132,9 +133,9 @@ TEST_F(CliErrors, SimulateSaysWhenTheRecordingStartsOutsideTheParameterSetsOcvRa
 TEST_F(CliErrors, SimulateSaysWhenTheCellRunsFarFromTheCharacterizationTemperature) {
     auto recording = [&](const char* name, double surface_c) {
         std::string text = "Test Time / s,Voltage / V,Current / A,Surface Temperature / degC\n";
-        for (int k = 0; k < 120; ++k)
+        for (int k = 0; k < 600; ++k)
             text += std::to_string(k) + "," + (k < 60 ? "3.700" : "3.650") + "," + (k < 60 ? "0" : "-2.0") + "," +
-                    std::to_string(surface_c + 0.01 * k) + "\n";
+                    std::to_string(surface_c + 0.002 * k) + "\n";
         return write(name, text);
     };
     const char* warning = "K below the parameter set's characterization (30.0 degC), and the set holds no temperature "
@@ -155,6 +156,21 @@ TEST_F(CliErrors, SimulateSaysWhenTheCellRunsFarFromTheCharacterizationTemperatu
     const auto followed = run("simulate --params " + p.string() + " " + (dir_ / "cold.bdf.csv").string());
     ASSERT_EQ(followed.status, 0) << followed.output;
     EXPECT_EQ(followed.output.find("parameter set's characterization"), std::string::npos) << followed.output;
+
+    // diagnose says it too, and its report and JSON carry it beside the figures it qualifies.
+    const auto d = run("diagnose --params " + kThesis.string() + " " + (dir_ / "cold.bdf.csv").string() +
+                       " --effects series_resistance_offset --json " + (dir_ / "d.json").string() + " --report " +
+                       (dir_ / "r.html").string());
+    ASSERT_EQ(d.status, 0) << d.output;
+    EXPECT_NE(d.output.find(warning), std::string::npos) << d.output;
+    std::ifstream report(dir_ / "r.html");
+    const std::string html((std::istreambuf_iterator<char>(report)), std::istreambuf_iterator<char>());
+    EXPECT_NE(html.find("Read the figures with these notes"), std::string::npos);
+    EXPECT_NE(html.find("and the set holds no temperature dependence of its resistances"), std::string::npos);
+    std::ifstream json_in(dir_ / "d.json");
+    const auto j = nlohmann::json::parse(json_in);
+    ASSERT_TRUE(j.contains("notes")) << j.dump(2);
+    EXPECT_NE(j["notes"].dump().find(warning), std::string::npos) << j["notes"].dump(2);
 }
 
 // A recording that draws twice the parameter set's capacity (another cell's set, or a capacity far off): the

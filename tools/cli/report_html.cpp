@@ -190,6 +190,7 @@ h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 10px;border-bot
 .meta{display:grid;grid-template-columns:max-content 1fr;gap:2px 14px;margin:10px 0 14px;font-size:13px}
 .meta dt{color:#5b6672}.meta dd{margin:0;overflow-wrap:anywhere}
 .summary{background:#f3f6f9;border-left:4px solid #2f6fb2;padding:10px 14px;margin:12px 0}
+.notes li{color:#7a4b00;margin:4px 0}
 table{border-collapse:collapse;width:100%;table-layout:auto}
 td,th{border-bottom:1px solid #e3e7ec;padding:5px 8px;text-align:left;vertical-align:top;overflow-wrap:anywhere}
 th{font-weight:600;color:#44505c;font-size:12.5px}td.num,th.num{text-align:right;white-space:nowrap}
@@ -296,6 +297,13 @@ std::string render_diagnosis_report(const estimator::Diagnosis& d, const Recordi
     o << "<dt>Produced by</dt><dd>cellbench " << html_escape(cellbench::version_string()) << " (diagnose --report)</dd>";
     o << "</dl></header>";
     o << "<p class='summary'>" << html_escape(d.summary) << "</p>";
+    // What the log warned about the recording against this parameter set (another cell's set, another temperature,
+    // a logger's timing): the figures below are read with it.
+    if (!d.notes.empty()) {
+        o << "<h2>Read the figures with these notes</h2><ul class='notes'>";
+        for (const auto& note : d.notes) o << "<li>" << html_escape(note) << "</li>";
+        o << "</ul>";
+    }
 
     o << "<h2>Model error (RMS, simulated minus measured)</h2><table><tr><th>model</th><th class='num'>voltage</th>"
          "<th class='num'>surface temperature</th><th class='num'>heat flow</th></tr>";

@@ -212,6 +212,7 @@ export function diagnosisView(app, runId) {
           h("span", { style: "margin-left:auto;display:flex;gap:8px" }, file(d, `diagnosis-${j.id}.json`, "Diagnosis JSON"),
             j.improved_params ? file(j.improved_params, `improved-params-${j.id}.json`, "Improved parameter set") : null)),
         d.summary ? h("p.note", { style: "margin:12px 0 0" }, d.summary) : null,
+        ...(d.notes || []).map((n) => h("p.note", { style: "margin:8px 0 0;color:#7a4b00" }, `Note: ${n}`)),
         rmsTable(d)),
       chartsBox,
       diagnosisCard(d, "Findings and where the error sits"));

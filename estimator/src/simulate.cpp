@@ -124,6 +124,24 @@ std::string soc_outside_range(const ParameterSet& params, const SimulationTrace&
            "Is the parameter set this cell's, its capacity right, and the start SOC (--initial-soc)?";
 }
 
+namespace {
+// Unknown history: a cell above half charge at the start was most likely last charged (a test starts after a full
+// CCCV charge), one below, last discharged.
+double initial_hysteresis_v(const ParameterSet& p, double soc) {
+    const auto& h = p.extensions.ocv_hysteresis;
+    return h ? (soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v : 0.0;
+}
+}  // namespace
+
+double soc_from_first_row(const ParameterSet& p, const Recording& rec) {
+    if (rec.size() == 0) return 1.0;
+    // The state the recording implies: a rested cell's voltage is its OCV plus the hysteresis it holds; under
+    // current, remove R0*I.
+    const double soc_guess = p.soc_from_ocv(rec.voltage_v[0]);
+    const double ohmic = ohmic_drop_v(p.rc_at(soc_guess, -1), p.rc_at(soc_guess, +1), rec.current_a[0]);
+    return p.soc_from_ocv(rec.voltage_v[0] - ohmic - initial_hysteresis_v(p, soc_guess));
+}
+
 std::optional<FullChargeStart> initial_soc_from_full_charge(const ParameterSet& params, const Recording& rec) {
     if (rec.size() < 2 || !(params.capacity_ah > 0)) return std::nullopt;
     const RecordingSegments seg = segment_recording(rec);
@@ -140,7 +158,9 @@ std::optional<FullChargeStart> initial_soc_from_full_charge(const ParameterSet& 
         if (!(rec.voltage_v[last] >= params.ocv_at(1.0)) || last >= seg.charge_ah.size()) continue;
         const double soc = 1.0 - (seg.charge_ah[last] - seg.charge_ah[0]) / params.capacity_ah;
         if (soc < -0.02 || soc > 1.0) return std::nullopt;
-        return FullChargeStart{std::max(soc, 0.0), rec.time_s[last]};
+        const double first_row_soc = std::clamp(soc_from_first_row(params, rec), 0.0, 1.0);
+        if (std::abs(soc - first_row_soc) <= kFullChargeContradictsFirstRowSoc) return std::nullopt;
+        return FullChargeStart{std::max(soc, 0.0), rec.time_s[last], first_row_soc};
     }
     return std::nullopt;
 }
@@ -171,23 +191,8 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     CellState s;
     s.temperature_c = options.initial_temperature_c.value_or(std::isfinite(first_surface) ? first_surface
                                                                                           : ambient_at(0));
-    // Unknown history: a cell above half charge at the start was most likely last charged (a test starts after a
-    // full CCCV charge), one below, last discharged.
-    auto initial_hysteresis_v = [&](double soc) {
-        const auto& h = p.extensions.ocv_hysteresis;
-        return h ? (soc > 0.5 ? 1.0 : -1.0) * h->magnitude_v : 0.0;
-    };
-    if (options.initial_soc) {
-        s.soc = *options.initial_soc;
-    } else {
-        // The state the recording implies: a rested cell's voltage is its OCV plus the hysteresis it holds; under
-        // current, remove R0*I.
-        const double soc_guess = p.soc_from_ocv(rec.voltage_v[0]);
-        const double ohmic = ohmic_drop_v(p.rc_at(soc_guess, -1), p.rc_at(soc_guess, +1), rec.current_a[0]);
-        s.soc = p.soc_from_ocv(rec.voltage_v[0] - ohmic - initial_hysteresis_v(soc_guess));
-    }
-    s.soc = std::clamp(s.soc + options.initial_soc_offset, 0.0, 1.0);
-    s.hysteresis_v = initial_hysteresis_v(s.soc);
+    s.soc = std::clamp(options.initial_soc.value_or(soc_from_first_row(p, rec)) + options.initial_soc_offset, 0.0, 1.0);
+    s.hysteresis_v = initial_hysteresis_v(p, s.soc);
     tr.initial_soc = s.soc;
     tr.ambient_c = ambient_const;
 

@@ -82,7 +82,8 @@ TEST(InitialSoc, ARecordingThatStartsAtItsStepKeepsTheSocOfItsFirstVoltage) {
 
 // A recording that charges the cell to full before it discharges (the P45B HPPC: a rest at 3.303 V, which the OCV
 // table reads as SOC 10.8 %, then a CCCV charge of 3.63 Ah): the end of that charge is SOC 1, so the start is the
-// counted charge below it, whatever the first voltage says (a cell on another hysteresis branch, or not rested).
+// counted charge below it where the first voltage says otherwise by more than 2 % (a cell on another hysteresis
+// branch, or not rested).
 // Here the thesis cell from SOC 0.30: 60 s rest, 1C for 0.6 of its capacity, a taper from 1C with a 400 s time
 // constant to 0.1C (another 0.1), a rest and a 1C discharge. Its first voltage is then moved 60 mV up.
 TEST(InitialSoc, ARecordingThatChargesToFullFirstStartsFromTheCountedCharge) {
@@ -105,6 +106,8 @@ TEST(InitialSoc, ARecordingThatChargesToFullFirstStartsFromTheCountedCharge) {
     // What the first voltage would give: far off (the case this is for).
     EXPECT_GT(std::abs(p.soc_from_ocv(rec.voltage_v[0]) - 0.30), 0.05);
 
+    // The same recording with its true first voltage: the count agrees with it, and the first row stands.
+    EXPECT_FALSE(est::initial_soc_from_full_charge(p, drive(model, i, 0.30).first).has_value());
     // Without the taper (a CC charge that stops at 0.9, no voltage limit reached) nothing is counted back.
     std::vector<double> cc_only(i.begin(), i.begin() + 60 + 2160);
     cc_only.insert(cc_only.end(), 600, 0.0);

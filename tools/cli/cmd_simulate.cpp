@@ -49,8 +49,9 @@ int run_simulate(const SimulateOptions& o) {
         so.initial_soc = full->soc;
         initial_soc_source = fmt::format("counted back from the full charge ending at {:.0f} s", full->full_time_s);
         spdlog::info("{}: it charges the cell to full at {:.0f} s before any discharge: initial SOC {:.3f} counted back "
-                     "from there (the SOC at the end of a full charge is 1, as the fit's); give --initial-soc to set it",
-                     o.recording, full->full_time_s, full->soc);
+                     "from there (the SOC at the end of a full charge is 1, as the fit's), where its first voltage gives "
+                     "{:.3f}; give --initial-soc to set it",
+                     o.recording, full->full_time_s, full->soc, full->first_row_soc);
     } else if (const auto start = estimator::fit_initial_soc_under_load(model, rec, so)) {
         so.initial_soc = start->soc;
         initial_soc_source = fmt::format("fitted to the first {:.0f} s", start->window_s);

@@ -121,7 +121,7 @@ std::string soc_outside_range(const ParameterSet& params, const SimulationTrace&
            printf_text("%.1f", 100.0 * trace.initial_soc) + " % the recording " + (below ? "draws" : "charges") +
            " more than the parameter set's capacity (" + printf_text("%.3f", params.capacity_ah) +
            " Ah) holds. Beyond its tables the model extrapolates, so the error there says little about the model. "
-           "Is the parameter set this cell's, its capacity right, and the start SOC (--initial-soc)?";
+           "Is the parameter set this cell's, its capacity right, and the recording's start SOC?";
 }
 
 namespace {

@@ -64,7 +64,7 @@ int run_simulate(const SimulateOptions& o) {
     const auto trace = estimator::simulate(model, rec, so);
     const auto metrics = estimator::compare(params, rec, trace);
     if (const auto warning = estimator::soc_outside_range(params, trace, rec.source); !warning.empty())
-        spdlog::warn("{}", warning);
+        spdlog::warn("{} (--initial-soc sets it)", warning);
     spdlog::info("simulated {} samples ({:.0f} s) from SOC {:.3f}, ambient {:.2f} degC{}", rec.size(),
                  rec.time_s.back() - rec.time_s.front(), trace.initial_soc, trace.ambient_c,
                  rec.has_ambient() ? " (measured)" : " (constant)");

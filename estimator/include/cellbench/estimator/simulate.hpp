@@ -81,9 +81,8 @@ double soc_from_first_row(const ParameterSet& params, const Recording& rec);
 // SOC only where it contradicts it by more than kFullChargeContradictsFirstRowSoc: a full charge's end is SOC 1 only
 // to within its termination current (C/20 against C/50 is most of a percent), and on the independent plant's
 // characterization files, which start rested, the two agree within 0.3 % (seeds 9 and 1, three files each: their
-// simulation unchanged). nullopt
-// without such a charge, where the count puts the start outside -2..100 % (a capacity that does not fit the
-// recording), or where the first row's SOC stands.
+// simulation unchanged). nullopt without such a charge, where the count puts the start outside -2..100 % (a
+// capacity that does not fit the recording), or where the first row's SOC stands.
 inline constexpr double kFullChargeContradictsFirstRowSoc = 0.02;
 struct FullChargeStart {
     double soc = 0.0;            // the start, counted back from the full charge

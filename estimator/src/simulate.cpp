@@ -157,7 +157,7 @@ std::optional<FullChargeStart> initial_soc_from_full_charge(const ParameterSet& 
         const std::size_t last = ph.end - 1;
         if (!(rec.voltage_v[last] >= params.ocv_at(1.0)) || last >= seg.charge_ah.size()) continue;
         const double soc = 1.0 - (seg.charge_ah[last] - seg.charge_ah[0]) / params.capacity_ah;
-        if (soc < -0.02 || soc > 1.0) return std::nullopt;
+        if (!std::isfinite(soc) || soc < -0.02 || soc > 1.0) return std::nullopt;  // NaN: a current cell missing
         const double first_row_soc = std::clamp(soc_from_first_row(params, rec), 0.0, 1.0);
         if (std::abs(soc - first_row_soc) <= kFullChargeContradictsFirstRowSoc) return std::nullopt;
         return FullChargeStart{std::max(soc, 0.0), rec.time_s[last], first_row_soc};

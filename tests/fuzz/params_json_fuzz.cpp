@@ -76,6 +76,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     const Recording& rec = recording();
     (void)estimator::start_outside_ocv_range(p, rec);
     (void)estimator::temperature_outside_characterization(p, rec);
+    (void)estimator::initial_soc_from_full_charge(p, rec);
     const estimator::CellModel model(p);
     const auto trace = estimator::simulate(model, rec);
     check(trace.voltage_v.size() == rec.size());

@@ -359,7 +359,9 @@ void leave_out_other_ambients(std::vector<Recording>& recordings, std::vector<Re
     if (!std::isfinite(lo)) return;
     if (hi - lo > kOtherAmbientK)
         throw InputError(printf_text("characterization: %s was made at %.1f degC and %s at %.1f degC: one fit is one "
-                                     "ambient temperature; fit each on its own",
+                                     "ambient temperature; fit each on its own (to carry one set to the other "
+                                     "temperature, `cellbench diagnose --improved` of a recording made there "
+                                     "identifies the resistances' temperature dependence: docs/command-line.md)",
                                      recordings[lo_r].source.c_str(), lo, recordings[hi_r].source.c_str(), hi));
     const double ref = 0.5 * (lo + hi);
     for (std::size_t r = recordings.size(); r-- > 0;) {

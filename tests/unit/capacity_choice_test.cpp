@@ -107,6 +107,8 @@ TEST(CapacityChoice, ARecordingAtAnotherAmbientTemperatureIsLeftOutAndSaysSo) {
         EXPECT_NE(what.find(hppc.source), std::string::npos) << what;
         EXPECT_NE(what.find(warm_hppc.source), std::string::npos) << what;
         EXPECT_NE(what.find("fit each on its own"), std::string::npos) << what;
+        // and how to carry one set to the other temperature
+        EXPECT_NE(what.find("`cellbench diagnose --improved` of a recording made there"), std::string::npos) << what;
     }
 }
 

@@ -328,12 +328,7 @@ double capacity_disagreement_ah(const GlobalFitResult& g, double capacity_ah) {
 // The temperature a recording was made at: its ambient column's median, else its first surface reading (a test
 // starts rested at the chamber's temperature). NaN without either.
 double ambient_of(const Recording& rec) {
-    if (rec.has_ambient()) {
-        std::vector<double> a;
-        for (const double v : rec.ambient_c)
-            if (std::isfinite(v)) a.push_back(v);
-        return upper_median(std::move(a));
-    }
+    if (rec.has_ambient()) return finite_upper_median(rec.ambient_c);
     for (const double v : rec.surface_c)
         if (std::isfinite(v)) return v;
     return kNaN;

@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <iterator>
 #include <limits>
 #include <optional>
 #include <string>
@@ -86,14 +85,10 @@ std::string start_outside_ocv_range(const ParameterSet& params, const Recording&
 
 std::string temperature_outside_characterization(const ParameterSet& params, const Recording& rec) {
     if (params.extensions.resistance_temperature) return {};
-    auto median_of = [](const std::vector<double>& v) {
-        std::vector<double> finite;
-        finite.reserve(v.size());
-        std::copy_if(v.begin(), v.end(), std::back_inserter(finite), [](double x) { return std::isfinite(x); });
-        return upper_median(std::move(finite));
-    };
     const bool surface = rec.has_surface();
-    const double cell_c = surface ? median_of(rec.surface_c) : rec.has_ambient() ? median_of(rec.ambient_c) : kNaN;
+    const double cell_c = surface             ? finite_upper_median(rec.surface_c)
+                          : rec.has_ambient() ? finite_upper_median(rec.ambient_c)
+                                              : kNaN;
     if (!std::isfinite(cell_c) ||
         std::abs(cell_c - params.reference_temperature_c) <= kTemperatureOutsideCharacterizationK)
         return {};

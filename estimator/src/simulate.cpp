@@ -186,7 +186,8 @@ SimulationTrace simulate(const CellModel& model, const Recording& rec, const Sim
     CellState s;
     s.temperature_c = options.initial_temperature_c.value_or(std::isfinite(first_surface) ? first_surface
                                                                                           : ambient_at(0));
-    s.soc = std::clamp(options.initial_soc.value_or(soc_from_first_row(p, rec)) + options.initial_soc_offset, 0.0, 1.0);
+    s.soc = std::clamp((options.initial_soc ? *options.initial_soc : soc_from_first_row(p, rec)) + options.initial_soc_offset,
+                       0.0, 1.0);
     s.hysteresis_v = initial_hysteresis_v(p, s.soc);
     tr.initial_soc = s.soc;
     tr.ambient_c = ambient_const;

@@ -190,7 +190,7 @@ struct Builder {
         // The same curvature prior per unit SOC as on the knot grid (Curvature: on a uniform grid of spacing
         // ref_ds / m, each squared second difference weighs m^3 times).
         for (int j = 1; j + 1 < grid.ocv_n(); ++j) {
-            const bool pinned = j % grid.m != 0 && !(j < static_cast<int>(ocv_free.size()) && ocv_free[j]);
+            const bool pinned = !grid.ocv_on_knot(j) && !(j < static_cast<int>(ocv_free.size()) && ocv_free[j]);
             ocv_smooth_costs.emplace_back(new ceres::AutoDiffCostFunction<OcvSmoothCost, 1, 1, 1, 1>(
                 new OcvSmoothCost{std::sqrt(weight * ocv_rel) * (pinned ? 1e3 : 1.0),
                                   Curvature(grid.ocv_width(j - 1), grid.ocv_width(j), grid.ref_ds)}));
@@ -775,6 +775,14 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
         const double typical = upper_median(std::move(gaps));
         while (s_lo < k.front() - 0.01) k.insert(k.begin(), std::max(s_lo, k.front() - typical));
         while (s_hi > k.back() + 0.01) k.push_back(std::min(s_hi, k.back() + typical));
+        // A shorter stretch below the lowest level gets an OCV knot of its own (not one of the tables: no pulse
+        // there identifies the pairs). Towards empty the OCV of every chemistry bends hardest, and the last
+        // interval's straight line continued beyond the level made the fit bend the OCV at the level instead
+        // (plant random seed 63, an LFP discharged to the cut-off 0.7 % of SOC below its lowest level at 1 %,
+        // where its OCV falls 150 mV: the OCV at that level 27 mV below its own rest, the pulse window above it fitted
+        // at 11.8 mV, tau2 257 % off at 15 % SOC). Above the highest level nothing alike: a charge's end
+        // overshoots it by a few tenths of a percent, on a taper.
+        if (s_lo < k.front() - 0.002) b.grid.ocv_prefix = 1, b.grid.ocv_prefix_soc = s_lo;
         b.grid.set_knots(std::move(k));
     } else {
         const double ds = std::isfinite(options.knot_spacing) ? options.knot_spacing : 0.1;
@@ -1189,7 +1197,6 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     if (no_charge)
         out.notes.push_back("no charging current above C/5 in the recordings: the charge direction is not identified "
                             "and takes the discharge values");
-    const int m = b.grid.m;
     // The sample interval at the pulses' current steps (their median): a first pair that relaxes within two of
     // them is seen at one or two rows after each step, where the ohmic jump, the pair's growth and the step's place
     // in its interval (step_lag) trade against one another. R0 and R1 are then not told apart, only their sum: the
@@ -1240,8 +1247,8 @@ GlobalFitResult fit_global(const std::vector<const Recording*>& recordings,
     out.charge.resize(n_ocv);
     std::vector<double> bend_r0(b.grid.n, 0.0);  // per knot interval: the discharge R0's largest interpolation sd, relative
     for (int j = 0; j < n_ocv; ++j) {
-        const int ka = std::min(j / m, b.grid.n - 1), kb = std::min(ka + 1, b.grid.n - 1);
-        const double w = static_cast<double>(j - ka * m) / m;  // 0 at a knot
+        const auto [ka, w] = b.grid.ocv_knot_position(j);  // w 0 at a knot
+        const int kb = std::min(ka + 1, b.grid.n - 1);
         p.soc.push_back(b.grid.ocv_soc(j));
         p.ocv_v.push_back(b.ocv[j]);
         FittedValue ocv{b.ocv[j], std::sqrt(cov(n_rc + j, n_rc + j)), {}};

@@ -126,17 +126,34 @@ struct Grid {
         const auto it = std::lower_bound(knot.begin(), knot.end(), s - 1e-12);
         return std::min(static_cast<int>(it - knot.begin()), n - 1);
     }
-    [[nodiscard]] int ocv_n() const { return (n - 1) * m + 1; }
+    // OCV knots below the first knot: a stretch the data reach below the lowest level that is too short for a knot
+    // of the tables (a discharge to the cut-off), where no pulse identifies the pairs (held at the first knot's
+    // values, as outside the table) but the OCV bends hardest (see fit_global).
+    int ocv_prefix = 0;
+    double ocv_prefix_soc = 0.0;
+    [[nodiscard]] int ocv_n() const { return ocv_prefix + (n - 1) * m + 1; }
     [[nodiscard]] double ocv_soc(int j) const {
+        if (j < ocv_prefix) return ocv_prefix_soc;
+        j -= ocv_prefix;
         const int k = std::min(j / m, n - 2);
         return knot[k] + (knot[k + 1] - knot[k]) * static_cast<double>(j - k * m) / m;
+    }
+    // OCV knot j sits on a knot of the tables (else between two, or below the first).
+    [[nodiscard]] bool ocv_on_knot(int j) const { return j >= ocv_prefix && (j - ocv_prefix) % m == 0; }
+    // The knot interval [k, k + 1] and the weight within it where OCV knot j lies (k = 0, weight 0 below the table).
+    [[nodiscard]] std::pair<int, double> ocv_knot_position(int j) const {
+        if (j < ocv_prefix) return {0, 0.0};
+        j -= ocv_prefix;
+        const int k = std::min(j / m, n - 1);
+        return {k, static_cast<double>(j - k * m) / m};
     }
     [[nodiscard]] double ocv_width(int j) const { return j + 1 < ocv_n() ? ocv_soc(j + 1) - ocv_soc(j) : ref_ds / m; }
     // The OCV interval [j, j + 1] holding s (clamped: j in [0, ocv_n() - 2]).
     [[nodiscard]] int ocv_interval(double s) const {
         const int k = interval(s);
+        if (ocv_prefix > 0 && s < knot[0]) return 0;
         const int r = std::clamp(static_cast<int>(std::floor((s - knot[k]) / width(k) * m)), 0, m - 1);
-        return std::clamp(k * m + r, 0, ocv_n() - 2);
+        return std::clamp(ocv_prefix + k * m + r, 0, ocv_n() - 2);
     }
     [[nodiscard]] int ocv_at_or_above(double s) const {
         int j = ocv_interval(s);

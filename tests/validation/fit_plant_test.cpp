@@ -351,6 +351,32 @@ TEST(FitOnIndependentPlantLfp, SteepOcvEndsDoNotCollapseTheRcPairs) {
     EXPECT_LT(e.drive_rms_mv, 8.0);
 }
 
+// The random layout's seed 63 is an LFP cell whose HPPC ends with a discharge to the cut-off 0.7 % of SOC below its
+// lowest pulse level (1.0 %), where its OCV falls 150 mV. The table's breakpoints ended at that level and a stretch
+// less than 1 % beyond it got none, so the OCV there was the last interval's straight line: the fit bent the OCV at
+// the level 27 mV below its own rest to absorb the stretch, the pulse window at 1-11 % was fitted at 11.8 mV, and the
+// second pair took the rest: tau2 257 % and R1+R2 37 % off at 10-20 % SOC (found in session 54 on seeds 61-80).
+// Such a stretch now gets an OCV knot of its own (not one of the tables': no pulse there identifies the pairs):
+// OCV 0.45 mV, R1+R2 3.5 %, tau2 11 %.
+TEST(FitOnIndependentPlantLfp, ADischargeJustBelowTheLowestLevelGetsAnOcvKnotOfItsOwn) {
+    plant::PlantOptions o;
+    o.seed = 63;
+    o.layout = plant::Layout::random;
+    const auto d = plant::generate(o);
+    ASSERT_EQ(d.truth.chemistry, "lfp");
+    const auto c = characterize_plant(d);
+    ASSERT_TRUE(c.global.has_value());
+    const auto e = compare(c, d, to_recording(d.drive, "drive"), compared_soc_range(d, plant::Layout::random));
+    std::printf("random seed 63 (lfp): OCV %.2f mV, R0 %.2f %%, R1+R2 %.1f %%, tau1 %.1f %%, tau2 %.1f %%, drive %.2f mV\n",
+                e.ocv_mv, 100 * e.r0, 100 * e.r12, 100 * e.tau1, 100 * e.tau2, e.drive_rms_mv);
+    EXPECT_LT(e.ocv_mv, 5.0);
+    EXPECT_LT(e.r0, 0.02);
+    EXPECT_LT(e.r12, 0.10);
+    EXPECT_LT(e.tau1, 0.25);
+    EXPECT_LT(e.tau2, 0.25);
+    EXPECT_LT(e.drive_rms_mv, 6.0);
+}
+
 // Another cell than an 18650: the plant's seed 5 scaled to a 60 Ah pouch (resistances / 16, C_th x 16, R_th 0.41 K/W
 // instead of 6.5). The thermal fit searched R_th from 0.5 K/W up and held it there (22.8 % off, unflagged); the
 // tables, the capacity and the drive must come out as on the small cell.

@@ -150,8 +150,8 @@ struct Grid {
     [[nodiscard]] double ocv_width(int j) const { return j + 1 < ocv_n() ? ocv_soc(j + 1) - ocv_soc(j) : ref_ds / m; }
     // The OCV interval [j, j + 1] holding s (clamped: j in [0, ocv_n() - 2]).
     [[nodiscard]] int ocv_interval(double s) const {
-        const int k = interval(s);
         if (ocv_prefix > 0 && s < knot[0]) return 0;
+        const int k = interval(s);
         const int r = std::clamp(static_cast<int>(std::floor((s - knot[k]) / width(k) * m)), 0, m - 1);
         return std::clamp(ocv_prefix + k * m + r, 0, ocv_n() - 2);
     }
